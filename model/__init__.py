@@ -1,0 +1,4 @@
+"""Pure PyTorch/NumPy model library: frame format, data generation, methods, training, evaluation.
+
+Knows nothing of HTTP or Celery.
+"""

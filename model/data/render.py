@@ -1,0 +1,299 @@
+"""Rendering one animated scene into frame bundles with Mitsuba 3.
+
+`mi.render` cannot place one sample at a chosen position per pixel, nor split diffuse from specular radiance,
+so the noisy frame comes from a short path tracer here (next-event estimation with MIS, Russian roulette, the
+same depth semantics as Mitsuba's `path` integrator, whose `mi.render` makes the references). Everything is
+computed from the camera sample at (x + 0.5 + jitter_x, y + 0.5 + jitter_y): the radiance, the guide buffers
+from the first hit, and motion vectors from the previous frame's camera and object transforms.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from model.data.camera import Camera, frame_jitter
+from model.data.mitsuba_backend import load_mitsuba
+from model.data.scenes import AnimatedScene, ImageTexture, Material
+from model.data.transforms import apply_to_points
+from model.frames import FrameBundle, box_downsample
+
+# Sky pixels have no surface point; their motion is that of a point this far along the view ray.
+SKY_DISTANCE = 1.0e4
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    width: int = 128
+    height: int = 128
+    ref_spp: int = 1024
+    # Target scales of the references; a scale-1 reference is the 2x2 mean of the scale-2 one when both exist.
+    ref_scales: tuple[int, ...] = (1, 2)
+    max_depth: int = 6
+    rr_depth: int = 5
+    variant: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.width < 1 or self.height < 1:
+            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        if self.ref_spp < 1:
+            raise ValueError(f"ref_spp must be >= 1, got {self.ref_spp}")
+        if not self.ref_scales or any(s not in (1, 2, 4) for s in self.ref_scales):
+            raise ValueError(f"ref_scales must be a non-empty subset of (1, 2, 4), got {self.ref_scales}")
+        if self.max_depth < 1:
+            raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
+
+
+def frame_seed(seed: int, frame_index: int, purpose: str) -> int:
+    """A 31-bit seed per (sequence seed, frame, purpose): frames and passes never share random numbers."""
+    return zlib.crc32(f"{seed}:{frame_index}:{purpose}".encode()) & 0x7FFFFFFF
+
+
+class SceneRenderer:
+    """Renders the frames of one `AnimatedScene` at fixed settings; one instance per sequence."""
+
+    def __init__(self, scene: AnimatedScene, settings: RenderSettings, seed: int):
+        self.scene, self.settings, self.seed = scene, settings, seed
+        self.mi = load_mitsuba(settings.variant)
+        if self.mi.variant() == "scalar_rgb":
+            raise RuntimeError("the 1spp path tracer needs a vectorized Mitsuba variant (llvm_ad_rgb or "
+                               "cuda_ad_rgb); install libLLVM-19 (Debian libllvm19, scripts/setup.sh does it)")
+        import drjit as dr
+
+        self.dr = dr
+
+    # ------------------------------------------------------------------------------------ scene building
+
+    def _transform(self, matrix: np.ndarray):
+        return self.mi.ScalarTransform4f(matrix.tolist())
+
+    def _texture(self, reflectance) -> dict:
+        if isinstance(reflectance, ImageTexture):
+            return {"type": "bitmap", "bitmap": self.mi.Bitmap(reflectance.pixels), "raw": True,
+                    "filter_type": "bilinear", "wrap_mode": "repeat",
+                    "to_uv": self.mi.ScalarTransform4f().scale([reflectance.tiles, reflectance.tiles, 1.0])}
+        return {"type": "rgb", "value": list(reflectance)}
+
+    def _bsdf(self, material: Material) -> dict:
+        alpha = max(material.roughness ** 2, 1e-3)
+        reflectance = self._texture(material.reflectance)
+        if material.kind == "diffuse":
+            return {"type": "diffuse", "reflectance": reflectance}
+        if material.kind == "plastic":
+            return {"type": "roughplastic", "distribution": "ggx", "alpha": alpha, "int_ior": 1.5,
+                    "diffuse_reflectance": reflectance}
+        if material.kind == "metal":
+            if material.roughness == 0.0:
+                return {"type": "conductor", "material": "none", "specular_reflectance": reflectance}
+            return {"type": "roughconductor", "material": "none", "distribution": "ggx", "alpha": alpha,
+                    "specular_reflectance": reflectance}
+        if material.kind == "glass":
+            if material.roughness == 0.0:
+                return {"type": "dielectric", "int_ior": 1.5}
+            return {"type": "roughdielectric", "distribution": "ggx", "alpha": alpha, "int_ior": 1.5}
+        raise ValueError(f"unknown material kind {material.kind!r}")
+
+    def _sensor(self, camera: Camera, width: int, height: int, spp: int) -> dict:
+        return {"type": "perspective", "fov": camera.fov, "fov_axis": "x", "near_clip": 0.01,
+                "far_clip": 2 * SKY_DISTANCE, "to_world": self._transform(camera.to_world()),
+                "film": {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
+                         # A box filter keeps pixel noise independent; Mitsuba's default Gaussian correlates it.
+                         "rfilter": {"type": "box"}},
+                "sampler": {"type": "independent", "sample_count": spp}}
+
+    def _scene_dict(self, frame_index: int, sensor: dict) -> dict:
+        s = self.settings
+        scene: dict = {"type": "scene", "sensor": sensor,
+                       "integrator": {"type": "path", "max_depth": s.max_depth, "rr_depth": s.rr_depth}}
+        if any(c > 0 for c in self.scene.sky):
+            scene["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": list(self.scene.sky)}}
+        for obj in self.scene.objects:
+            shape = {"type": obj.shape, "to_world": self._transform(obj.transforms[frame_index]),
+                     "bsdf": self._bsdf(obj.material)}
+            if obj.emission is not None:
+                shape["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": list(obj.emission)}}
+            scene[obj.name] = shape
+        return scene
+
+    # ------------------------------------------------------------------------------------------ rendering
+
+    def render_frame(self, frame_index: int) -> FrameBundle:
+        s, scene = self.settings, self.scene
+        camera = scene.cameras[frame_index]
+        jitter = frame_jitter(frame_index)
+        mi_scene = self.mi.load_dict(self._scene_dict(frame_index, self._sensor(camera, s.width, s.height, 1)))
+        traced = self._trace_1spp(mi_scene, jitter, frame_seed(self.seed, frame_index, "1spp"))
+        motion = self._motion(frame_index, traced, jitter)
+        references = self._references(mi_scene, camera, frame_index)
+        shape_index = traced["shape_index"]
+        roughness_table, specular_table, diffuse_table = self._material_tables()
+        hit = shape_index >= 0
+        safe = np.where(hit, shape_index, 0)
+        roughness = np.where(hit, roughness_table[safe], 0.0)
+        specular_albedo = np.where(hit[..., None], specular_table[safe], 0.0)
+        # Mitsuba's diffuse reflectance of metals and glass is not a diffuse albedo: keep it to diffuse lobes.
+        albedo = traced["albedo"] * np.where(hit, diffuse_table[safe], 0.0)[..., None]
+        h, w = s.height, s.width
+        return FrameBundle(
+            color=traced["color"].reshape(h, w, 3), albedo=np.clip(albedo, 0, 1).reshape(h, w, 3),
+            normal=traced["normal"].reshape(h, w, 3), depth=traced["depth"].reshape(h, w),
+            motion=motion.reshape(h, w, 2), jitter=jitter, frame_index=frame_index, sequence="",
+            camera_cut=frame_index in scene.cuts,
+            diffuse=traced["diffuse"].reshape(h, w, 3), specular=traced["specular"].reshape(h, w, 3),
+            specular_albedo=specular_albedo.reshape(h, w, 3).astype(np.float32),
+            roughness=roughness.reshape(h, w).astype(np.float32), references=references)
+
+    def _material_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        objects = self.scene.objects
+        roughness = np.array([o.material.roughness for o in objects], dtype=np.float32)
+        specular = np.array([o.material.specular_albedo for o in objects], dtype=np.float32).reshape(-1, 3)
+        has_diffuse = np.array([o.material.kind in ("diffuse", "plastic") for o in objects], dtype=np.float32)
+        return roughness, specular, has_diffuse
+
+    def _references(self, mi_scene, camera: Camera, frame_index: int) -> dict[int, np.ndarray]:
+        s = self.settings
+        top = max(s.ref_scales)
+        sensor = self.mi.load_dict(self._sensor(camera, s.width * top, s.height * top, s.ref_spp))
+        image = self.mi.render(mi_scene, sensor=sensor, spp=s.ref_spp,
+                               seed=frame_seed(self.seed, frame_index, "reference"))
+        image = np.asarray(image, dtype=np.float32)[..., :3]
+        return {scale: box_downsample(image, top // scale) for scale in s.ref_scales}
+
+    def _trace_1spp(self, mi_scene, jitter: tuple[float, float], seed: int) -> dict[str, np.ndarray]:
+        """One path per pixel at the jittered sample position; returns flat NumPy buffers (H*W, ...)."""
+        mi, dr, s = self.mi, self.dr, self.settings
+        count = s.width * s.height
+        sensor = mi_scene.sensors()[0]
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(seed, count)
+        index = dr.arange(mi.UInt32, count)
+        x = mi.Float(index % s.width)
+        y = mi.Float(index // s.width)
+        film_position = mi.Point2f((x + 0.5 + jitter[0]) / s.width, (y + 0.5 + jitter[1]) / s.height)
+        ray, _ = sensor.sample_ray_differential(0.0, sampler.next_1d(), film_position, mi.Point2f(0.5, 0.5))
+        camera_ray = mi.Ray3f(ray)
+
+        ctx = mi.BSDFContext()
+        throughput = mi.Spectrum(1.0)
+        diffuse, specular = mi.Spectrum(0.0), mi.Spectrum(0.0)
+        active = mi.Bool(True)
+        first_lobe_diffuse = mi.Bool(False)
+        previous_si = dr.zeros(mi.SurfaceInteraction3f)
+        previous_pdf, previous_delta = mi.Float(1.0), mi.Bool(True)
+        eta = mi.Float(1.0)
+        guides = {}
+        current = mi.Ray3f(camera_ray)
+        for depth in range(s.max_depth):
+            si = mi_scene.ray_intersect(current, ray_flags=mi.RayFlags.All, coherent=depth == 0, active=active)
+            bsdf = si.bsdf(current)
+            if depth == 0:
+                guides = self._first_hit_guides(mi_scene, si, bsdf)
+
+            # Emission reached by the sampled direction, MIS-weighted against next-event estimation.
+            emitter = si.emitter(mi_scene, active)
+            direction_sample = mi.DirectionSample3f(mi_scene, si, previous_si)
+            emitter_pdf = mi.Float(0.0) if depth == 0 else mi_scene.pdf_emitter_direction(
+                previous_si, direction_sample, ~previous_delta)
+            emitted = throughput * _mis_weight(dr, previous_pdf, emitter_pdf) * emitter.eval(si, active)
+            emitted = dr.select(active, emitted, 0.0)
+            if depth == 0:
+                specular += emitted  # seen directly: no lobe was sampled, so it is not diffuse radiance
+            else:
+                diffuse += dr.select(first_lobe_diffuse, emitted, 0.0)
+                specular += dr.select(first_lobe_diffuse, 0.0, emitted)
+            if depth + 1 >= s.max_depth:
+                break
+
+            active_next = active & si.is_valid()
+            # Next-event estimation at this vertex.
+            active_nee = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            light_sample, light_weight = mi_scene.sample_emitter_direction(si, sampler.next_2d(), True, active_nee)
+            active_nee &= light_sample.pdf != 0.0
+            wo = si.to_local(light_sample.d)
+            bsdf_value, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, active_nee)
+            nee_mis = dr.select(light_sample.delta, 1.0, _mis_weight(dr, light_sample.pdf, bsdf_pdf))
+            direct = dr.select(active_nee, throughput * nee_mis * bsdf_value * light_weight, 0.0)
+
+            # Sample the BSDF to continue the path; the first sampled lobe decides the path's buffer.
+            sample, weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
+            if depth == 0:
+                first_lobe_diffuse = mi.has_flag(sample.sampled_type, mi.BSDFFlags.Diffuse)
+            diffuse += dr.select(first_lobe_diffuse, direct, 0.0)
+            specular += dr.select(first_lobe_diffuse, 0.0, direct)
+
+            throughput *= weight
+            eta *= sample.eta
+            current = si.spawn_ray(si.to_world(sample.wo))
+            previous_si = si
+            previous_pdf = sample.pdf
+            previous_delta = mi.has_flag(sample.sampled_type, mi.BSDFFlags.Delta)
+            active = active_next & (sample.pdf > 0.0) & (dr.max(throughput) > 0.0)
+            if depth + 1 >= s.rr_depth:
+                survive = dr.minimum(dr.max(throughput) * dr.square(eta), 0.95)
+                active &= sampler.next_1d() < survive
+                throughput *= dr.select(active, dr.rcp(survive), 0.0)
+            dr.eval(diffuse, specular, throughput, current, active, previous_si, previous_pdf, previous_delta,
+                    first_lobe_diffuse, eta)
+
+        result = {name: _to_numpy(value) for name, value in guides.items()}
+        result["diffuse"] = np.maximum(_to_numpy(diffuse), 0.0)
+        result["specular"] = np.maximum(_to_numpy(specular), 0.0)
+        result["color"] = result["diffuse"] + result["specular"]
+        result["view_direction"] = _to_numpy(camera_ray.d)
+        result["camera_origin"] = _to_numpy(camera_ray.o)
+        result["film_position"] = np.stack([_to_numpy(x) + 0.5 + jitter[0], _to_numpy(y) + 0.5 + jitter[1]], 1)
+        return result
+
+    def _first_hit_guides(self, mi_scene, si, bsdf) -> dict:
+        mi, dr = self.mi, self.dr
+        valid = si.is_valid()
+        shape_index = mi.Int32(-1)
+        shape_names = [obj.name for obj in self.scene.objects]
+        for shape in mi_scene.shapes():
+            position = shape_names.index(shape.id())
+            shape_index = dr.select(valid & (si.shape == mi.ShapePtr(shape)), position, shape_index)
+        albedo = dr.select(valid, bsdf.eval_diffuse_reflectance(si, valid), 0.0)
+        normal = dr.select(valid, si.sh_frame.n, 0.0)
+        return {"depth": dr.select(valid, si.t, 0.0), "normal": normal, "albedo": albedo,
+                "position": si.p, "shape_index": shape_index}
+
+    def _motion(self, frame_index: int, traced: dict, jitter: tuple[float, float]) -> np.ndarray:
+        """Position in frame t-1's (unjittered) image of each sample's surface point, minus the sample position."""
+        s, scene = self.settings, self.scene
+        previous = max(frame_index - 1, 0)
+        shape_index, depth = traced["shape_index"], traced["depth"]
+        points = np.where((depth > 0)[:, None], traced["position"],
+                          traced["camera_origin"] + SKY_DISTANCE * traced["view_direction"]).astype(np.float64)
+        previous_points = points.copy()
+        for position, obj in enumerate(scene.objects):
+            here = obj.transforms[frame_index]
+            before = obj.transforms[previous]
+            if np.array_equal(here, before):
+                continue
+            mask = shape_index == position
+            previous_points[mask] = apply_to_points(before @ np.linalg.inv(here), points[mask])
+        sky = depth <= 0
+        if np.any(sky):
+            # Directions at infinity move with the camera's rotation only, not with its translation.
+            offset = np.asarray(scene.cameras[previous].origin) - np.asarray(scene.cameras[frame_index].origin)
+            previous_points[sky] += offset
+        image_position, in_front = scene.cameras[previous].project(previous_points, s.width, s.height)
+        motion = image_position - traced["film_position"]
+        # A point behind the previous camera has no previous image position: report no motion.
+        motion[~in_front] = 0.0
+        return motion.astype(np.float32)
+
+
+def _mis_weight(dr, pdf_a, pdf_b):
+    """Power heuristic, as in Mitsuba's own integrators."""
+    a2 = dr.square(pdf_a)
+    return dr.detach(dr.select(pdf_a > 0, a2 / dr.fma(pdf_b, pdf_b, a2), 0.0), True)
+
+
+def _to_numpy(value) -> np.ndarray:
+    array = np.asarray(value)
+    if array.ndim == 2 and array.shape[0] in (2, 3) and array.shape[1] != array.shape[0]:
+        array = array.T  # Dr.Jit vectors convert component-major: (3, N) -> (N, 3)
+    return np.ascontiguousarray(array, dtype=np.float32) if array.dtype.kind == "f" else array

@@ -1,0 +1,323 @@
+"""One frame bundle = one EXR file (OpenEXR 3.x Python bindings).
+
+Layout written by ``write_frame``:
+
+- part 0, named "render": every render-resolution buffer, channels named by ``frames.BUFFERS``
+  (``color.R``, ``normal.X``, ``depth.Z``, ...), plus ``reference.R/G/B`` when a scale-1 reference exists.
+  Header attributes: ``jitter`` (V2d: two doubles, so Python floats round-trip exactly), ``frame_index`` (int),
+  ``sequence`` (string), ``scale`` (int: the largest reference scale in the file, 1 if none),
+  ``camera_cut`` (int 0/1).
+- one more part per reference scale s > 1, named ``reference_x{s}``: ``reference.R/G/B`` at (H*s, W*s),
+  header ``scale`` = s. Multi-part EXR requires every part to share one displayWindow, so all parts
+  carry the render-resolution display window; the larger parts' data windows extend past it.
+
+``read_frame`` also accepts single-part files from other renderers (reference at scale 1 or none, FLOAT or
+HALF channels, any part name); ``jitter`` is required there too because without it the sample positions
+are unknown, while a missing ``frame_index``, ``sequence``, ``camera_cut`` or ``scale`` reads as
+0, "", false and "the largest reference scale present".
+
+Half storage (``half=True``): every channel, motion and depth included, is stored as IEEE half, which
+keeps 11 significant bits (relative error <= 2**-11 ~ 4.9e-4) and tops out at 65504. So depth at 100
+units is good to about 0.05 units, and motion to about 0.002 px below 4 px, 0.03 px below 64 px and
+0.25 px between 256 and 512 px; values above 65504 are refused rather than stored as Inf.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import uuid
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+from model.frames import (
+    BUFFERS,
+    RENDER_BUFFERS,
+    FrameBundle,
+    FrameError,
+    FrameValidationError,
+    validate_frame,
+)
+
+RENDER_PART = "render"
+REFERENCE_PART_PATTERN = re.compile(r"reference_x(\d+)")
+EXR_MAGIC = b"\x76\x2f\x31\x01"  # first 4 bytes of every OpenEXR file
+HALF_MAX = float(np.finfo(np.float16).max)
+INT32_MAX = 2**31 - 1  # EXR int attributes are 32-bit; the bindings silently store larger values as 0
+
+# "color.R" -> ("color", 0): where each known channel goes.
+CHANNEL_SLOTS: dict[str, tuple[str, int]] = {
+    channel: (spec.name, component)
+    for spec in BUFFERS.values()
+    for component, channel in enumerate(spec.channels)
+}
+
+
+class FrameFormatError(FrameError):
+    """The file is not a readable frame bundle EXR (missing, not EXR, truncated, wrong channels or header)."""
+
+
+def reference_part_name(scale: int) -> str:
+    return f"reference_x{scale}"
+
+
+def write_frame(path: str | os.PathLike, frame: FrameBundle, *, half: bool = False) -> Path:
+    """Validate ``frame`` and write it to ``path`` atomically; return the path.
+
+    The file is written under a temporary name in the same directory and renamed over ``path``, so a
+    failed write (invalid frame, full disk, ...) leaves an existing file untouched and readers never see
+    half a file.
+    """
+    path = Path(path)
+    frame = validate_frame(frame, str(path))
+    if frame.frame_index > INT32_MAX:
+        raise FrameValidationError(str(path), "frame_index", f"{frame.frame_index} does not fit an EXR int")
+    if half:
+        _check_fits_half(frame, str(path))
+    parts = _frame_parts(frame, half)
+    # A unique hidden name that is not a *.exr, so directory scans never pick up a half-written frame.
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        try:
+            OpenEXR.File(parts).write(str(temporary))
+        except RuntimeError as error:  # the bindings' only report of an unwritable path or full disk
+            raise OSError(f"{path}: cannot write EXR ({error})") from None
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+    return path
+
+
+def read_frame(path: str | os.PathLike) -> FrameBundle:
+    """Read and validate one frame bundle; every error is a FrameError naming the file."""
+    source = str(path)
+    exr = _open_exr(Path(path), source)
+    render_part, reference_parts = _split_parts(exr.parts, source)
+    buffers, scale_one_reference = _render_buffers(render_part, source)
+    references = {1: scale_one_reference} if scale_one_reference is not None else {}
+    for scale, part in reference_parts.items():
+        references[scale] = _reference_pixels(part, source)
+    header = render_part.header
+    _check_scale_attribute(header, max(references, default=1), source)
+    frame = FrameBundle(
+        **buffers,
+        jitter=_jitter_attribute(header, source),
+        frame_index=_int_attribute(header, "frame_index", 0, source),
+        sequence=_string_attribute(header, "sequence", source),
+        camera_cut=bool(_int_attribute(header, "camera_cut", 0, source)),
+        references=references,
+    )
+    return validate_frame(frame, source)
+
+
+# --- writing ---------------------------------------------------------------------------------------------
+
+
+def _check_fits_half(frame: FrameBundle, source: str) -> None:
+    arrays = list(frame.render_buffers().items()) + [("reference", r) for r in frame.references.values()]
+    for name, array in arrays:
+        too_large = int(np.count_nonzero(np.abs(array) > HALF_MAX))
+        if too_large:
+            raise FrameValidationError(
+                source,
+                name,
+                f"{too_large} values exceed the largest half float ({HALF_MAX:g}); write with half=False",
+            )
+
+
+def _channel_arrays(spec_name: str, array: np.ndarray, half: bool) -> dict[str, np.ndarray]:
+    """Split an (H, W[, C]) buffer into contiguous per-channel planes.
+
+    The bindings write non-contiguous arrays (e.g. ``array[:, :, 1]``) as garbage without complaint, hence
+    the explicit contiguous copies.
+    """
+    spec = BUFFERS[spec_name]
+    dtype = np.float16 if half else np.float32
+    planes = [array] if spec.is_scalar else [array[:, :, c] for c in range(len(spec.components))]
+    return {channel: np.ascontiguousarray(plane, dtype=dtype) for channel, plane in zip(spec.channels, planes)}
+
+
+def _part_header(render_width: int, render_height: int, attributes: dict) -> dict:
+    display_window = (np.array([0, 0], np.int32), np.array([render_width - 1, render_height - 1], np.int32))
+    return {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "displayWindow": display_window,
+        **attributes,
+    }
+
+
+def _frame_parts(frame: FrameBundle, half: bool) -> list[OpenEXR.Part]:
+    # OpenEXR.Part replaces the arrays in the dict it is given with Channel objects: build fresh dicts.
+    render_channels: dict[str, np.ndarray] = {}
+    for name, array in frame.render_buffers().items():
+        render_channels.update(_channel_arrays(name, array, half))
+    if 1 in frame.references:
+        render_channels.update(_channel_arrays("reference", frame.references[1], half))
+    render_attributes = {
+        "jitter": np.array(frame.jitter, dtype=np.float64),  # float64 pair -> V2d; a tuple would become V2f
+        "frame_index": frame.frame_index,
+        "sequence": frame.sequence,
+        "scale": max(frame.scales, default=1),
+        "camera_cut": int(frame.camera_cut),
+    }
+    parts = [OpenEXR.Part(_part_header(frame.width, frame.height, render_attributes), render_channels, RENDER_PART)]
+    for scale in frame.scales:
+        if scale == 1:
+            continue
+        header = _part_header(frame.width, frame.height, {"scale": scale})
+        channels = _channel_arrays("reference", frame.references[scale], half)
+        parts.append(OpenEXR.Part(header, channels, reference_part_name(scale)))
+    return parts
+
+
+# --- reading ---------------------------------------------------------------------------------------------
+
+
+def _open_exr(path: Path, source: str) -> OpenEXR.File:
+    if not path.is_file():
+        problem = "is a directory, not a file" if path.is_dir() else "file not found"
+        raise FrameFormatError(source, None, problem)
+    with path.open("rb") as file:
+        magic = file.read(len(EXR_MAGIC))
+    if magic != EXR_MAGIC:
+        raise FrameFormatError(source, None, "not an OpenEXR file (wrong magic number)")
+    try:
+        part_count = len(OpenEXR.File(str(path), header_only=True).parts)
+        exr = OpenEXR.File(str(path), separate_channels=True)
+    # The bindings raise RuntimeError for unreadable headers and document nothing else: any failure of
+    # these calls means the file cannot be read.
+    except Exception as error:
+        raise FrameFormatError(source, None, f"unreadable or truncated EXR ({error})") from None
+    # A part whose pixel data cannot be decoded (e.g. a truncated file) is not an error for the bindings:
+    # they print a warning and leave the part out. Comparing with the header's part count catches it.
+    if len(exr.parts) != part_count:
+        raise FrameFormatError(
+            source,
+            None,
+            f"unreadable or truncated EXR (pixel data of {part_count - len(exr.parts)} of {part_count} parts "
+            f"could not be read)",
+        )
+    return exr
+
+
+def _split_parts(parts: list, source: str) -> tuple[OpenEXR.Part, dict[int, OpenEXR.Part]]:
+    if not parts:
+        raise FrameFormatError(source, None, "EXR file has no parts")
+    references: dict[int, OpenEXR.Part] = {}
+    for part in parts[1:]:
+        name = part.name()
+        match = REFERENCE_PART_PATTERN.fullmatch(name)
+        if match is None or int(match.group(1)) < 2:
+            raise FrameFormatError(
+                source, None, f"unexpected part '{name}' (extra parts must be named reference_x<scale>, scale >= 2)"
+            )
+        scale = int(match.group(1))
+        _check_part_storage(part, source)
+        _check_scale_attribute(part.header, scale, source, part=name)
+        references[scale] = part
+    _check_part_storage(parts[0], source)
+    return parts[0], dict(sorted(references.items()))
+
+
+def _check_part_storage(part: OpenEXR.Part, source: str) -> None:
+    if part.type() not in (OpenEXR.scanlineimage, OpenEXR.tiledimage):
+        raise FrameFormatError(source, None, f"part '{part.name()}' is a {part.type().name}, not a flat image")
+
+
+def _channel_pixels(part: OpenEXR.Part, source: str) -> dict[str, np.ndarray]:
+    pixels: dict[str, np.ndarray] = {}
+    for name, channel in part.channels.items():
+        if channel.xSampling != 1 or channel.ySampling != 1:
+            raise FrameFormatError(source, None, f"channel '{name}' is subsampled; every channel must be full size")
+        if channel.pixels.dtype not in (np.float16, np.float32):
+            raise FrameFormatError(source, None, f"channel '{name}' holds {channel.pixels.dtype}, not float or half")
+        pixels[name] = channel.pixels
+    unknown = sorted(name for name in pixels if name not in CHANNEL_SLOTS)
+    if unknown:
+        raise FrameFormatError(
+            source, None, f"unknown channels in part '{part.name()}': {', '.join(unknown)}"
+        )
+    return pixels
+
+
+def _assemble_buffer(buffer: str, pixels: dict[str, np.ndarray], source: str) -> np.ndarray | None:
+    """Stack a buffer's channel planes into one float32 array; None when none of its channels is present."""
+    spec = BUFFERS[buffer]
+    present = [channel for channel in spec.channels if channel in pixels]
+    if not present:
+        return None
+    if len(present) != len(spec.channels):
+        missing = [channel for channel in spec.channels if channel not in pixels]
+        raise FrameFormatError(
+            source, buffer, f"partial buffer: has {', '.join(present)} but lacks {', '.join(missing)}"
+        )
+    if spec.is_scalar:
+        return pixels[spec.channels[0]].astype(np.float32)
+    return np.stack([pixels[channel] for channel in spec.channels], axis=-1).astype(np.float32)
+
+
+def _render_buffers(part: OpenEXR.Part, source: str) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+    pixels = _channel_pixels(part, source)
+    buffers = {}
+    for name in RENDER_BUFFERS:
+        array = _assemble_buffer(name, pixels, source)
+        if array is None and BUFFERS[name].required:
+            channels = ", ".join(BUFFERS[name].channels)
+            raise FrameFormatError(source, name, f"required buffer is missing (no {channels} channels)")
+        if array is not None:
+            buffers[name] = array
+    return buffers, _assemble_buffer("reference", pixels, source)
+
+
+def _reference_pixels(part: OpenEXR.Part, source: str) -> np.ndarray:
+    pixels = _channel_pixels(part, source)
+    other = sorted(name for name in pixels if CHANNEL_SLOTS[name][0] != "reference")
+    if other:
+        raise FrameFormatError(
+            source, None, f"part '{part.name()}' may hold only reference.R/G/B, not {', '.join(other)}"
+        )
+    reference = _assemble_buffer("reference", pixels, source)
+    if reference is None:
+        raise FrameFormatError(source, "reference", f"part '{part.name()}' has no reference channels")
+    return reference
+
+
+def _check_scale_attribute(header: dict, expected: int, source: str, part: str = RENDER_PART) -> None:
+    if "scale" not in header:
+        if part != RENDER_PART:
+            raise FrameFormatError(source, "scale", f"missing header attribute in part '{part}'")
+        return
+    scale = header["scale"]
+    if isinstance(scale, float) and scale.is_integer():
+        scale = int(scale)
+    if not isinstance(scale, int) or scale < 1:
+        raise FrameFormatError(source, "scale", f"{scale!r} in part '{part}' is not a positive integer")
+    if scale != expected:
+        what = "the largest reference scale in the file" if part == RENDER_PART else "the scale in the part name"
+        raise FrameFormatError(source, "scale", f"{scale} in part '{part}' does not match {expected}, {what}")
+
+
+def _jitter_attribute(header: dict, source: str) -> tuple[float, float]:
+    if "jitter" not in header:
+        raise FrameFormatError(source, "jitter", "missing header attribute (sub-pixel sample offset, 2 floats)")
+    jitter = np.asarray(header["jitter"])
+    if jitter.shape != (2,) or not np.issubdtype(jitter.dtype, np.number):
+        raise FrameFormatError(source, "jitter", f"{header['jitter']!r} is not a pair of numbers (V2f or V2d)")
+    return float(jitter[0]), float(jitter[1])
+
+
+def _int_attribute(header: dict, name: str, default: int, source: str) -> int:
+    value = header.get(name, default)
+    if not isinstance(value, int):
+        raise FrameFormatError(source, name, f"{value!r} is not an integer")
+    return value
+
+
+def _string_attribute(header: dict, name: str, source: str) -> str:
+    value = header.get(name, "")
+    if not isinstance(value, str):
+        raise FrameFormatError(source, name, f"{value!r} is not a string")
+    return value

@@ -1,0 +1,1 @@
+"""Denoising methods, learned and baseline, all driven through `output, state = method.step(frame, state)`."""

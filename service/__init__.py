@@ -1,0 +1,1 @@
+"""The product's entry points: the `denoiser` command line (and, later, the FastAPI server)."""

@@ -1,0 +1,226 @@
+"""Sequence folders and datasets: manifests, atomic sequence writes, splits and summaries."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from model.dataset import Dataset, DatasetError, Sequence, SequenceWriter
+from model.frames import FrameValidationError
+
+from .test_frames import make_frame
+
+
+def frames(count: int, *, height: int = 4, width: int = 6, scales=(1, 2), cuts=(0,), seed: int = 0):
+    for index in range(count):
+        frame = make_frame(seed + index, height, width, scales=scales, frame_index=index)
+        frame.sequence = ""
+        frame.camera_cut = index in cuts
+        yield frame
+
+
+def write_sequence(path, name, count=3, *, scene="cornell", **frame_options):
+    with SequenceWriter(path, name, scene=scene, metadata={"spp_reference": 64}) as writer:
+        for frame in frames(count, **frame_options):
+            writer.add(frame)
+    return Sequence(path)
+
+
+def test_sequence_round_trip(tmp_path):
+    written = list(frames(3, cuts=(0, 2)))
+    with SequenceWriter(tmp_path / "seq", "seq", scene="cornell", metadata={"spp_reference": 64}) as writer:
+        for frame in written:
+            writer.add(frame)
+    sequence = Sequence(tmp_path / "seq")
+    assert (sequence.name, sequence.scene, sequence.width, sequence.height) == ("seq", "cornell", 6, 4)
+    assert sequence.scales == (1, 2) and len(sequence) == 3 and sequence.cuts == [0, 2]
+    assert sequence.metadata == {"spp_reference": 64}
+    assert sorted(p.name for p in (tmp_path / "seq").iterdir()) == [
+        "frame_0000.exr", "frame_0001.exr", "frame_0002.exr", "manifest.json"
+    ]
+    read = list(sequence)
+    assert [f.frame_index for f in read] == [0, 1, 2]
+    assert all(f.sequence == "seq" for f in read)  # filled in from the writer's name
+    np.testing.assert_array_equal(read[1].color, written[1].color)
+    np.testing.assert_array_equal(sequence[-1].reference(2), written[2].reference(2))
+    assert [p.name for p in tmp_path.iterdir()] == ["seq"]  # no temporary folder left
+    with pytest.raises(IndexError, match="has 3 frames"):
+        sequence[3]
+
+
+def test_exception_mid_sequence_leaves_nothing(tmp_path):
+    with pytest.raises(RuntimeError, match="renderer crashed"):
+        with SequenceWriter(tmp_path / "seq", "seq") as writer:
+            for frame in frames(2):
+                writer.add(frame)
+            raise RuntimeError("renderer crashed")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_overwrite_leaves_the_old_sequence_intact(tmp_path):
+    write_sequence(tmp_path / "seq", "seq", count=2)
+    before = {p.name: p.read_bytes() for p in (tmp_path / "seq").iterdir()}
+    broken = list(frames(2, seed=10))
+    broken[1].color[0, 0, 0] = np.inf
+    with pytest.raises(FrameValidationError, match=r"seq/frame_0001.exr: buffer 'color': 1 pixels are not finite"):
+        with SequenceWriter(tmp_path / "seq", "seq", overwrite=True) as writer:
+            for frame in broken:
+                writer.add(frame)
+    assert {p.name: p.read_bytes() for p in (tmp_path / "seq").iterdir()} == before
+    assert [p.name for p in tmp_path.iterdir()] == ["seq"]
+
+
+def test_overwrite_replaces_the_old_sequence(tmp_path):
+    write_sequence(tmp_path / "seq", "seq", count=3)
+    with SequenceWriter(tmp_path / "seq", "seq", overwrite=True) as writer:
+        for frame in frames(2, height=2, width=2, scales=()):
+            writer.add(frame)
+    sequence = Sequence(tmp_path / "seq")
+    assert (len(sequence), sequence.width, sequence.scales) == (2, 2, ())
+    assert [p.name for p in tmp_path.iterdir()] == ["seq"]
+
+
+def test_existing_sequence_is_refused_before_rendering(tmp_path):
+    (tmp_path / "seq").mkdir()
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        with SequenceWriter(tmp_path / "seq", "seq"):
+            pytest.fail("the body must not run")
+
+
+def test_unserializable_metadata_is_refused_before_rendering(tmp_path):
+    with pytest.raises(DatasetError, match="not JSON-serializable"):
+        SequenceWriter(tmp_path / "seq", "seq", metadata={"when": object()}).__enter__()
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "change, problem",
+    [
+        (lambda f: setattr(f, "frame_index", 5), r"frame 1: frame_index is 5, expected 1"),
+        (lambda f: setattr(f, "references", {1: f.references[1]}), r"reference scales \[1\] differ .* \[1, 2\]"),
+        (lambda f: setattr(f, "sequence", "other"), r"frame belongs to sequence 'other'"),
+    ],
+    ids=["index gap", "scales change", "foreign sequence"],
+)
+def test_frames_must_continue_the_sequence(tmp_path, change, problem):
+    first, second = frames(2)
+    change(second)
+    with pytest.raises(DatasetError, match=problem):
+        with SequenceWriter(tmp_path / "seq", "seq") as writer:
+            writer.add(first)
+            writer.add(second)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_resolution_must_stay_the_same(tmp_path):
+    first = make_frame(0, frame_index=0)
+    second = make_frame(1, 2, 2, frame_index=1)
+    with pytest.raises(DatasetError, match=r"resolution 2x2 differs from the first frame's 6x4"):
+        with SequenceWriter(tmp_path / "seq", "tiny") as writer:
+            writer.add(first)
+            writer.add(second)
+
+
+def test_empty_sequence_is_an_error(tmp_path):
+    with pytest.raises(DatasetError, match="has no frames"):
+        with SequenceWriter(tmp_path / "seq", "seq"):
+            pass
+    assert list(tmp_path.iterdir()) == []
+
+
+def _edit_manifest(path, edit):
+    manifest = json.loads(path.read_text())
+    edit(manifest)
+    path.write_text(json.dumps(manifest))
+
+
+@pytest.mark.parametrize(
+    "edit, problem",
+    [
+        (lambda m: m.update(format="denoiser-sequence/9"), r"field 'format' is 'denoiser-sequence/9'"),
+        (lambda m: m.pop("width"), r"field 'width' is missing"),
+        (lambda m: m.update(height="4"), r"field 'height' is '4', not an integer"),
+        (lambda m: m.update(scales=[2, 1]), r"field 'scales' \[2, 1\] is not ascending"),
+        (lambda m: m["frames"][1].update(index=2), r"frames\[1\]: field 'index' is 2, expected 1"),
+        (lambda m: m["frames"][0].update(file="../x.exr"), r"frames\[0\]: field 'file' is '../x.exr'"),
+        (lambda m: m["frames"][0].update(file="gone.exr"), r"frames\[0\]: field 'file': .*gone.exr does not exist"),
+        (lambda m: m["frames"][0].update(camera_cut=1), r"field 'camera_cut' is 1, not true or false"),
+    ],
+)
+def test_bad_sequence_manifest_names_file_and_field(tmp_path, edit, problem):
+    write_sequence(tmp_path / "seq", "seq", count=2)
+    _edit_manifest(tmp_path / "seq" / "manifest.json", edit)
+    with pytest.raises(DatasetError, match=rf"seq/manifest.json: .*{problem}"):
+        Sequence(tmp_path / "seq")
+
+
+def test_missing_or_broken_manifest_is_named(tmp_path):
+    with pytest.raises(DatasetError, match=r"manifest.json: not found"):
+        Sequence(tmp_path)
+    (tmp_path / "manifest.json").write_text("{oops")
+    with pytest.raises(DatasetError, match=r"manifest.json: not valid JSON"):
+        Sequence(tmp_path)
+
+
+def test_frame_disagreeing_with_manifest_is_named(tmp_path):
+    sequence = write_sequence(tmp_path / "seq", "seq", count=2)
+    _edit_manifest(sequence.manifest_path, lambda m: m["frames"][1].update(camera_cut=True))
+    with pytest.raises(DatasetError, match=r"frame_0001.exr: camera_cut is False but .*manifest.json says True"):
+        Sequence(tmp_path / "seq")[1]
+
+
+def test_dataset_registers_sequences_with_splits(tmp_path):
+    dataset = Dataset.create(tmp_path / "data")
+    write_sequence(dataset.root / "a", "a", count=3, scene="cornell")
+    write_sequence(dataset.root / "b", "b", count=2, scene="kitchen", height=2, width=2, scales=(1,))
+    write_sequence(dataset.root / "c", "c", count=1, scene="cornell")
+    dataset.add_sequence_dir("a", "train")
+    dataset.add_sequence_dir("b", "train")
+    dataset.add_sequence_dir("c", "validation")
+
+    reopened = Dataset(tmp_path / "data")
+    assert [s.name for s in reopened.sequences()] == ["a", "b", "c"]
+    assert [s.name for s in reopened.sequences("train")] == ["a", "b"]
+    assert reopened.sequences("test") == []
+    assert reopened.summary() == {
+        "train": {"sequences": 2, "scenes": ["cornell", "kitchen"], "frames": 5,
+                  "resolutions": [[2, 2], [6, 4]], "scales": [1, 2]},
+        "validation": {"sequences": 1, "scenes": ["cornell"], "frames": 1, "resolutions": [[6, 4]], "scales": [1, 2]},
+        "test": {"sequences": 0, "scenes": [], "frames": 0, "resolutions": [], "scales": []},
+    }
+
+    reopened.set_split("c", "test")
+    assert Dataset(tmp_path / "data").split_of("c") == "test"
+    table = Dataset(tmp_path / "data").format_summary()
+    assert table.splitlines()[1:] == [
+        "split       sequences  frames  resolutions  scales  scenes",
+        "train               2       5  2x2, 6x4     1, 2    cornell, kitchen",
+        "validation          0       0  -            -       -",
+        "test                1       1  6x4          1, 2    cornell",
+    ]
+    assert [p.name for p in (tmp_path / "data").iterdir() if p.name.startswith(".")] == []
+
+
+def test_dataset_errors(tmp_path):
+    dataset = Dataset.create(tmp_path)
+    write_sequence(tmp_path / "a", "a", count=1)
+    with pytest.raises(ValueError, match=r"unknown split 'training'; allowed: train, validation, test"):
+        dataset.add_sequence_dir("a", "training")
+    dataset.add_sequence_dir("a", "train")
+    with pytest.raises(DatasetError, match="already registered"):
+        dataset.add_sequence_dir("a", "test")
+    with pytest.raises(DatasetError, match="manifest.json: not found"):
+        dataset.add_sequence_dir("missing", "test")
+    with pytest.raises(DatasetError, match="not a plain folder name"):
+        dataset.add_sequence_dir("../a", "test")
+    with pytest.raises(DatasetError, match="no sequence named 'zzz'"):
+        dataset.set_split("zzz", "test")
+    with pytest.raises(ValueError, match="allowed: train, validation, test"):
+        dataset.sequences("holdout")
+    with pytest.raises(FileExistsError, match="already exists"):
+        Dataset.create(tmp_path)
+    _edit_manifest(tmp_path / "manifest.json", lambda m: m["sequences"]["a"].update(split="dev"))
+    with pytest.raises(DatasetError, match=r"sequences\['a'\]: field 'split' is 'dev'"):
+        Dataset(tmp_path)

@@ -1,0 +1,1 @@
+"""Celery workers that run dataset-generation, training, evaluation and benchmark jobs."""
