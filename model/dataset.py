@@ -375,11 +375,14 @@ class Dataset:
         """The sequences of one split (all when None), by name."""
         return [Sequence(self.root / name) for name in self.names(split)]
 
-    def add_sequence_dir(self, name: str, split: str) -> Sequence:
-        """Register the sequence folder ``root/name`` (already written there) under ``split``."""
+    def add_sequence_dir(self, name: str, split: str, *, replace: bool = False) -> Sequence:
+        """Register the sequence folder ``root/name`` (already written there) under ``split``.
+
+        ``replace`` re-registers a name that is already known (its folder was overwritten).
+        """
         _check_split(split)
         _check_folder_name(name, "sequence folder")
-        if name in self._entries:
+        if name in self._entries and not replace:
             raise DatasetError(f"{self.manifest_path}: sequence '{name}' is already registered")
         sequence = Sequence(self.root / name)  # checks the folder is a well-formed sequence
         self._entries[name] = {"split": split, "scene": sequence.scene}

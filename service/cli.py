@@ -101,6 +101,12 @@ def _run_generate(args) -> int:
         raise UsageError(f"unknown scene {', '.join(map(repr, unknown))}; known scenes: {', '.join(sorted(SCENES))}")
     if args.name and len(scenes) > 1:
         raise UsageError("--name applies to one scene only; drop it to name sequences SCENE_sSEED")
+    from model.data.generate import default_sequence_name
+
+    for scene in scenes:
+        target = args.out / (args.name or default_sequence_name(scene, args.seed))
+        if target.exists() and not args.overwrite:
+            raise UsageError(f"sequence {target} already exists; pass --overwrite to replace it")
     width, height = args.size
     settings = RenderSettings(width=width, height=height, ref_spp=args.ref_spp, ref_scales=args.scales,
                               max_depth=args.max_depth, variant=args.variant)
@@ -196,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (UsageError, FrameError, FileNotFoundError, KeyError, ValueError) as error:
+    except (UsageError, FrameError, FileNotFoundError, FileExistsError, KeyError, ValueError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"denoiser {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USAGE

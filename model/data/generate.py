@@ -62,7 +62,7 @@ def generate_sequence(scene: str, out: str | Path, *, frames: int = 16, settings
             if on_frame is not None:
                 on_frame(index + 1, frames, f"rendered frame {index + 1}/{frames} of {name}")
         bar.close()
-    dataset.add_sequence_dir(name, split)
+    dataset.add_sequence_dir(name, split, replace=overwrite)
     elapsed = time.perf_counter() - started
     if progress:
         print(f"{name}: {frames} frames at {settings.width}x{settings.height}, references x"

@@ -1,0 +1,69 @@
+"""Geometry consistency test between a pixel and its reprojection into the previous frame.
+
+Temporal accumulation (SVGF, BMFR, WSKPN's preprocessing) may only reuse history for pixels that saw the same
+surface in the previous frame. After backward warping (``warp.backward_warp``) the previous frame's depth and
+normal are compared with the current ones; a pixel fails ("disoccluded") when it has no surface, when its
+reprojection leaves the image, or when depth or normal disagree.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from model.ops.warp import Jitter, backward_warp
+
+__all__ = ["disocclusion_mask"]
+
+
+def disocclusion_mask(
+    depth: torch.Tensor,
+    normal: torch.Tensor,
+    prev_depth: torch.Tensor,
+    prev_normal: torch.Tensor,
+    motion: torch.Tensor,
+    depth_rel_tol: float = 0.1,
+    normal_cos_tol: float = 0.9,
+    jitter: Jitter = None,
+) -> torch.Tensor:
+    """Return ``valid`` (N, 1, H, W) bool: True where this pixel's history can be trusted.
+
+    depth, prev_depth (N, 1, H, W): linear distance from the camera, 0 where no surface.
+    normal, prev_normal (N, 3, H, W): shading normals (renormalized here, so their length does not matter).
+    motion (N, 2, H, W) and the optional ``jitter``: see ``model.ops.warp``.
+
+    valid = inside the previous image
+            and depth > 0
+            and |depth - prev_depth_warped| <= depth_rel_tol * depth
+            and cos(normal, prev_normal_warped) >= normal_cos_tol.
+
+    The previous buffers are warped with "nearest" (the pixel whose footprint holds the sample), not bilinear:
+    at a silhouette a bilinear depth is a blend of foreground and background that belongs to no surface (it
+    could even match some third surface by chance), and a blended normal is not a real normal. Nearest compares
+    against one real sample of the previous frame. Its cost is a half-pixel positional error, which the relative
+    tolerance absorbs on smooth surfaces. A previous depth of 0 (no surface) always fails the depth test.
+
+    Depth is distance from each frame's own camera, so under camera motion the same point's depth changes a
+    little between frames; ``depth_rel_tol`` must leave room for that (10% suits smooth camera paths).
+    """
+    n, _, h, w = depth.shape
+    for name, t, c in (
+        ("depth", depth, 1),
+        ("prev_depth", prev_depth, 1),
+        ("normal", normal, 3),
+        ("prev_normal", prev_normal, 3),
+    ):
+        if t.shape != (n, c, h, w):
+            raise ValueError(f"{name} must have shape {(n, c, h, w)}, got {tuple(t.shape)}")
+
+    # One gather for both buffers: depth and normal share the same sample positions.
+    prev = torch.cat([prev_depth, prev_normal.to(prev_depth.dtype)], dim=1)
+    warped, inside = backward_warp(prev, motion, mode="nearest", padding="border", jitter=jitter)
+    pd, pn = warped[:, :1], warped[:, 1:]
+
+    depth_ok = (depth - pd).abs() <= depth_rel_tol * depth
+    # Normalize defensively: zero normals (no surface) give cos = 0 and fail, unnormalized ones still compare.
+    cos = (normal * pn).sum(dim=1, keepdim=True) / (
+        normal.norm(dim=1, keepdim=True) * pn.norm(dim=1, keepdim=True)
+    ).clamp_min(1e-12)
+    normal_ok = cos >= normal_cos_tol
+    return inside & (depth > 0) & (pd > 0) & depth_ok & normal_ok
