@@ -7,9 +7,12 @@ Each subcommand imports what it needs when it runs, so `denoiser --help` stays f
 from __future__ import annotations
 
 import argparse
-import json
+import importlib
 import sys
-from pathlib import Path
+
+# Each module adds its subcommands with add_commands(subparsers); commands import their heavy
+# dependencies only when they run.
+COMMAND_MODULES = ("service.commands.data",)
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1
@@ -19,7 +22,7 @@ class UsageError(Exception):
     """A problem with the user's input: reported as one line, exit status 2."""
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
@@ -29,7 +32,7 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _size(text: str) -> tuple[int, int]:
+def size_option(text: str) -> tuple[int, int]:
     """'128' -> (128, 128); '160x96' -> (160, 96) as width x height."""
     parts = text.lower().split("x")
     try:
@@ -43,7 +46,7 @@ def _size(text: str) -> tuple[int, int]:
     return values[0], values[1]
 
 
-def _scales(text: str) -> tuple[int, ...]:
+def scales_option(text: str) -> tuple[int, ...]:
     try:
         values = tuple(sorted({int(p) for p in text.split(",") if p.strip()}))
     except ValueError:
@@ -53,146 +56,14 @@ def _scales(text: str) -> tuple[int, ...]:
     return values
 
 
-# ------------------------------------------------------------------------------------------- generate
-
-def _add_generate(commands) -> None:
-    from model.data.scenes import SCENES
-
-    parser = commands.add_parser(
-        "generate", help="render path-traced sequences with Mitsuba 3 into a dataset",
-        description="Render one sequence per scene recipe into the dataset folder OUT (created if missing). "
-                    "Each frame holds a 1spp noisy color (also split into diffuse and specular), noise-free "
-                    "albedo, specular albedo, normal, depth and roughness, exact motion vectors, the camera "
-                    "jitter, and box-filtered references at the requested scales. Deterministic for a seed.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--scene", action="append", required=True, metavar="NAME",
-                        help=f"scene recipe; repeat for several, or 'all'. One of: {', '.join(sorted(SCENES))}")
-    parser.add_argument("--frames", type=_positive_int, default=16, help="frames per sequence")
-    parser.add_argument("--size", type=_size, default=(128, 128), metavar="N|WxH",
-                        help="render resolution (references are this times each scale)")
-    parser.add_argument("--ref-spp", type=_positive_int, default=1024, metavar="N",
-                        help="samples per pixel of the references (at the largest scale)")
-    parser.add_argument("--scales", type=_scales, default=(1, 2), metavar="S[,S]",
-                        help="reference scales to store (1, 2, 4); scale 1 is the 2x2 mean of scale 2")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the scene variation and of the noise")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="dataset folder")
-    parser.add_argument("--split", choices=("train", "validation", "test"), default="train",
-                        help="split the new sequences belong to")
-    parser.add_argument("--name", default=None,
-                        help="sequence name (one scene only); default SCENE_sSEED")
-    parser.add_argument("--max-depth", type=_positive_int, default=6,
-                        help="longest path (1 = directly visible emitters only), as Mitsuba's path integrator")
-    parser.add_argument("--variant", choices=("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb"), default=None,
-                        help="Mitsuba variant; default: cuda_ad_rgb on a GPU, else llvm_ad_rgb")
-    parser.add_argument("--half", action="store_true", help="store EXR channels as half floats")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing sequence of the same name")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    parser.set_defaults(run=_run_generate)
-
-
-def _run_generate(args) -> int:
-    from model.data.generate import generate_sequence
-    from model.data.render import RenderSettings
-    from model.data.scenes import SCENES
-
-    scenes = sorted(SCENES) if "all" in args.scene else args.scene
-    unknown = [s for s in scenes if s not in SCENES]
-    if unknown:
-        raise UsageError(f"unknown scene {', '.join(map(repr, unknown))}; known scenes: {', '.join(sorted(SCENES))}")
-    if args.name and len(scenes) > 1:
-        raise UsageError("--name applies to one scene only; drop it to name sequences SCENE_sSEED")
-    from model.data.generate import default_sequence_name
-
-    for scene in scenes:
-        target = args.out / (args.name or default_sequence_name(scene, args.seed))
-        if target.exists() and not args.overwrite:
-            raise UsageError(f"sequence {target} already exists; pass --overwrite to replace it")
-    width, height = args.size
-    settings = RenderSettings(width=width, height=height, ref_spp=args.ref_spp, ref_scales=args.scales,
-                              max_depth=args.max_depth, variant=args.variant)
-    for scene in scenes:
-        generate_sequence(scene, args.out, frames=args.frames, settings=settings, seed=args.seed,
-                          split=args.split, name=args.name, half=args.half, overwrite=args.overwrite,
-                          progress=not args.quiet)
-    _print_summary(args.out)
-    return 0
-
-
-# ----------------------------------------------------------------------------------- scenes, summary
-
-def _add_scenes(commands) -> None:
-    parser = commands.add_parser("scenes", help="list the scene recipes of the generator")
-    parser.set_defaults(run=_run_scenes)
-
-
-def _run_scenes(args) -> int:
-    from model.data.scenes import DESCRIPTIONS
-
-    width = max(len(name) for name in DESCRIPTIONS)
-    for name in sorted(DESCRIPTIONS):
-        print(f"{name:<{width}}  {DESCRIPTIONS[name]}")
-    return 0
-
-
-def _add_summary(commands) -> None:
-    parser = commands.add_parser("summary", help="print a dataset's sequences, splits, resolutions and scales")
-    parser.add_argument("dataset", type=Path, help="dataset folder")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    parser.set_defaults(run=_run_summary)
-
-
-def _run_summary(args) -> int:
-    _print_summary(args.dataset, as_json=args.json)
-    return 0
-
-
-def _print_summary(root: Path, as_json: bool = False) -> None:
-    from model.dataset import Dataset
-
-    dataset = Dataset(root)
-    print(json.dumps(dataset.summary(), indent=2) if as_json else dataset.format_summary())
-
-
-# ------------------------------------------------------------------------------------------- preview
-
-def _add_preview(commands) -> None:
-    parser = commands.add_parser("preview", help="save a PNG of one frame's buffers side by side")
-    parser.add_argument("frame", type=Path, help="frame EXR file, or a sequence folder (then --index picks)")
-    parser.add_argument("--index", type=int, default=0, help="frame index within a sequence folder")
-    parser.add_argument("--out", type=Path, required=True, help="PNG file to write")
-    parser.set_defaults(run=_run_preview)
-
-
-def _run_preview(args) -> int:
-    from model.exr import read_frame
-    from model.preview import save_buffer_sheet
-
-    if args.frame.is_dir():
-        from model.dataset import Sequence
-
-        sequence = Sequence(args.frame)
-        if not 0 <= args.index < len(sequence):
-            raise UsageError(f"{args.frame}: --index {args.index} is out of range (0..{len(sequence) - 1})")
-        frame = sequence[args.index]
-        title = f"{sequence.name}, frame {args.index}"
-    else:
-        frame = read_frame(args.frame)
-        title = f"{args.frame.name}"
-    out = save_buffer_sheet(frame, args.out, title)
-    print(f"wrote {out}")
-    return 0
-
-
 # ---------------------------------------------------------------------------------------------- main
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="denoiser", description="Real-time neural denoisers for path-traced "
                                      "frames: data generation, training, evaluation and serving.")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _add_generate(commands)
-    _add_scenes(commands)
-    _add_summary(commands)
-    _add_preview(commands)
+    for module in COMMAND_MODULES:
+        importlib.import_module(module).add_commands(commands)
     return parser
 
 

@@ -1,0 +1,142 @@
+"""The one interface every method implements: `output, state = method.step(frame, state)`.
+
+Training (unrolled over T frames), evaluation, benchmarks and inference sessions all drive methods through
+`step`, one frame at a time, carrying `state` (the method's temporal history). `state=None` starts a
+sequence. A camera cut is signalled per sample by `frame.camera_cut`: methods drop that sample's history
+(see `drop_history`), so a batch may mix samples that continue with samples that restart.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, fields, replace
+from typing import Any, Iterable
+
+import numpy as np
+import torch
+from torch import nn
+
+from model.frames import FrameBundle
+
+State = dict[str, torch.Tensor]
+
+
+@dataclass
+class FrameBatch:
+    """A batch of frames as NCHW float32 tensors on one device (see `model.frames` for the conventions).
+
+    `reference` is the target at the method's output scale; it is for losses and metrics only and a
+    method's `step` must never read it.
+    """
+
+    color: torch.Tensor  # (N, 3, H, W)
+    albedo: torch.Tensor  # (N, 3, H, W)
+    normal: torch.Tensor  # (N, 3, H, W)
+    depth: torch.Tensor  # (N, 1, H, W)
+    motion: torch.Tensor  # (N, 2, H, W) pixels; previous position = sample position + motion
+    jitter: torch.Tensor  # (N, 2) sub-pixel offset of the sample from the pixel centre
+    camera_cut: torch.Tensor  # (N,) bool: history must be dropped before this frame
+    diffuse: torch.Tensor | None = None  # (N, 3, H, W)
+    specular: torch.Tensor | None = None
+    specular_albedo: torch.Tensor | None = None  # (N, 3, H, W)
+    roughness: torch.Tensor | None = None  # (N, 1, H, W)
+    reference: torch.Tensor | None = None  # (N, 3, H*s, W*s)
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.color.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.color.shape[2])
+
+    @property
+    def width(self) -> int:
+        return int(self.color.shape[3])
+
+    @property
+    def device(self) -> torch.device:
+        return self.color.device
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+    def to(self, device: torch.device | str) -> FrameBatch:
+        return replace(self, **{name: t.to(device) for name, t in self.tensors().items()})
+
+    def without_reference(self) -> FrameBatch:
+        return replace(self, reference=None)
+
+    @classmethod
+    def from_bundles(cls, bundles: Iterable[FrameBundle], scale: int | None = 1,
+                     device: torch.device | str = "cpu") -> FrameBatch:
+        """Stack frames of equal resolution; `scale` picks the reference (None: no reference)."""
+        bundles = list(bundles)
+        if not bundles:
+            raise ValueError("cannot build a FrameBatch from no frames")
+
+        def stack(name: str, channels_last: bool = True) -> torch.Tensor | None:
+            arrays = [getattr(b, name) for b in bundles]
+            if any(a is None for a in arrays):
+                return None
+            array = np.stack(arrays)
+            array = array[..., None] if array.ndim == 3 else array
+            return torch.from_numpy(np.ascontiguousarray(array.transpose(0, 3, 1, 2))).float().to(device)
+
+        reference = None
+        if scale is not None:
+            reference = torch.from_numpy(np.stack([b.reference(scale) for b in bundles]).transpose(0, 3, 1, 2))
+            reference = reference.float().contiguous().to(device)
+        return cls(color=stack("color"), albedo=stack("albedo"), normal=stack("normal"), depth=stack("depth"),
+                   motion=stack("motion"),
+                   jitter=torch.tensor([b.jitter for b in bundles], dtype=torch.float32, device=device),
+                   camera_cut=torch.tensor([b.camera_cut for b in bundles], dtype=torch.bool, device=device),
+                   diffuse=stack("diffuse"), specular=stack("specular"),
+                   specular_albedo=stack("specular_albedo"), roughness=stack("roughness"), reference=reference)
+
+
+def drop_history(state: State | None, frame: FrameBatch) -> State | None:
+    """Zero every state tensor for samples whose frame starts a new shot (`camera_cut`).
+
+    Methods keep a per-pixel history sample count in their state; zeroed, it marks the history invalid.
+    Returns None when every sample restarts, so a method can take its `state is None` path.
+    """
+    if state is None or not bool(frame.camera_cut.any()):
+        return state
+    if bool(frame.camera_cut.all()):
+        return None
+    keep = (~frame.camera_cut).to(frame.color.dtype)
+    return {name: value * keep.view(-1, *([1] * (value.dim() - 1))).to(value.dtype) for name, value in state.items()}
+
+
+class Method(nn.Module, abc.ABC):
+    """Base class of every method, learned or not.
+
+    Subclasses set `name`, `preset`, `scale` (output resolution / render resolution) and implement `step`.
+    Learned methods are trained through `step` too; `learned` is False for filters without parameters.
+    """
+
+    name: str = "method"
+    learned: bool = False
+
+    def __init__(self, preset: str = "default", scale: int = 1):
+        super().__init__()
+        if scale not in (1, 2):
+            raise ValueError(f"{self.name}: scale must be 1 or 2, got {scale}")
+        self.preset = preset
+        self.scale = scale
+
+    @property
+    def label(self) -> str:
+        return f"{self.name}:{self.preset}" if self.preset != "default" else self.name
+
+    @abc.abstractmethod
+    def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
+        """Denoise (and upscale by `scale`) one frame; returns (N, 3, H*scale, W*scale) radiance and new state."""
+
+    def parameter_count(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def config(self) -> dict[str, Any]:
+        """What reconstructs this method: registry name, preset, scale (checkpoints store it)."""
+        return {"method": self.name, "preset": self.preset, "scale": self.scale}

@@ -1,0 +1,1 @@
+"""Subcommands of the `denoiser` command line, one module per area."""
