@@ -1,0 +1,69 @@
+"""Intel Open Image Denoise (through `pyoidn`) as the outside peer every method is timed and scored against.
+
+OIDN's RT filter runs on the CPU here, one image at a time, with albedo and normal as clean auxiliary images
+(`clean_aux=True`: our guides are rendered noise-free, so OIDN need not prefilter them). The presets are OIDN's
+own quality levels: "fast", "balanced", "high". It is spatial only, so it keeps no state; at scale 2 its
+output is bicubic-upscaled like the other baselines. Not a torch model: `parameter_count()` is 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyoidn
+import torch
+
+from model.methods.base import FrameBatch, State
+from model.methods.baselines import RenderResolutionFilter
+from model.methods.registry import MethodSpec, register
+
+__all__ = ["OIDN", "QUALITIES", "oidn_albedo"]
+
+QUALITIES = ("fast", "balanced", "high")
+
+
+def oidn_albedo(frame: FrameBatch) -> torch.Tensor:
+    """The albedo guide OIDN should see: diffuse + specular albedo, clipped to [0, 1], when both are given.
+
+    OIDN's albedo is "the reflectance that modulates the noisy radiance": for metals and glass, which have no
+    diffuse albedo, its documentation asks for the specular reflectance instead. With the diffuse albedo alone,
+    a mirror or a metal would look black in the guide and OIDN would blur the detail it reflects.
+    """
+    if frame.specular_albedo is None:
+        return frame.albedo
+    return (frame.albedo + frame.specular_albedo).clamp(0.0, 1.0)
+
+
+def _to_hwc(image: torch.Tensor) -> np.ndarray:
+    """One (3, H, W) tensor as the contiguous float32 (H, W, 3) NumPy array pyoidn takes."""
+    return np.ascontiguousarray(image.detach().to("cpu", torch.float32).permute(1, 2, 0).numpy())
+
+
+class OIDN(RenderResolutionFilter):
+    """OIDN RT filter with albedo and normal guides (HDR, clean aux) at the preset's quality."""
+
+    name = "oidn"
+
+    def __init__(self, preset: str = "high", scale: int = 1):
+        super().__init__(preset, scale)
+        if preset not in QUALITIES:
+            raise KeyError(f"{self.name} has no preset {preset!r}; presets: {', '.join(QUALITIES)}")
+
+    def filter_frame(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
+        albedo = oidn_albedo(frame)
+        outputs = []
+        for index in range(frame.batch_size):
+            denoised = pyoidn.denoise(_to_hwc(frame.color[index]), _to_hwc(albedo[index]),
+                                      _to_hwc(frame.normal[index]), hdr=True, clean_aux=True, quality=self.preset)
+            outputs.append(torch.from_numpy(denoised).permute(2, 0, 1))
+        output = torch.stack(outputs).to(device=frame.device, dtype=frame.color.dtype)
+        return output, {}
+
+
+register(MethodSpec(
+    name=OIDN.name,
+    description="Intel Open Image Denoise (pyoidn RT filter, albedo + normal, clean aux), the outside peer",
+    factory=lambda preset, scale: OIDN(preset, scale),
+    presets=QUALITIES,
+    default_preset="high",
+    scales=(1, 2),
+))

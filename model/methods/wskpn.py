@@ -1,0 +1,210 @@
+"""WSKPN: real-time denoising with a weight-sharing kernel prediction network (Fan et al. 2021, seed paper 002).
+
+Per frame (paper figure 1):
+
+1. Preprocessing. The noisy radiance is demodulated by the diffuse albedo (irradiance = color / (albedo + eps),
+   section 4.2) and accumulated over time: the previous accumulated irradiance is backward-warped with the motion
+   vectors and blended in where the depth + normal geometry test passes; failed pixels restart from their 1 sample
+   (section 4.1). The blend factor is 0.2, the BMFR preprocessing the paper adopts ([KIM*19], whose dataset it
+   uses). Only the accumulated noisy input is carried over: the paper does not feed the filtered output back.
+2. Prediction. The ImportanceNet, a stack of RepVGG blocks, sees the accumulated irradiance and the guides and
+   predicts, per pixel, one importance logit per kernel size (3, 5, ..., 13, section 5.3) and one fusion logit per
+   size.
+3. Reconstruction. Each importance map defines a weight-sharing kernel (eq. 3-4) applied to the HDR accumulated
+   irradiance; the six results are blended with the softmax of the fusion logits (eq. 5). This is
+   ``model.ops.splat.weight_sharing_fused``, which never builds k*k kernel maps. The result is remodulated by the
+   albedo. At scale 2 the render-resolution result is upscaled bicubically ("WSKPN + bicubic").
+
+Network inputs (11 channels): log(1 + accumulated irradiance), albedo, normal mapped to [0, 1], depth divided by
+its per-frame maximum, and the accumulated sample count divided by its cap. The paper feeds gamma-corrected LDR
+color; irradiance is HDR and, once divided by a dark albedo, often far above 1, where a gamma curve clipped to
+[0, 1] would make every bright pixel and firefly look the same; log(1 + x) keeps them apart while compressing the
+range. Irradiance rather than the modulated color is what the predicted kernels filter, so the network sees the
+noise it has to remove (the albedo is an input too, so the modulated color is one product away). The sample count
+(not in the paper) tells the network where accumulation restarted and the input is still 1-sample noisy.
+
+Presets (``PRESETS``): "s" and "m" are the paper's 3- and 6-layer ImportanceNets (figure 2: widths 14, a last
+layer of 12 = 6 importance + 6 fusion maps, RepVGG blocks with 5x5/3x3/1x1 branches, all at full resolution);
+"xs" and "l" are a smaller and a larger U-Net of 3x3 RepVGG blocks (downsampling buys a wide receptive field
+cheaply on a CPU). Call :meth:`WSKPN.reparameterize` before inference: every block becomes one convolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from model.methods.base import FrameBatch, Method, State, drop_history
+from model.methods.baselines import bicubic_upscale
+from model.methods.registry import MethodSpec, register
+from model.methods.repvgg import RepVGGBlock, reparameterize
+from model.ops.accumulate import accumulate
+from model.ops.demodulate import demodulation_divisor
+from model.ops.pyramid import downsample2x, upsample2x
+from model.ops.reproject import disocclusion_mask
+from model.ops.splat import WSKPN_SIZES, weight_sharing_fused
+from model.ops.tonemap import log_tonemap
+from model.ops.warp import backward_warp
+
+__all__ = [
+    "ImportanceNetConfig",
+    "ImportanceNet",
+    "PRESETS",
+    "WSKPN",
+    "INPUT_CHANNELS",
+]
+
+ACCUMULATION_ALPHA = 0.2
+"""Weight of the new frame once the history is full (BMFR's blend factor, 1/5)."""
+MAX_COUNT = 1.0 / ACCUMULATION_ALPHA
+"""Counts stop at the point where the running mean turns into the exponential average; also the input scale."""
+
+INPUT_CHANNELS = 3 + 3 + 3 + 1 + 1  # log irradiance, albedo, normal, depth, count
+
+
+@dataclass(frozen=True)
+class ImportanceNetConfig:
+    """Shape of the ImportanceNet.
+
+    widths: channels per resolution level, finest first; one entry is a plain full-resolution stack (the paper's
+    nets), more entries a U-Net with a 2x downsampling between levels. blocks: RepVGG blocks per level on the way
+    down (and per level on the way up). kernel_size: largest RepVGG branch (the paper's blocks: 5).
+    The output block (linear, it produces logits) comes on top, so a plain net has ``blocks + 1`` layers.
+    """
+
+    widths: tuple[int, ...]
+    blocks: int
+    kernel_size: int
+
+    def __post_init__(self) -> None:
+        if not self.widths or min(self.widths) < 1:
+            raise ValueError(f"widths must be positive channel counts, got {self.widths}")
+        if self.blocks < 1:
+            raise ValueError(f"blocks must be >= 1, got {self.blocks}")
+
+
+PRESETS: dict[str, ImportanceNetConfig] = {
+    "xs": ImportanceNetConfig(widths=(8, 16), blocks=1, kernel_size=3),
+    "s": ImportanceNetConfig(widths=(14,), blocks=2, kernel_size=5),  # paper "3-layer" (ImportanceNet-2)
+    "m": ImportanceNetConfig(widths=(14,), blocks=5, kernel_size=5),  # paper "6-layer" (ImportanceNet-1)
+    "l": ImportanceNetConfig(widths=(24, 32, 48), blocks=2, kernel_size=3),
+}
+DEFAULT_PRESET = "s"
+
+
+def _stage(in_channels: int, out_channels: int, blocks: int, kernel_size: int) -> nn.Sequential:
+    layers = [RepVGGBlock(in_channels, out_channels, kernel_size)]
+    layers += [RepVGGBlock(out_channels, out_channels, kernel_size) for _ in range(blocks - 1)]
+    return nn.Sequential(*layers)
+
+
+class ImportanceNet(nn.Module):
+    """RepVGG encoder(-decoder): features (N, C_in, H, W) -> logits (N, C_out, H, W)."""
+
+    def __init__(self, in_channels: int, out_channels: int, config: ImportanceNetConfig):
+        super().__init__()
+        widths, k = config.widths, config.kernel_size
+        self.encoders = nn.ModuleList()
+        channels = in_channels
+        for width in widths:
+            self.encoders.append(_stage(channels, width, config.blocks, k))
+            channels = width
+        # decoders[i] merges level (L-2-i) with the upsampled level below it, coarsest merge first.
+        self.decoders = nn.ModuleList(
+            _stage(widths[level] + widths[level + 1], widths[level], config.blocks, k)
+            for level in reversed(range(len(widths) - 1))
+        )
+        self.head = RepVGGBlock(widths[0], out_channels, k, activation=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        skips = []
+        for level, encoder in enumerate(self.encoders):
+            x = encoder(downsample2x(x) if level else x)
+            skips.append(x)
+        for decoder, skip in zip(self.decoders, reversed(skips[:-1])):
+            x = decoder(torch.cat([upsample2x(x, size=tuple(skip.shape[-2:])), skip], dim=1))
+        return self.head(x)
+
+
+class WSKPN(Method):
+    """Weight-sharing kernel prediction denoiser; state holds the accumulated irradiance and last geometry.
+
+    State tensors: ``irradiance`` (N, 3, H, W) accumulated demodulated radiance, ``count`` (N, 1, H, W) its
+    sample count (0 after a cut marks it invalid), ``depth`` (N, 1, H, W) and ``normal`` (N, 3, H, W) of the
+    frame it belongs to, for the geometry test.
+    """
+
+    name = "wskpn"
+    learned = True
+
+    def __init__(self, preset: str = DEFAULT_PRESET, scale: int = 1):
+        super().__init__(preset, scale)
+        if preset not in PRESETS:
+            raise KeyError(f"wskpn has no preset {preset!r}; presets: {', '.join(PRESETS)}")
+        self.sizes = WSKPN_SIZES
+        self.importance_net = ImportanceNet(INPUT_CHANNELS, 2 * len(self.sizes), PRESETS[preset])
+
+    def reparameterize(self) -> WSKPN:
+        """Fuse every RepVGG block into one convolution (in place) for inference; returns self."""
+        reparameterize(self.importance_net)
+        return self
+
+    def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
+        state = drop_history(state, frame)
+        divisor = demodulation_divisor(frame.albedo)
+        irradiance, count = self._accumulate(frame.color / divisor, frame, state)
+        logits = self.importance_net(self._network_inputs(irradiance, count, frame))
+        m = len(self.sizes)
+        filtered = weight_sharing_fused(irradiance, logits[:, :m], logits[:, m:], self.sizes)
+        output = bicubic_upscale(filtered * divisor, self.scale)
+        new_state = {"irradiance": irradiance, "count": count, "depth": frame.depth, "normal": frame.normal}
+        return output, new_state
+
+    @staticmethod
+    def _accumulate(
+        irradiance: torch.Tensor, frame: FrameBatch, state: State | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        if state is None:
+            return accumulate(irradiance, None, None, None, alpha_min=ACCUMULATION_ALPHA)
+        # One bilinear warp for history and count; the geometry test decides which pixels may use them.
+        warped, _ = backward_warp(
+            torch.cat([state["irradiance"], state["count"]], dim=1), frame.motion, jitter=frame.jitter
+        )
+        valid = disocclusion_mask(
+            frame.depth, frame.normal, state["depth"], state["normal"], frame.motion, jitter=frame.jitter
+        )
+        # A cut zeroes the count (drop_history): such pixels restart at 1 sample like failed ones.
+        valid = valid & (warped[:, 3:] > 0)
+        return accumulate(
+            irradiance, warped[:, :3], warped[:, 3:], valid, alpha_min=ACCUMULATION_ALPHA, max_count=MAX_COUNT
+        )
+
+    @staticmethod
+    def _network_inputs(irradiance: torch.Tensor, count: torch.Tensor, frame: FrameBatch) -> torch.Tensor:
+        depth_max = frame.depth.amax(dim=(1, 2, 3), keepdim=True).clamp_min(torch.finfo(frame.depth.dtype).tiny)
+        return torch.cat(
+            [
+                log_tonemap(irradiance),
+                frame.albedo,
+                (frame.normal + 1.0) * 0.5,  # the paper scales normals linearly to [0, 1]
+                frame.depth / depth_max,
+                count / MAX_COUNT,
+            ],
+            dim=1,
+        )
+
+
+register(
+    MethodSpec(
+        name="wskpn",
+        description="weight-sharing kernel prediction (Fan et al. 2021): RepVGG ImportanceNet, kernels 3..13 "
+        "fused, on temporally accumulated demodulated irradiance; scale 2 = WSKPN + bicubic",
+        factory=lambda preset, scale: WSKPN(preset, scale),
+        presets=tuple(PRESETS),
+        default_preset=DEFAULT_PRESET,
+        scales=(1, 2),
+        learned=True,
+    )
+)

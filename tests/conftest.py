@@ -1,0 +1,20 @@
+"""Suite-wide test settings."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+
+@pytest.fixture(autouse=True)
+def single_torch_thread():
+    """Run each test's torch work on one thread.
+
+    The tests use tiny tensors: OpenMP's thread start-up and spinning dominate them, and on a loaded 2-core
+    machine two threads made a 16x16 step take over 100x longer than one. Tests that time or
+    parallelize things set their own thread counts.
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
