@@ -51,7 +51,7 @@ def save_buffer_sheet(frame: FrameBundle, out: str | Path, title: str | None = N
     panels = buffer_panels(frame)
     columns = min(len(panels), 6)
     rows = -(-len(panels) // columns)
-    figure, axes = plt.subplots(rows, columns, figsize=(2.6 * columns, 2.8 * rows), squeeze=False)
+    figure, axes = plt.subplots(rows, columns, figsize=(2.6 * columns, 3.0 * rows), squeeze=False)
     for axis in axes.flat:
         axis.axis("off")
     for axis, (name, image) in zip(axes.flat, panels):
@@ -59,7 +59,8 @@ def save_buffer_sheet(frame: FrameBundle, out: str | Path, title: str | None = N
         axis.set_title(name, fontsize=9)
     if title:
         figure.suptitle(title, fontsize=10)
-    figure.tight_layout()
+    # Room for the suptitle, and for each panel's title below the row above it.
+    figure.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.9 if title else 0.95, hspace=0.2, wspace=0.05)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(out, dpi=100)

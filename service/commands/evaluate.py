@@ -1,0 +1,119 @@
+"""`denoiser evaluate` and `denoiser methods`: the benchmark protocol on a dataset, and what can be evaluated."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from service.cli import UsageError, positive_int
+
+SPLITS = ("train", "validation", "test")  # as model.dataset.SPLITS; repeated so --help stays import-light
+
+
+def add_commands(commands) -> None:
+    _add_evaluate(commands)
+    _add_methods(commands)
+
+
+# ------------------------------------------------------------------------------------------- evaluate
+
+def _add_evaluate(commands) -> None:
+    parser = commands.add_parser(
+        "evaluate", help="score and time methods on whole sequences of a dataset split (the benchmark protocol)",
+        description="Run each method frame by frame over every sequence of a split, its history carried and "
+                    "camera cuts honoured. Quality: PSNR, SSIM and FLIP on display-encoded frames "
+                    "(clip(x,0,1)^(1/2.2)), SMAPE on linear HDR, the temporal error and FovVideoVDP JOD per "
+                    "sequence. Speed: median wall time of a step after 2 warm-up frames per sequence, with its "
+                    "ratio to OIDN-high timed in the same run on the same frames. Prints a Markdown table.")
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset folder")
+    parser.add_argument("--method", action="append", required=True, metavar="NAME[:PRESET]|CHECKPOINT",
+                        help="method from the registry (see 'denoiser methods') or a trained checkpoint file; "
+                             "repeat for several")
+    parser.add_argument("--split", choices=SPLITS, default="test", help="split to evaluate on (default: test)")
+    parser.add_argument("--scale", type=int, choices=(1, 2), default=1,
+                        help="output / render resolution ratio; the data needs references at this scale (default: 1)")
+    parser.add_argument("--out", type=Path, default=None, metavar="FILE.json", help="write the full report here")
+    parser.add_argument("--frames", type=positive_int, default=None, metavar="N",
+                        help="evaluate only the first N frames of each sequence (default: all)")
+    parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                        help="torch thread count for the run (default: torch's own)")
+    parser.add_argument("--device", default="cpu", help="torch device the methods run on: cpu (default), cuda, cuda:1")
+    parser.add_argument("--no-vdp", action="store_true", help="skip FovVideoVDP (the slowest metric)")
+    parser.add_argument("--no-oidn", action="store_true",
+                        help="do not time OIDN-high as the speed reference (time ratios are then null)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    parser.set_defaults(run=_run_evaluate)
+
+
+def _run_evaluate(args) -> int:
+    from model.evaluate import TIMING_REFERENCE, evaluate, format_table
+
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise UsageError(f"--device {args.device}: no CUDA device is available")
+    if args.out is not None and args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a folder; give a file name such as report.json")
+    progress = None if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
+    report = evaluate(args.data, args.method, split=args.split, scale=args.scale, frame_limit=args.frames,
+                      threads=args.threads, vdp=not args.no_vdp,
+                      timing_reference=None if args.no_oidn else TIMING_REFERENCE,
+                      device=args.device, progress=progress)
+    print(format_table(report))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
+        print(f"wrote {args.out}")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------- methods
+
+def _add_methods(commands) -> None:
+    parser = commands.add_parser(
+        "methods", help="list every registered method and preset with its parameters and FLOPs per pixel",
+        description="One row per method and preset: output scales, whether it is learned, parameter count and "
+                    "FLOPs per output pixel of one step with history (torch's FLOP counter: convolutions and "
+                    "matmuls; element-wise ops and OIDN's own network are not counted).")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.set_defaults(run=_run_methods)
+
+
+def _method_rows() -> list[dict]:
+    from model.methods import registry
+
+    rows = []
+    for spec in registry.all_methods():
+        scale = 1 if 1 in spec.scales else spec.scales[0]
+        for preset in spec.presets:
+            method = spec.factory(preset, scale)
+            rows.append({"method": spec.name, "preset": preset, "default": preset == spec.default_preset,
+                         "scales": list(spec.scales), "learned": spec.learned,
+                         "params": method.parameter_count(),
+                         "flops_per_pixel": float(registry.flops_per_pixel(method)),
+                         "description": spec.description})
+    return rows
+
+
+def _run_methods(args) -> int:
+    rows = _method_rows()
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    header = ("method", "scales", "learned", "params", "FLOPs/px", "description")
+    table = [header]
+    for row in rows:
+        name = row["method"] if row["preset"] == "default" else f"{row['method']}:{row['preset']}"
+        name += " *" if row["default"] and row["preset"] != "default" else ""
+        table.append((name, ",".join(str(s) for s in row["scales"]), "yes" if row["learned"] else "no",
+                      f"{row['params']:,}", f"{row['flops_per_pixel']:,.0f}", row["description"]))
+    widths = [max(len(line[column]) for line in table) for column in range(len(header))]
+    numeric = {3, 4}
+    for line in table:
+        cells = (cell.rjust(w) if c in numeric else cell.ljust(w) for c, (cell, w) in enumerate(zip(line, widths)))
+        print("  ".join(cells).rstrip())
+    if any(row["default"] and row["preset"] != "default" for row in rows):
+        print("* default preset (NAME alone means NAME:DEFAULT)")
+    return 0

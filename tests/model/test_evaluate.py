@@ -1,0 +1,223 @@
+"""The evaluation protocol on a tiny synthetic dataset: report shape, plumbing of metrics, history, cuts, timing."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from model.dataset import Dataset, DatasetError, SequenceWriter
+from model.evaluate import EvaluationSequence, evaluate, evaluate_method, format_table
+from model.frames import FrameBundle, box_downsample
+from model.methods.base import FrameBatch, Method, State, drop_history
+from model.metrics import frame_metrics
+
+SIZE = 16
+FRAMES = 4
+
+
+def synthetic_frame(index: int, seed: int, scales: tuple[int, ...], camera_cut: bool = False) -> FrameBundle:
+    """A smooth moving gradient as reference; the noisy color is the scale-1 reference plus seeded noise."""
+    rng = np.random.default_rng(seed * 100 + index)
+    fine = 2 * SIZE
+    y, x = np.mgrid[0:fine, 0:fine].astype(np.float32) / fine
+    base = np.stack([x + 0.05 * index, y, 0.5 * (x + y)], axis=2) * (0.5 + 0.2 * seed)
+    reference2 = np.ascontiguousarray(base, dtype=np.float32)
+    reference1 = box_downsample(reference2, 2)
+    noise = rng.normal(0.0, 0.2, reference1.shape).astype(np.float32)
+    references = {1: reference1, 2: reference2}
+    return FrameBundle(
+        color=np.clip(reference1 + noise, 0.0, None),
+        albedo=np.full((SIZE, SIZE, 3), 0.5, np.float32),
+        normal=np.broadcast_to(np.array([0, 0, 1], np.float32), (SIZE, SIZE, 3)).copy(),
+        depth=np.ones((SIZE, SIZE), np.float32),
+        motion=np.zeros((SIZE, SIZE, 2), np.float32),
+        jitter=(0.0, 0.0), frame_index=index, camera_cut=camera_cut,
+        references={s: references[s] for s in scales})
+
+
+def write_tiny_dataset(root: Path, scales: tuple[int, ...] = (1, 2), split: str = "test") -> Path:
+    """Two sequences of 4 frames at 16x16; sequence 'b' has a camera cut before frame 2."""
+    dataset = Dataset.create(root)
+    for seed, name in enumerate(("a", "b")):
+        with SequenceWriter(root / name, name) as writer:
+            for index in range(FRAMES):
+                writer.add(synthetic_frame(index, seed, scales, camera_cut=(name == "b" and index == 2)))
+        dataset.add_sequence_dir(name, split)
+    return root
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory) -> Path:
+    return write_tiny_dataset(tmp_path_factory.mktemp("eval") / "data")
+
+
+class NoisyInput(Method):
+    """The noisy color, nearest-upscaled to the output scale; records what each step saw."""
+
+    name = "noisy_input"
+
+    def __init__(self, preset: str = "default", scale: int = 1):
+        super().__init__(preset, scale)
+        self.seen: list[dict] = []
+
+    def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
+        state = drop_history(state, frame)
+        self.seen.append({"history": None if state is None else int(state["count"].max()),
+                          "cut": bool(frame.camera_cut[0]), "reference": frame.reference is not None})
+        count = torch.ones(frame.batch_size, 1, 1, 1) if state is None else state["count"] + 1
+        output = frame.color.repeat_interleave(self.scale, dim=2).repeat_interleave(self.scale, dim=3)
+        return output, {"count": count}
+
+
+class NaNOutput(NoisyInput):
+    name = "nan_output"
+
+    def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
+        return torch.full_like(frame.color, math.nan), {}
+
+
+def run(dataset_dir: Path, methods, **options) -> dict:
+    options.setdefault("vdp", False)
+    options.setdefault("timing_reference", None)
+    return evaluate(dataset_dir, methods, **options)
+
+
+def test_report_has_every_metric_and_timing_finite_and_json_ready(dataset_dir):
+    reference = NoisyInput()  # stands in for OIDN: any method can be the timing reference
+    report = run(dataset_dir, [NoisyInput()], timing_reference=reference)
+    json.dumps(report, allow_nan=False)  # strict JSON: no NaN or Infinity anywhere
+    assert report["split"] == "test" and report["scale"] == 1
+    assert [s["name"] for s in report["sequences"]] == ["a", "b"]
+    assert report["sequences"][1]["camera_cuts"] == 1
+    (entry,) = report["methods"]
+    assert entry["label"] == "noisy_input" and entry["params"] == 0 and entry["flops_per_pixel"] == 0
+    assert set(entry["sequences"]) == {"a", "b"}
+    for name in ("psnr", "ssim", "flip", "smape", "temporal_error"):
+        assert math.isfinite(entry["metrics"][name]), name
+    assert entry["metrics"]["fvvdp_jod"] is None and report["fvvdp"]["enabled"] is False
+    timing = entry["timing"]
+    assert timing["frames_timed"] == 2 * (FRAMES - 2)  # the first 2 frames of each sequence are warm-up
+    assert timing["input_resolutions"] == ["16x16"] and timing["output_resolutions"] == ["16x16"]
+    assert timing["threads"] == torch.get_num_threads()
+    assert entry["ms_per_frame"] > 0 and entry["time_ratio_to_oidn"] > 0
+    assert report["timing_reference"]["label"] == "noisy_input"
+    assert report["timing_reference"]["timing"]["frames_timed"] == 2 * (FRAMES - 2)
+
+
+def test_metrics_are_per_frame_means_averaged_over_sequences(dataset_dir):
+    report = run(dataset_dir, [NoisyInput()])
+    expected = {}
+    for name in ("a", "b"):
+        sequence = EvaluationSequence.from_sequence(Dataset(dataset_dir).sequence(name), scale=1)
+        values = [frame_metrics(f.color, f.reference) for f in sequence.frames]
+        expected[name] = {k: float(np.mean([v[k][0] for v in values])) for k in ("psnr", "ssim", "flip", "smape")}
+    entry = report["methods"][0]
+    for metric in ("psnr", "ssim", "flip", "smape"):
+        for name in ("a", "b"):
+            assert entry["sequences"][name][metric] == pytest.approx(expected[name][metric], rel=1e-5)
+        mean = (expected["a"][metric] + expected["b"][metric]) / 2
+        assert entry["metrics"][metric] == pytest.approx(mean, rel=1e-5)
+    assert 5 < entry["metrics"]["psnr"] < 30  # noise of sigma 0.2: clearly imperfect, clearly not garbage
+
+
+def test_history_is_carried_reset_per_sequence_and_at_cuts_and_reference_is_hidden(dataset_dir):
+    method = NoisyInput()
+    run(dataset_dir, [method])
+    seen = method.seen[-2 * FRAMES:]  # the steps before these count FLOPs on an example batch
+    histories = [s["history"] for s in seen]
+    # Sequence a: fresh, then 1, 2, 3 frames of history; sequence b: fresh, 1, cut (fresh), 1.
+    assert histories == [None, 1, 2, 3, None, 1, None, 1]
+    assert [s["cut"] for s in seen] == [False] * 6 + [True, False]
+    assert not any(s["reference"] for s in seen)
+
+
+def test_scale_two_compares_against_the_scale_two_reference(dataset_dir):
+    report = run(dataset_dir, [NoisyInput(scale=2)], scale=2)
+    assert report["sequences"][0]["output_resolution"] == "32x32"
+    assert report["methods"][0]["timing"]["output_resolutions"] == ["32x32"]
+    assert math.isfinite(report["methods"][0]["metrics"]["psnr"])
+    with pytest.raises(ValueError, match="scale 1"):
+        run(dataset_dir, [NoisyInput(scale=1)], scale=2)
+
+
+def test_frame_limit_and_a_timing_reference_that_is_also_evaluated(dataset_dir):
+    report = run(dataset_dir, [NoisyInput()], frame_limit=3, timing_reference="noisy_input")
+    entry = report["methods"][0]
+    assert [s["frames"] for s in report["sequences"]] == [3, 3]
+    assert entry["timing"]["frames_timed"] == 2
+    assert entry["time_ratio_to_oidn"] == 1.0  # its own run is the reference timing, not a second one
+
+
+def test_fovvideovdp_jod_per_sequence(dataset_dir):
+    report = run(dataset_dir, [NoisyInput()], vdp=True, frame_limit=2)
+    assert report["fvvdp"] == {"enabled": True, "available": True, "reason": None, "display": "standard_4k",
+                               "frames_per_second": 30, "failures": []}
+    jods = [report["methods"][0]["sequences"][name]["fvvdp_jod"] for name in ("a", "b")]
+    assert all(0 < jod < 10 for jod in jods)
+
+
+def test_evaluate_method_on_sequences_in_memory(dataset_dir):
+    sequences = [EvaluationSequence.from_sequence(s, 1, 2) for s in Dataset(dataset_dir).sequences("test")]
+    entry = evaluate_method(NoisyInput(), sequences, vdp=False, reference_ms=1e6)
+    assert entry["timing"]["frames_timed"] == 0 and entry["ms_per_frame"] is None
+    assert entry["time_ratio_to_oidn"] is None and math.isfinite(entry["metrics"]["ssim"])
+
+
+def test_an_existing_file_is_loaded_as_a_checkpoint(dataset_dir, tmp_path, monkeypatch):
+    loaded = []
+
+    def load_method(path):
+        loaded.append(Path(path))
+        return NoisyInput()
+
+    # Stands in for model.checkpoint (its own tests cover the file format): only the routing is tested here.
+    monkeypatch.setitem(sys.modules, "model.checkpoint", types.SimpleNamespace(load_method=load_method))
+    checkpoint = tmp_path / "trained.pt"
+    checkpoint.write_bytes(b"weights")
+    report = run(dataset_dir, [str(checkpoint)], frame_limit=1)
+    assert loaded == [checkpoint]
+    assert report["methods"][0]["source"] == str(checkpoint) and report["methods"][0]["label"] == "noisy_input"
+    with pytest.raises(ValueError, match="holds a scale-1 method .* cannot be evaluated at scale 2"):
+        run(dataset_dir, [str(checkpoint)], scale=2)
+
+
+def test_non_finite_output_is_an_error_naming_method_sequence_and_frame(dataset_dir):
+    with pytest.raises(RuntimeError, match="nan_output on sequence 'a', frame 0: output is not finite"):
+        run(dataset_dir, [NaNOutput()])
+
+
+def test_bad_input_is_reported_before_any_frame_is_read(tmp_path, dataset_dir):
+    with pytest.raises(DatasetError, match="not found"):
+        run(tmp_path / "missing", [NoisyInput()])
+    with pytest.raises(ValueError, match=r"no sequences in split 'validation' \(splits present: test \(2\)\)"):
+        run(dataset_dir, [NoisyInput()], split="validation")
+    only_scale_one = write_tiny_dataset(tmp_path / "scale1", scales=(1,))
+    with pytest.raises(ValueError, match="sequence 'a' .* has no references at scale 2 .*1 more"):
+        run(only_scale_one, [NoisyInput(scale=2)], scale=2)
+    with pytest.raises(KeyError, match="unknown method 'no_such_method'"):
+        run(dataset_dir, ["no_such_method"])
+    with pytest.raises(FileNotFoundError, match="checkpoint runs/missing.pt not found"):
+        run(dataset_dir, ["runs/missing.pt"])
+    with pytest.raises(KeyError, match="cannot build the timing reference 'nope'"):
+        run(dataset_dir, [NoisyInput()], timing_reference="nope")
+
+
+def test_markdown_table_has_a_row_per_method_and_states_the_conditions(dataset_dir):
+    report = run(dataset_dir, [NoisyInput(), NoisyInput()], timing_reference=NoisyInput())
+    table = format_table(report)
+    lines = table.splitlines()
+    assert "2 sequences, 8 frames" in lines[0] and "input 16x16 -> output 16x16" in lines[0]
+    assert f"{torch.get_num_threads()} threads" in lines[0] and "FovVideoVDP skipped" in lines[0]
+    header = [cell.strip() for cell in lines[2].strip("|").split("|")]
+    assert header[:4] == ["method", "params", "FLOPs/px", "PSNR dB ↑"] and header[-1] == "time / OIDN"
+    rows = [line for line in lines[4:] if line.startswith("| noisy_input")]
+    assert len(rows) == 2
+    cells = [cell.strip() for cell in rows[0].strip("|").split("|")]
+    assert cells[3] == f"{report['methods'][0]['metrics']['psnr']:.2f}" and cells[-1].endswith("x")
