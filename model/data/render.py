@@ -197,7 +197,9 @@ class SceneRenderer:
             emitter_pdf = mi.Float(0.0) if depth == 0 else mi_scene.pdf_emitter_direction(
                 previous_si, direction_sample, ~previous_delta)
             emitted = throughput * _mis_weight(dr, previous_pdf, emitter_pdf) * emitter.eval(si, active)
-            emitted = dr.select(active, emitted, 0.0)
+            # As Mitsuba's film does with invalid samples, a non-finite contribution (0 * inf at a degenerate
+            # sample) is dropped rather than poisoning the pixel; the same guard applies to `direct` below.
+            emitted = dr.select(active & dr.isfinite(emitted), emitted, 0.0)
             if depth == 0:
                 specular += emitted  # seen directly: no lobe was sampled, so it is not diffuse radiance
             else:
@@ -215,6 +217,7 @@ class SceneRenderer:
             bsdf_value, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, active_nee)
             nee_mis = dr.select(light_sample.delta, 1.0, _mis_weight(dr, light_sample.pdf, bsdf_pdf))
             direct = dr.select(active_nee, throughput * nee_mis * bsdf_value * light_weight, 0.0)
+            direct = dr.select(dr.isfinite(direct), direct, 0.0)
 
             # Sample the BSDF to continue the path; the first sampled lobe decides the path's buffer.
             sample, weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
@@ -287,9 +290,14 @@ class SceneRenderer:
 
 
 def _mis_weight(dr, pdf_a, pdf_b):
-    """Power heuristic, as in Mitsuba's own integrators."""
-    a2 = dr.square(pdf_a)
-    return dr.detach(dr.select(pdf_a > 0, a2 / dr.fma(pdf_b, pdf_b, a2), 0.0), True)
+    """Power heuristic a^2 / (a^2 + b^2), written as 1 / (1 + (b/a)^2).
+
+    The textbook form overflows float32 for pdfs above ~1e19 (a light sampled at a grazing angle from a point
+    next to it): inf / inf gives NaN. The ratio form stays finite and gives 1 or 0 at the extremes.
+    """
+    ratio = pdf_b / pdf_a
+    weight = dr.rcp(dr.fma(ratio, ratio, 1.0))
+    return dr.detach(dr.select((pdf_a > 0) & dr.isfinite(weight), weight, 0.0), True)
 
 
 def _to_numpy(value) -> np.ndarray:
