@@ -101,11 +101,13 @@ def resolve_method(text: str, scale: int) -> tuple[Method, str]:
 
 
 def _prepare(method: Method | str, scale: int) -> tuple[Method, str]:
+    """The method in its inference form (what sessions run), with where it came from."""
     if isinstance(method, Method):
         if method.scale != scale:
             raise ValueError(f"method {method.label} outputs scale {method.scale}, evaluation is at scale {scale}")
-        return method, method.label
-    return resolve_method(method, scale)
+        return method.for_inference(), method.label
+    method, source = resolve_method(method, scale)
+    return method.for_inference(), source
 
 
 def method_description(method: Method, source: str) -> dict:

@@ -134,6 +134,11 @@ class Method(nn.Module, abc.ABC):
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         """Denoise (and upscale by `scale`) one frame; returns (N, 3, H*scale, W*scale) radiance and new state."""
 
+    def for_inference(self) -> Method:
+        """This method in its fast inference form (eval mode; subclasses fuse layers): sessions, benchmarks
+        and evaluation run this, training runs the method as built. Outputs must match the training form."""
+        return self.eval()
+
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
 

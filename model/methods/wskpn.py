@@ -151,6 +151,9 @@ class WSKPN(Method):
         reparameterize(self.importance_net)
         return self
 
+    def for_inference(self) -> WSKPN:
+        return self.eval().reparameterize()
+
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         state = drop_history(state, frame)
         divisor = demodulation_divisor(frame.albedo)

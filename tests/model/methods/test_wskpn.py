@@ -230,3 +230,16 @@ def test_cuda_step_matches_cpu():
         assert output.device.type == device
         outputs[device] = output.cpu()
     torch.testing.assert_close(outputs["cuda"], outputs["cpu"], atol=1e-4, rtol=1e-4)
+
+
+def test_for_inference_is_the_fused_eval_form_with_the_same_output():
+    method = WSKPN("s")
+    frame = example_batch(16, 16)
+    method.eval()
+    with torch.no_grad():
+        expected, _ = method.step(frame, None)
+    fast = method.for_inference()
+    assert not fast.training and all(block.is_reparameterized for block in fast.modules()
+                                     if hasattr(block, "is_reparameterized"))
+    with torch.no_grad():
+        torch.testing.assert_close(fast.step(frame, None)[0], expected, atol=1e-5, rtol=1e-4)
