@@ -1,0 +1,225 @@
+"""Every MLflow call of the project: runs, metrics, sample grids, logged and registered models.
+
+``MLflowTracker`` implements ``model.train.Tracker`` (the model library itself never imports MLflow). Only rank 0
+of a training job creates one.
+
+Where things go. The tracking URI is one setting: ``TrainConfig.tracking_uri``, else ``$DENOISER_TRACKING_URI``,
+else a SQLite file ``mlruns/mlflow.db`` under the current folder (as an absolute ``sqlite:///`` URI). With a
+SQLite URI, artifacts go to ``artifacts/<experiment>/`` next to the database file (MLflow would otherwise put
+them under the current folder of whichever process created the experiment); a server or PostgreSQL URI keeps
+the server's artifact store.
+
+Models. The final checkpoint (``model.checkpoint``, loadable with ``load_method``) is stored as an MLflow 3
+*logged model* of the run, with no pyfunc flavour (the service drives methods through ``step``, not
+``predict``), and registered as a new version of the registered model, tagged with method, preset, scale,
+params, flops_per_pixel and validation PSNR. ``download_registered_checkpoint`` brings a version's checkpoint
+back. Aliases (not stages) mark versions for serving; choosing them is the service's business.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# MLflow 3 sends usage telemetry by default; this service runs offline and must not phone home.
+os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+
+import mlflow  # noqa: E402  (after the telemetry switch)
+from mlflow import MlflowClient  # noqa: E402
+from mlflow.entities import LoggedModelStatus, Metric, Param, RunStatus  # noqa: E402
+from mlflow.exceptions import MlflowException  # noqa: E402
+
+TRACKING_URI_ENV = "DENOISER_TRACKING_URI"
+CHECKPOINT_ARTIFACT = "checkpoint.pt"
+PARAM_VALUE_LIMIT = 6000  # MLflow refuses longer parameter values
+BATCH_LIMIT = 100  # params per log_batch call (MLflow's limit); metrics are flushed in batches of this size too
+
+
+def default_tracking_uri() -> str:
+    return f"sqlite:///{(Path.cwd() / 'mlruns' / 'mlflow.db').resolve()}"
+
+
+def resolve_tracking_uri(uri: str | None = None) -> str:
+    """The tracking URI to use: ``uri``, else ``$DENOISER_TRACKING_URI``, else ``default_tracking_uri()``."""
+    return uri or os.environ.get(TRACKING_URI_ENV) or default_tracking_uri()
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` URI, None for other backends."""
+    prefix = "sqlite:///"
+    return Path(uri[len(prefix):]) if uri.startswith(prefix) else None
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "experiment"
+
+
+class MLflowTracker:
+    """Logs one training run to MLflow (see the module notes for where everything goes).
+
+    Metrics are buffered and written in batches (``flush_every`` values, and before images, models and the
+    end of the run): one SQLite transaction per step would cost more than a tiny model's training step.
+    """
+
+    def __init__(self, tracking_uri: str | None = None, experiment: str = "denoiser", flush_every: int = BATCH_LIMIT,
+                 run_name: str | None = None) -> None:
+        self.tracking_uri = resolve_tracking_uri(tracking_uri)
+        self.experiment = experiment
+        self.flush_every = flush_every
+        self.run_name = run_name
+        self._client: MlflowClient | None = None
+        self._run_id: str | None = None
+        self._experiment_id: str | None = None
+        self._pending: list[Metric] = []
+
+    @property
+    def run_id(self) -> str | None:
+        return self._run_id
+
+    @property
+    def client(self) -> MlflowClient:
+        if self._client is None:
+            database = sqlite_path(self.tracking_uri)
+            if database is not None:
+                database.parent.mkdir(parents=True, exist_ok=True)  # SQLite creates the file, not its folder
+            self._client = MlflowClient(self.tracking_uri, registry_uri=self.tracking_uri)
+        return self._client
+
+    # ------------------------------------------------------------------------------------ run
+
+    def start(self, params: dict[str, Any], resume_run_id: str | None = None) -> None:
+        self._experiment_id = self._experiment_id_for(self.experiment)
+        logged: dict[str, str] = {}
+        if resume_run_id is not None and self._resumable(resume_run_id):
+            self._run_id = resume_run_id
+            self.client.update_run(resume_run_id, status=RunStatus.to_string(RunStatus.RUNNING))
+            logged = self.client.get_run(resume_run_id).data.params
+        else:
+            run_name = self.run_name or f"{params.get('method', 'train')}"
+            self._run_id = self.client.create_run(self._experiment_id, run_name=run_name).info.run_id
+        values = {key: str(value)[:PARAM_VALUE_LIMIT] for key, value in params.items()}
+        # A resumed run keeps its parameters (MLflow never changes one); a changed setting becomes a tag.
+        new = [Param(key, value) for key, value in values.items() if key not in logged]
+        for start in range(0, len(new), BATCH_LIMIT):
+            self.client.log_batch(self._run_id, params=new[start:start + BATCH_LIMIT])
+        for key, value in values.items():
+            if key in logged and logged[key] != value:
+                self.client.set_tag(self._run_id, f"resumed_with.{key}", value)
+
+    def _experiment_id_for(self, name: str) -> str:
+        existing = self.client.get_experiment_by_name(name)
+        if existing is not None:
+            return existing.experiment_id
+        database = sqlite_path(self.tracking_uri)
+        location = None if database is None else (database.parent / "artifacts" / _slug(name)).as_uri()
+        try:
+            return self.client.create_experiment(name, artifact_location=location)
+        except MlflowException:  # another process created it meanwhile
+            existing = self.client.get_experiment_by_name(name)
+            if existing is None:
+                raise
+            return existing.experiment_id
+
+    def _resumable(self, run_id: str) -> bool:
+        try:
+            run = self.client.get_run(run_id)
+        except MlflowException:
+            return False  # a checkpoint from another tracking store: start a new run
+        return run.info.experiment_id == self._experiment_id
+
+    def finish(self, status: str) -> None:
+        if self._run_id is None:
+            return
+        self._flush()
+        self.client.set_terminated(self._run_id, status=status)
+
+    # -------------------------------------------------------------------------------- logging
+
+    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        timestamp = int(time.time() * 1000)
+        self._pending.extend(Metric(key, float(value), timestamp, step) for key, value in metrics.items())
+        if len(self._pending) >= self.flush_every:
+            self._flush()
+
+    def _flush(self) -> None:
+        while self._pending:
+            batch, self._pending = self._pending[:BATCH_LIMIT], self._pending[BATCH_LIMIT:]
+            self.client.log_batch(self._run_id, metrics=batch)
+
+    def log_image_grid(self, name: str, columns: dict[str, list[np.ndarray]], step: int) -> None:
+        self._flush()
+        with tempfile.TemporaryDirectory() as folder:
+            path = Path(folder) / Path(name).name
+            save_image_grid(columns, path, title=f"step {step}")
+            artifact_folder = str(Path(name).parent) if Path(name).parent != Path(".") else None
+            self.client.log_artifact(self._run_id, str(path), artifact_folder)
+
+    def log_model(self, checkpoint: Path, registered_name: str, tags: dict[str, str]) -> dict[str, Any]:
+        """Store ``checkpoint`` as the run's logged model and register it as a new version of ``registered_name``."""
+        self._flush()
+        for key, value in tags.items():
+            self.client.set_tag(self._run_id, key, value)
+        model = self.client.create_logged_model(self._experiment_id, name=_slug(registered_name),
+                                                source_run_id=self._run_id, tags=tags)
+        with tempfile.TemporaryDirectory() as folder:
+            shutil.copy2(checkpoint, Path(folder) / CHECKPOINT_ARTIFACT)
+            self.client.log_model_artifacts(model.model_id, folder)
+        self.client.finalize_logged_model(model.model_id, LoggedModelStatus.READY)
+        try:
+            self.client.create_registered_model(registered_name)
+        except MlflowException as error:
+            if error.error_code not in ("RESOURCE_ALREADY_EXISTS", "ALREADY_EXISTS"):
+                raise
+        # The source is the logged model's artifact folder rather than "models:/<id>": MLflow's SQL registry
+        # resolves "models:/" through the process-wide tracking URI, not this client's.
+        version = self.client.create_model_version(registered_name, source=model.artifact_location,
+                                                   run_id=self._run_id, tags=tags, model_id=model.model_id)
+        return {"name": registered_name, "version": str(version.version), "model_id": model.model_id,
+                "uri": f"models:/{registered_name}/{version.version}"}
+
+
+def download_registered_checkpoint(name: str, version: str | int, destination: str | os.PathLike,
+                                   tracking_uri: str | None = None) -> Path:
+    """Fetch the checkpoint of registered model ``name`` version ``version`` into ``destination``; returns its path."""
+    uri = resolve_tracking_uri(tracking_uri)
+    client = MlflowClient(uri, registry_uri=uri)
+    location = client.get_model_version_download_uri(name, str(version))
+    destination = Path(destination)
+    destination.mkdir(parents=True, exist_ok=True)
+    local = mlflow.artifacts.download_artifacts(artifact_uri=f"{location}/{CHECKPOINT_ARTIFACT}",
+                                                dst_path=str(destination), tracking_uri=uri)
+    return Path(local)
+
+
+def save_image_grid(columns: dict[str, list[np.ndarray]], path: str | os.PathLike, title: str | None = None) -> Path:
+    """A PNG with one column per entry of ``columns`` (title -> HxWx3 images in [0, 1]) and one row per sample."""
+    # A bare Figure (no pyplot): no global backend or figure registry touched, safe in workers and threads.
+    from matplotlib.figure import Figure
+
+    names = list(columns)
+    rows = min((len(images) for images in columns.values()), default=0)
+    if rows == 0:
+        raise ValueError("an image grid needs at least one column with one image")
+    figure = Figure(figsize=(2.2 * len(names), 2.2 * rows + 0.4))
+    axes = figure.subplots(rows, len(names), squeeze=False)
+    for column, name in enumerate(names):
+        for row in range(rows):
+            axis = axes[row][column]
+            axis.imshow(np.clip(columns[name][row], 0.0, 1.0), interpolation="nearest")
+            axis.set_xticks([])
+            axis.set_yticks([])
+            if row == 0:
+                axis.set_title(name, fontsize=10)
+    if title:
+        figure.suptitle(title, fontsize=10)
+    figure.tight_layout()
+    path = Path(path)
+    figure.savefig(path, dpi=100)
+    return path
