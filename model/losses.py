@@ -54,10 +54,14 @@ class LossTerms:
     total: torch.Tensor
     spatial: torch.Tensor
     temporal: torch.Tensor
+    auxiliary: torch.Tensor | None = None  # the method's own extra term, already in total
 
     def detached(self) -> dict[str, float]:
-        return {"loss": float(self.total.detach()), "spatial_loss": float(self.spatial.detach()),
-                "temporal_loss": float(self.temporal.detach())}
+        values = {"loss": float(self.total.detach()), "spatial_loss": float(self.spatial.detach()),
+                  "temporal_loss": float(self.temporal.detach())}
+        if self.auxiliary is not None:
+            values["auxiliary_loss"] = float(self.auxiliary.detach())
+        return values
 
 
 class SequenceLoss:
@@ -81,7 +85,9 @@ class SequenceLoss:
         self.frame_weights = None if frame_weights is None else [float(w) for w in frame_weights]
         self.eps = eps
 
-    def __call__(self, outputs: Sequence[torch.Tensor], targets: Sequence[torch.Tensor]) -> LossTerms:
+    def __call__(self, outputs: Sequence[torch.Tensor], targets: Sequence[torch.Tensor],
+                 auxiliary: torch.Tensor | None = None) -> LossTerms:
+        """The weighted loss over T frames; a method's `auxiliary` term (see Method.auxiliary_loss) is added as is."""
         if len(outputs) != len(targets) or not outputs:
             raise ValueError(f"need as many outputs as targets (at least one), got {len(outputs)} and {len(targets)}")
         weights = self.frame_weights or [1.0] * len(outputs)
@@ -100,7 +106,9 @@ class SequenceLoss:
         else:  # one frame (or only frame 0 weighted): no change to compare
             temporal = spatial.new_zeros(())
         total = self.spatial_weight * spatial + self.temporal_weight * temporal
-        return LossTerms(total=total, spatial=spatial, temporal=temporal)
+        if auxiliary is not None:
+            total = total + auxiliary
+        return LossTerms(total=total, spatial=spatial, temporal=temporal, auxiliary=auxiliary)
 
 
 def _weighted_mean(terms: list[torch.Tensor], weights: Sequence[float]) -> torch.Tensor:

@@ -80,8 +80,8 @@ class TrainConfig:
     lr_step_gamma: float = 0.3
     min_lr_ratio: float = 0.01  # cosine schedule: the learning rate ends at lr * min_lr_ratio
     grad_clip: float = 1.0  # max gradient norm (0: no clipping)
-    spatial_weight: float = 1.0
-    temporal_weight: float = 0.25
+    spatial_weight: float | None = None  # None: the method's own default (Method.loss_weights)
+    temporal_weight: float | None = None
     tonemap: str = "log"  # what the loss compares: log | mulaw | linear radiance (see model.losses)
     loss_skip_frames: int = 0  # leave the first k frames of each sample out of the loss
     augment: bool = True  # flips and brightness
@@ -113,7 +113,7 @@ class TrainConfig:
                 raise ValueError(f"{name} must be at least 1 when given, got {value}")
         for name in ("warmup_steps", "checkpoint_every", "validate_every", "loss_skip_frames", "grad_clip",
                      "spatial_weight", "temporal_weight"):
-            if getattr(self, name) < 0:
+            if getattr(self, name) is not None and getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.lr > 0:
             raise ValueError(f"lr must be positive, got {self.lr}")
@@ -191,18 +191,23 @@ class NullTracker:
 
 
 class SequenceUnroll(nn.Module):
-    """Runs a method over T frames in ``forward``, so DistributedDataParallel sees (and syncs) the whole unroll."""
+    """Runs a method over T frames in ``forward``, so DistributedDataParallel sees (and syncs) the whole unroll.
+
+    Returns the outputs and the method's auxiliary loss (None if it has none), computed here too because it
+    depends on the states of the unroll.
+    """
 
     def __init__(self, method: Method) -> None:
         super().__init__()
         self.method = method
 
-    def forward(self, frames: list[FrameBatch]) -> list[torch.Tensor]:
-        outputs, state = [], None
+    def forward(self, frames: list[FrameBatch]) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        outputs, states, state = [], [], None
         for frame in frames:
             output, state = self.method.step(frame.without_reference(), state)
             outputs.append(output)
-        return outputs
+            states.append(state)
+        return outputs, self.method.auxiliary_loss(frames, states)
 
 
 class SampleStream:
@@ -349,8 +354,10 @@ class _Training:
         self.optimizer = torch.optim.Adam(self.method.parameters(), lr=config.lr)
         self.total_steps = config.total_steps(len(self.crops))
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lr_factor(config, self.total_steps))
-        self.loss = SequenceLoss(config.spatial_weight, config.temporal_weight, config.tonemap,
-                                 config.frame_weights())
+        spatial, temporal = self.method.loss_weights
+        self.loss = SequenceLoss(spatial if config.spatial_weight is None else config.spatial_weight,
+                                 temporal if config.temporal_weight is None else config.temporal_weight,
+                                 config.tonemap, config.frame_weights())
         self.stream = SampleStream(len(self.crops), config.seed)
         self.step = 0
         self.best_metric: dict[str, Any] | None = None
@@ -381,8 +388,8 @@ class _Training:
         config = self.config
         while self.step < self.total_steps:
             frames = self._batch(self.step)
-            outputs = self.model(frames)
-            terms = self.loss(outputs, [frame.reference for frame in frames])
+            outputs, auxiliary = self.model(frames)
+            terms = self.loss(outputs, [frame.reference for frame in frames], auxiliary)
             self.optimizer.zero_grad(set_to_none=True)
             terms.total.backward()
             grad_norm = self._clip_gradients()

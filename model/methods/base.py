@@ -118,6 +118,8 @@ class Method(nn.Module, abc.ABC):
 
     name: str = "method"
     learned: bool = False
+    #: (spatial, temporal) loss weights the training engine uses unless the user sets them.
+    loss_weights: tuple[float, float] = (1.0, 0.25)
 
     def __init__(self, preset: str = "default", scale: int = 1):
         super().__init__()
@@ -133,6 +135,14 @@ class Method(nn.Module, abc.ABC):
     @abc.abstractmethod
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         """Denoise (and upscale by `scale`) one frame; returns (N, 3, H*scale, W*scale) radiance and new state."""
+
+    def auxiliary_loss(self, frames: list[FrameBatch], states: list[State]) -> torch.Tensor | None:
+        """Method-specific training terms beyond the engine's spatial + temporal loss (e.g. an albedo L1).
+
+        `frames` are the unrolled training frames with their references; `states[t]` is the state `step`
+        returned for frame t. None means no extra term.
+        """
+        return None
 
     def for_inference(self) -> Method:
         """This method in its fast inference form (eval mode; subclasses fuse layers): sessions, benchmarks

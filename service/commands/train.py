@@ -51,8 +51,10 @@ def add_commands(commands) -> None:
     parser.add_argument("--schedule", choices=SCHEDULES, default="cosine", help="learning-rate schedule")
     parser.add_argument("--warmup", type=_non_negative_int, default=50, metavar="STEPS",
                         help="steps of linear learning-rate warm-up")
-    parser.add_argument("--temporal-weight", type=_non_negative_float, default=0.25,
-                        help="weight of the temporal loss (SMAPE has weight 1)")
+    parser.add_argument("--spatial-weight", type=_non_negative_float, default=None,
+                        help="weight of the spatial (SMAPE) loss; default: the method's own (1 for most)")
+    parser.add_argument("--temporal-weight", type=_non_negative_float, default=None,
+                        help="weight of the temporal loss; default: the method's own (0.25 for most)")
     parser.add_argument("--train-split", choices=SPLITS, default="train", help="split to train on")
     parser.add_argument("--validation-split", choices=SPLITS, default="validation",
                         help="split to validate on (may be empty: then no validation)")
@@ -127,7 +129,8 @@ def _run_train(args) -> int:
         method=args.method, data=str(args.data), scale=args.scale, crop_size=args.crop,
         frames_per_sample=args.frames_per_sample, batch_size=args.batch,
         steps=None if args.epochs else args.steps, epochs=args.epochs, lr=args.lr,
-        schedule=args.schedule, warmup_steps=args.warmup, temporal_weight=args.temporal_weight,
+        schedule=args.schedule, warmup_steps=args.warmup, spatial_weight=args.spatial_weight,
+        temporal_weight=args.temporal_weight,
         train_split=args.train_split, validation_split=args.validation_split,
         validate_every=args.validate_every, checkpoint_every=args.checkpoint_every,
         out=str(args.out or _default_out(args.method)), resume=args.resume, world_size=args.world_size,

@@ -195,3 +195,36 @@ def test_training_runs_unchanged_on_a_gpu(data, tmp_path):
     expected, found = weights(cpu["checkpoint"]), weights(result["checkpoint"])
     for name in expected:
         torch.testing.assert_close(found[name], expected[name], atol=1e-4, rtol=1e-3)
+
+
+def test_method_loss_weights_and_auxiliary_loss_reach_the_training_loss(tmp_path):
+    from model.losses import SequenceLoss
+    from model.methods.base import Method
+    from model.train import SequenceUnroll
+
+    class WithExtra(Method):
+        name = "with_extra"
+        learned = True
+        loss_weights = (0.2, 0.8)
+
+        def __init__(self):
+            super().__init__()
+            self.gain = torch.nn.Parameter(torch.ones(()))
+
+        def step(self, frame, state):
+            return frame.color * self.gain, {"gain": self.gain.expand(1)}
+
+        def auxiliary_loss(self, frames, states):
+            return sum(s["gain"].sum() for s in states) * 0.5
+
+    from model.methods.registry import example_batch
+
+    frames = [example_batch(8, 8, seed=i) for i in range(3)]
+    for frame in frames:
+        frame.reference = frame.color * 0.5
+    outputs, auxiliary = SequenceUnroll(WithExtra())(frames)
+    assert float(auxiliary) == pytest.approx(1.5)
+    terms = SequenceLoss(*WithExtra.loss_weights)(outputs, [f.reference for f in frames], auxiliary)
+    plain = SequenceLoss(*WithExtra.loss_weights)(outputs, [f.reference for f in frames])
+    assert float(terms.total) == pytest.approx(float(plain.total) + 1.5)
+    assert terms.detached()["auxiliary_loss"] == pytest.approx(1.5)
