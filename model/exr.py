@@ -3,18 +3,20 @@
 Layout written by ``write_frame``:
 
 - part 0, named "render": every render-resolution buffer, channels named by ``frames.BUFFERS``
-  (``color.R``, ``normal.X``, ``depth.Z``, ...), plus ``reference.R/G/B`` when a scale-1 reference exists.
+  (``color.R``, ``normal.X``, ``depth.Z``, ...), plus the scale-1 target buffers present: ``reference.R/G/B``
+  and, when the frame has them, ``reference_albedo.R/G/B`` and ``reference_specular_albedo.R/G/B``.
   Header attributes: ``jitter`` (V2d: two doubles, so Python floats round-trip exactly), ``frame_index`` (int),
   ``sequence`` (string), ``scale`` (int: the largest reference scale in the file, 1 if none),
   ``camera_cut`` (int 0/1).
-- one more part per reference scale s > 1, named ``reference_x{s}``: ``reference.R/G/B`` at (H*s, W*s),
-  header ``scale`` = s. Multi-part EXR requires every part to share one displayWindow, so all parts
-  carry the render-resolution display window; the larger parts' data windows extend past it.
+- one more part per reference scale s > 1, named ``reference_x{s}``: ``reference.R/G/B`` at (H*s, W*s) and
+  the albedo references of that scale when present, header ``scale`` = s. Multi-part EXR requires every part
+  to share one displayWindow, so all parts carry the render-resolution display window; the larger parts' data
+  windows extend past it.
 
-``read_frame`` also accepts single-part files from other renderers (reference at scale 1 or none, FLOAT or
-HALF channels, any part name); ``jitter`` is required there too because without it the sample positions
-are unknown, while a missing ``frame_index``, ``sequence``, ``camera_cut`` or ``scale`` reads as
-0, "", false and "the largest reference scale present".
+``read_frame`` also accepts single-part files from other renderers (reference at scale 1 or none, with or
+without albedo references, FLOAT or HALF channels, any part name); ``jitter`` is required there too because
+without it the sample positions are unknown, while a missing ``frame_index``, ``sequence``, ``camera_cut`` or
+``scale`` reads as 0, "", false and "the largest reference scale present".
 
 Half storage (``half=True``): every channel, motion and depth included, is stored as IEEE half, which
 keeps 11 significant bits (relative error <= 2**-11 ~ 4.9e-4) and tops out at 65504. So depth at 100
@@ -35,6 +37,7 @@ import OpenEXR
 from model.frames import (
     BUFFERS,
     RENDER_BUFFERS,
+    TARGET_FIELDS,
     FrameBundle,
     FrameError,
     FrameValidationError,
@@ -95,19 +98,22 @@ def read_frame(path: str | os.PathLike) -> FrameBundle:
     source = str(path)
     exr = _open_exr(Path(path), source)
     render_part, reference_parts = _split_parts(exr.parts, source)
-    buffers, scale_one_reference = _render_buffers(render_part, source)
-    references = {1: scale_one_reference} if scale_one_reference is not None else {}
-    for scale, part in reference_parts.items():
-        references[scale] = _reference_pixels(part, source)
+    buffers, scale_one_targets = _render_buffers(render_part, source)
+    targets_by_scale = {1: scale_one_targets}
+    targets_by_scale.update((scale, _reference_part_buffers(part, source)) for scale, part in reference_parts.items())
+    targets: dict[str, dict[int, np.ndarray]] = {name: {} for name in TARGET_FIELDS}
+    for scale, scale_targets in targets_by_scale.items():
+        for name, array in scale_targets.items():
+            targets[name][scale] = array
     header = render_part.header
-    _check_scale_attribute(header, max(references, default=1), source)
+    _check_scale_attribute(header, max(targets["reference"], default=1), source)
     frame = FrameBundle(
         **buffers,
         jitter=_jitter_attribute(header, source),
         frame_index=_int_attribute(header, "frame_index", 0, source),
         sequence=_string_attribute(header, "sequence", source),
         camera_cut=bool(_int_attribute(header, "camera_cut", 0, source)),
-        references=references,
+        **{TARGET_FIELDS[name]: by_scale for name, by_scale in targets.items()},
     )
     return validate_frame(frame, source)
 
@@ -116,7 +122,9 @@ def read_frame(path: str | os.PathLike) -> FrameBundle:
 
 
 def _check_fits_half(frame: FrameBundle, source: str) -> None:
-    arrays = list(frame.render_buffers().items()) + [("reference", r) for r in frame.references.values()]
+    arrays = list(frame.render_buffers().items()) + [
+        item for scale in frame.scales for item in frame.target_buffers(scale).items()
+    ]
     for name, array in arrays:
         too_large = int(np.count_nonzero(np.abs(array) > HALF_MAX))
         if too_large:
@@ -154,8 +162,8 @@ def _frame_parts(frame: FrameBundle, half: bool) -> list[OpenEXR.Part]:
     render_channels: dict[str, np.ndarray] = {}
     for name, array in frame.render_buffers().items():
         render_channels.update(_channel_arrays(name, array, half))
-    if 1 in frame.references:
-        render_channels.update(_channel_arrays("reference", frame.references[1], half))
+    for name, array in frame.target_buffers(1).items():
+        render_channels.update(_channel_arrays(name, array, half))
     render_attributes = {
         "jitter": np.array(frame.jitter, dtype=np.float64),  # float64 pair -> V2d; a tuple would become V2f
         "frame_index": frame.frame_index,
@@ -168,7 +176,9 @@ def _frame_parts(frame: FrameBundle, half: bool) -> list[OpenEXR.Part]:
         if scale == 1:
             continue
         header = _part_header(frame.width, frame.height, {"scale": scale})
-        channels = _channel_arrays("reference", frame.references[scale], half)
+        channels: dict[str, np.ndarray] = {}
+        for name, array in frame.target_buffers(scale).items():
+            channels.update(_channel_arrays(name, array, half))
         parts.append(OpenEXR.Part(header, channels, reference_part_name(scale)))
     return parts
 
@@ -259,7 +269,8 @@ def _assemble_buffer(buffer: str, pixels: dict[str, np.ndarray], source: str) ->
     return np.stack([pixels[channel] for channel in spec.channels], axis=-1).astype(np.float32)
 
 
-def _render_buffers(part: OpenEXR.Part, source: str) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+def _render_buffers(part: OpenEXR.Part, source: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The render-resolution buffers and the scale-1 target buffers (name -> array) present in the part."""
     pixels = _channel_pixels(part, source)
     buffers = {}
     for name in RENDER_BUFFERS:
@@ -269,20 +280,25 @@ def _render_buffers(part: OpenEXR.Part, source: str) -> tuple[dict[str, np.ndarr
             raise FrameFormatError(source, name, f"required buffer is missing (no {channels} channels)")
         if array is not None:
             buffers[name] = array
-    return buffers, _assemble_buffer("reference", pixels, source)
+    return buffers, _target_buffers(pixels, source)
 
 
-def _reference_pixels(part: OpenEXR.Part, source: str) -> np.ndarray:
+def _target_buffers(pixels: dict[str, np.ndarray], source: str) -> dict[str, np.ndarray]:
+    buffers = {name: _assemble_buffer(name, pixels, source) for name in TARGET_FIELDS}
+    return {name: array for name, array in buffers.items() if array is not None}
+
+
+def _reference_part_buffers(part: OpenEXR.Part, source: str) -> dict[str, np.ndarray]:
+    """The target buffers of one ``reference_x{s}`` part; the radiance reference is required there."""
     pixels = _channel_pixels(part, source)
-    other = sorted(name for name in pixels if CHANNEL_SLOTS[name][0] != "reference")
+    other = sorted(name for name in pixels if CHANNEL_SLOTS[name][0] not in TARGET_FIELDS)
     if other:
-        raise FrameFormatError(
-            source, None, f"part '{part.name()}' may hold only reference.R/G/B, not {', '.join(other)}"
-        )
-    reference = _assemble_buffer("reference", pixels, source)
-    if reference is None:
+        allowed = ", ".join(f"{name}.{'/'.join(BUFFERS[name].components)}" for name in TARGET_FIELDS)
+        raise FrameFormatError(source, None, f"part '{part.name()}' may hold only {allowed}, not {', '.join(other)}")
+    buffers = _target_buffers(pixels, source)
+    if "reference" not in buffers:
         raise FrameFormatError(source, "reference", f"part '{part.name()}' has no reference channels")
-    return reference
+    return buffers
 
 
 def _check_scale_attribute(header: dict, expected: int, source: str, part: str = RENDER_PART) -> None:

@@ -16,6 +16,9 @@ Conventions, exactly (data from other renderers must be converted to these):
   Frame t-1's image position is its unjittered projection (the projection itself does not move).
 - References are box-filtered pixel averages at the target resolution, (H * s, W * s) for scale s; the
   scale-1 reference is the 2x2 mean of the scale-2 one when both exist (``box_downsample``).
+- ``reference_albedo`` / ``reference_specular_albedo`` (optional) are the box-filtered (pixel-average)
+  ``albedo`` / ``specular_albedo`` at the target resolution, with the same definitions as the 1spp guides
+  averaged over each target pixel's area; they exist only at scales that also have a radiance reference.
 - ``depth`` = Euclidean distance from the camera centre to the first hit along the primary ray; 0 where the
   ray hits nothing.
 - ``normal`` = world-space shading normal at the first hit, unit length where depth > 0, (0, 0, 0) where
@@ -97,11 +100,19 @@ BUFFERS: dict[str, BufferSpec] = {
         _spec("roughness", "Y", False, 0.0, 1.0, 1e-3, "surface roughness, 1 for purely diffuse"),
         _spec("motion", "XY", True, None, None, 0.0, "offset to the previous frame's position, pixels"),
         _spec("reference", "RGB", False, 0.0, None, 0.0, "converged radiance at target resolution", "target"),
+        _spec("reference_albedo", "RGB", False, 0.0, 1.0, 1e-3, "box-filtered diffuse albedo at target resolution",
+              "target"),
+        _spec("reference_specular_albedo", "RGB", False, 0.0, 1.0, 1e-3,
+              "box-filtered specular albedo at target resolution", "target"),
     )
 }
 
 # Render-resolution buffers that are fields of FrameBundle (everything except the references).
 RENDER_BUFFERS: tuple[str, ...] = tuple(name for name, spec in BUFFERS.items() if spec.resolution == "render")
+
+# Target-resolution buffer -> the FrameBundle field holding it as a dict of scale -> array ("reference" ->
+# "references"), in BUFFERS order. Every scale of the albedo references must also have a radiance reference.
+TARGET_FIELDS: dict[str, str] = {name: f"{name}s" for name, spec in BUFFERS.items() if spec.resolution == "target"}
 
 JITTER_LIMIT = 0.5
 NORMAL_LENGTH_TOLERANCE = 1e-2  # half-float storage of normals is good to about 1e-3
@@ -149,6 +160,9 @@ class FrameBundle:
     specular_albedo: np.ndarray | None = None  # (H, W, 3)
     roughness: np.ndarray | None = None  # (H, W)
     references: dict[int, np.ndarray] = field(default_factory=dict)  # scale -> (H*s, W*s, 3)
+    # Box-filtered albedos at the target resolution, only at scales that have a reference: scale -> (H*s, W*s, 3)
+    reference_albedos: dict[int, np.ndarray] = field(default_factory=dict)
+    reference_specular_albedos: dict[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def height(self) -> int:
@@ -169,12 +183,27 @@ class FrameBundle:
         return tuple(sorted(self.references))
 
     def reference(self, scale: int) -> np.ndarray:
+        return self._target_buffer("reference", scale)
+
+    def reference_albedo(self, scale: int) -> np.ndarray:
+        return self._target_buffer("reference_albedo", scale)
+
+    def reference_specular_albedo(self, scale: int) -> np.ndarray:
+        return self._target_buffer("reference_specular_albedo", scale)
+
+    def target_buffers(self, scale: int) -> dict[str, np.ndarray]:
+        """The target-resolution buffers present at ``scale``, in BUFFERS order (empty if none)."""
+        buffers = {name: getattr(self, attribute).get(scale) for name, attribute in TARGET_FIELDS.items()}
+        return {name: array for name, array in buffers.items() if array is not None}
+
+    def _target_buffer(self, name: str, scale: int) -> np.ndarray:
+        by_scale = getattr(self, TARGET_FIELDS[name])
         try:
-            return self.references[scale]
+            return by_scale[scale]
         except KeyError:
-            present = ", ".join(str(s) for s in self.scales) or "none"
+            present = ", ".join(str(s) for s in sorted(by_scale)) or "none"
             raise KeyError(
-                f"frame {self.frame_index} of sequence '{self.sequence}' has no reference at scale {scale} "
+                f"frame {self.frame_index} of sequence '{self.sequence}' has no {name} at scale {scale} "
                 f"(scales present: {present})"
             ) from None
 
@@ -200,16 +229,22 @@ def validate_frame(frame: FrameBundle, source: str) -> FrameBundle:
     copied), jitter as a tuple of two floats and frame_index as an int. The input frame is not modified.
     """
     buffers = _float32_buffers(frame, source)
-    _check_type("references", frame.references, dict, "a dict of scale -> array", source)
-    references = _float32_references(frame.references, source)
+    targets: dict[str, dict[int, np.ndarray]] = {}
+    for name, attribute in TARGET_FIELDS.items():
+        _check_type(attribute, getattr(frame, attribute), dict, "a dict of scale -> array", source)
+        targets[name] = _float32_targets(name, getattr(frame, attribute), source)
+    _check_target_scales_have_references(targets, source)
 
     height, width = _check_color_shape(buffers["color"], source)
     for name, array in buffers.items():
         _check_shape(name, array, (height, width), source)
-    for scale, reference in references.items():
-        _check_reference_shape(scale, reference, (height, width), source)
+    for name, by_scale in targets.items():
+        for scale, array in by_scale.items():
+            _check_target_shape(name, scale, array, (height, width), source)
 
-    named_arrays = list(buffers.items()) + [("reference", reference) for reference in references.values()]
+    named_arrays = list(buffers.items()) + [
+        (name, array) for name, by_scale in targets.items() for array in by_scale.values()
+    ]
     for name, array in named_arrays:
         _check_finite(name, array, source)
     for name, array in named_arrays:
@@ -225,7 +260,7 @@ def validate_frame(frame: FrameBundle, source: str) -> FrameBundle:
     return dataclasses.replace(
         frame,
         **buffers,
-        references=references,
+        **{TARGET_FIELDS[name]: by_scale for name, by_scale in targets.items()},
         jitter=jitter,
         frame_index=frame_index,
         camera_cut=bool(frame.camera_cut),
@@ -244,14 +279,28 @@ def _float32_buffers(frame: FrameBundle, source: str) -> dict[str, np.ndarray]:
     return buffers
 
 
-def _float32_references(references: dict, source: str) -> dict[int, np.ndarray]:
+def _float32_targets(name: str, by_scale: dict, source: str) -> dict[int, np.ndarray]:
     converted: dict[int, np.ndarray] = {}
-    for scale, reference in references.items():
+    for scale, array in by_scale.items():
         # bool is an Integral too, but True as a scale is surely a mistake.
         if not isinstance(scale, numbers.Integral) or isinstance(scale, (bool, np.bool_)) or scale < 1:
-            raise FrameValidationError(source, "reference", f"scale {scale!r} is not a positive integer")
-        converted[int(scale)] = _float32_array("reference", reference, source)
+            raise FrameValidationError(source, name, f"scale {scale!r} is not a positive integer")
+        converted[int(scale)] = _float32_array(name, array, source)
     return dict(sorted(converted.items()))
+
+
+def _check_target_scales_have_references(targets: dict[str, dict[int, np.ndarray]], source: str) -> None:
+    # Training pairs each albedo target with the radiance target of its scale; one alone is a broken frame.
+    reference_scales = targets["reference"].keys()
+    for name, by_scale in targets.items():
+        missing = [scale for scale in by_scale if scale not in reference_scales]
+        if missing:
+            present = ", ".join(str(s) for s in reference_scales) or "none"
+            raise FrameValidationError(
+                source,
+                name,
+                f"at scale {missing[0]} has no radiance reference at that scale (reference scales present: {present})",
+            )
 
 
 def _float32_array(name: str, value, source: str) -> np.ndarray:
@@ -295,14 +344,16 @@ def _check_shape(name: str, array: np.ndarray, render_hw: tuple[int, int], sourc
         )
 
 
-def _check_reference_shape(scale: int, reference: np.ndarray, render_hw: tuple[int, int], source: str) -> None:
-    _check_channels(BUFFERS["reference"], reference, source)
+def _check_target_shape(
+    name: str, scale: int, array: np.ndarray, render_hw: tuple[int, int], source: str
+) -> None:
+    _check_channels(BUFFERS[name], array, source)
     expected = (render_hw[0] * scale, render_hw[1] * scale)
-    if reference.shape[:2] != expected:
+    if array.shape[:2] != expected:
         raise FrameValidationError(
             source,
-            "reference",
-            f"at scale {scale} has resolution {_shape_text(reference.shape)}, expected "
+            name,
+            f"at scale {scale} has resolution {_shape_text(array.shape)}, expected "
             f"{_shape_text(expected)} (WxH: {scale} x the render resolution {_shape_text(render_hw)})",
         )
 

@@ -2,10 +2,11 @@
 
 A sample is a window of ``frames`` consecutive frames of one sequence, cropped to ``crop_size`` x ``crop_size``
 render pixels at one random position (the same for every frame of the window, so motion vectors still point at
-the right history) and, at output scale s, the matching (s * crop_size)^2 reference crop at s * the offset:
-render pixel (x, y) covers reference pixels [s x, s x + s) x [s y, s y + s), so the two crops show the same
-part of the image. A window never spans a camera cut: its frames after the first are all continuations, and
-its first frame is marked as a cut, because the method starts the sample without history.
+the right history) and, at output scale s, the matching (s * crop_size)^2 crops of the target-resolution buffers
+(the reference and, where the data has them, the reference albedos) at s * the offset: render pixel (x, y) covers
+reference pixels [s x, s x + s) x [s y, s y + s), so the two crops show the same part of the image. A window
+never spans a camera cut: its frames after the first are all continuations, and its first frame is marked as a
+cut, because the method starts the sample without history.
 
 Every random choice of sample ``index`` in epoch ``epoch`` (crop position, flips, brightness) comes from a
 generator seeded with (seed, epoch, index), so a sample is the same whichever process, worker or resumed run
@@ -27,11 +28,14 @@ import numpy as np
 import torch
 
 from model.dataset import Dataset, Sequence
+from model.frames import TARGET_FIELDS
 from model.methods.base import FrameBatch
 
-# Radiance buffers scaled by the brightness augmentation. Albedos are reflectances in [0, 1] and do not change
-# with the light's strength; motion, depth and normals are geometry.
+# Radiance buffers scaled by the brightness augmentation. Albedos (the reference albedos too) are reflectances in
+# [0, 1] and do not change with the light's strength; motion, depth and normals are geometry.
 RADIANCE_BUFFERS = ("color", "diffuse", "specular", "reference")
+# FrameBatch fields at the output resolution (s times the render resolution): cropped at s times the offset.
+TARGET_BUFFERS = tuple(TARGET_FIELDS)
 BRIGHTNESS_RANGE = (0.5, 2.0)  # brightness factor, drawn log-uniformly so 0.5x and 2x are equally likely
 
 
@@ -151,7 +155,7 @@ class SequenceCrops(torch.utils.data.Dataset):
         cropped = {}
         for name in self.buffers:
             tensor = getattr(frame, name)
-            if name == "reference":
+            if name in TARGET_BUFFERS:
                 cropped[name] = tensor[:, :, s * top:s * (top + size), s * left:s * (left + size)]
             elif tensor.dim() == 4:
                 cropped[name] = tensor[:, :, top:top + size, left:left + size]

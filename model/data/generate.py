@@ -47,7 +47,8 @@ def generate_sequence(scene: str, out: str | Path, *, frames: int = 16, settings
     animation = build_scene(scene, seed, frames)
     renderer = SceneRenderer(animation, settings, seed)
     metadata = {"renderer": "mitsuba3", "variant": renderer.mi.variant(), "seed": seed,
-                "ref_spp": settings.ref_spp, "max_depth": settings.max_depth, "rr_depth": settings.rr_depth,
+                "ref_spp": settings.ref_spp, "albedo_spp": settings.albedo_spp, "max_depth": settings.max_depth,
+                "rr_depth": settings.rr_depth,
                 "reconstruction_filter": "box", "jitter": "halton(2,3) of frame_index+1, minus 0.5",
                 "cuts": sorted(animation.cuts)}
     started = time.perf_counter()

@@ -4,7 +4,9 @@
 so the noisy frame comes from a short path tracer here (next-event estimation with MIS, Russian roulette, the
 same depth semantics as Mitsuba's `path` integrator, whose `mi.render` makes the references). Everything is
 computed from the camera sample at (x + 0.5 + jitter_x, y + 0.5 + jitter_y): the radiance, the guide buffers
-from the first hit, and motion vectors from the previous frame's camera and object transforms.
+from the first hit, and motion vectors from the previous frame's camera and object transforms. The reference
+albedos average the same first-hit albedo definitions over `albedo_spp` uniformly random positions in each target
+pixel, the box filter of the radiance references.
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ from model.frames import FrameBundle, box_downsample
 
 # Sky pixels have no surface point; their motion is that of a point this far along the view ray.
 SKY_DISTANCE = 1.0e4
+# Most primary rays traced in one wavefront for the reference albedos (Dr.Jit keeps every lane's surface
+# interaction in memory, a few hundred bytes each); more samples are traced in several passes.
+MAX_ALBEDO_LANES = 1 << 21
 
 
 @dataclass(frozen=True)
@@ -31,6 +36,8 @@ class RenderSettings:
     ref_spp: int = 1024
     # Target scales of the references; a scale-1 reference is the 2x2 mean of the scale-2 one when both exist.
     ref_scales: tuple[int, ...] = (1, 2)
+    # Uniformly random first-hit samples per pixel of the largest reference scale for the reference albedos.
+    albedo_spp: int = 16
     max_depth: int = 6
     rr_depth: int = 5
     variant: str | None = None
@@ -40,6 +47,8 @@ class RenderSettings:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
         if self.ref_spp < 1:
             raise ValueError(f"ref_spp must be >= 1, got {self.ref_spp}")
+        if self.albedo_spp < 1:
+            raise ValueError(f"albedo_spp must be >= 1, got {self.albedo_spp}")
         if not self.ref_scales or any(s not in (1, 2, 4) for s in self.ref_scales):
             raise ValueError(f"ref_scales must be a non-empty subset of (1, 2, 4), got {self.ref_scales}")
         if self.max_depth < 1:
@@ -127,23 +136,22 @@ class SceneRenderer:
         traced = self._trace_1spp(mi_scene, jitter, frame_seed(self.seed, frame_index, "1spp"))
         motion = self._motion(frame_index, traced, jitter)
         references = self._references(mi_scene, camera, frame_index)
+        reference_albedos, reference_specular_albedos = self._reference_albedos(mi_scene, frame_index)
         shape_index = traced["shape_index"]
-        roughness_table, specular_table, diffuse_table = self._material_tables()
+        roughness_table = self._material_tables()[0]
         hit = shape_index >= 0
-        safe = np.where(hit, shape_index, 0)
-        roughness = np.where(hit, roughness_table[safe], 0.0)
-        specular_albedo = np.where(hit[..., None], specular_table[safe], 0.0)
-        # Mitsuba's diffuse reflectance of metals and glass is not a diffuse albedo: keep it to diffuse lobes.
-        albedo = traced["albedo"] * np.where(hit, diffuse_table[safe], 0.0)[..., None]
+        roughness = np.where(hit, roughness_table[np.where(hit, shape_index, 0)], 0.0)
+        albedo, specular_albedo = self._guide_albedos(traced["albedo"], shape_index)
         h, w = s.height, s.width
         return FrameBundle(
-            color=traced["color"].reshape(h, w, 3), albedo=np.clip(albedo, 0, 1).reshape(h, w, 3),
+            color=traced["color"].reshape(h, w, 3), albedo=albedo.reshape(h, w, 3),
             normal=traced["normal"].reshape(h, w, 3), depth=traced["depth"].reshape(h, w),
             motion=motion.reshape(h, w, 2), jitter=jitter, frame_index=frame_index, sequence="",
             camera_cut=frame_index in scene.cuts,
             diffuse=traced["diffuse"].reshape(h, w, 3), specular=traced["specular"].reshape(h, w, 3),
-            specular_albedo=specular_albedo.reshape(h, w, 3).astype(np.float32),
-            roughness=roughness.reshape(h, w).astype(np.float32), references=references)
+            specular_albedo=specular_albedo.reshape(h, w, 3),
+            roughness=roughness.reshape(h, w).astype(np.float32), references=references,
+            reference_albedos=reference_albedos, reference_specular_albedos=reference_specular_albedos)
 
     def _material_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         objects = self.scene.objects
@@ -151,6 +159,50 @@ class SceneRenderer:
         specular = np.array([o.material.specular_albedo for o in objects], dtype=np.float32).reshape(-1, 3)
         has_diffuse = np.array([o.material.kind in ("diffuse", "plastic") for o in objects], dtype=np.float32)
         return roughness, specular, has_diffuse
+
+    def _guide_albedos(self, reflectance: np.ndarray, shape_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Diffuse and specular albedo of first hits, (N, 3) float32 each, from `_first_hit_guides` output.
+
+        The one definition of both guides: the 1spp buffers and the reference albedos average it.
+        """
+        _, specular_table, diffuse_table = self._material_tables()
+        hit = shape_index >= 0
+        safe = np.where(hit, shape_index, 0)
+        specular_albedo = np.where(hit[..., None], specular_table[safe], 0.0).astype(np.float32)
+        # Mitsuba's diffuse reflectance of metals and glass is not a diffuse albedo: keep it to diffuse lobes.
+        albedo = reflectance * np.where(hit, diffuse_table[safe], 0.0)[..., None]
+        return np.clip(albedo, 0, 1).astype(np.float32), specular_albedo
+
+    def _reference_albedos(self, mi_scene, frame_index: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Box-filtered diffuse and specular albedo at every reference scale: the mean of `albedo_spp` first hits
+        at uniformly random positions in each pixel of the largest scale, box-downsampled to the smaller ones."""
+        mi, dr, s = self.mi, self.dr, self.settings
+        top = max(s.ref_scales)
+        width, height = s.width * top, s.height * top
+        pixels = width * height
+        sensor = mi_scene.sensors()[0]  # film positions are in [0, 1]^2: its resolution does not matter
+        sums = np.zeros((2, pixels, 3), dtype=np.float64)
+        samples_per_pass = max(1, min(s.albedo_spp, MAX_ALBEDO_LANES // pixels))
+        for pass_index, first in enumerate(range(0, s.albedo_spp, samples_per_pass)):
+            samples = min(samples_per_pass, s.albedo_spp - first)
+            count = pixels * samples
+            sampler = mi.load_dict({"type": "independent"})
+            sampler.seed(frame_seed(self.seed, frame_index, f"albedo:{pass_index}"), count)
+            pixel = dr.arange(mi.UInt32, count) % pixels  # lane = sample * pixels + pixel
+            offset = sampler.next_2d()
+            film_position = mi.Point2f((mi.Float(pixel % width) + offset.x) / width,
+                                       (mi.Float(pixel // width) + offset.y) / height)
+            ray, _ = sensor.sample_ray_differential(0.0, sampler.next_1d(), film_position, mi.Point2f(0.5, 0.5))
+            ray = mi.Ray3f(ray)
+            si = mi_scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True)
+            guides = self._first_hit_guides(mi_scene, si, si.bsdf(ray))
+            albedo, specular_albedo = self._guide_albedos(_to_numpy(guides["albedo"]), _to_numpy(guides["shape_index"]))
+            # Summed in float64: identical samples (a flat surface) then average to exactly the 1spp guide value.
+            sums[0] += albedo.reshape(samples, pixels, 3).sum(axis=0, dtype=np.float64)
+            sums[1] += specular_albedo.reshape(samples, pixels, 3).sum(axis=0, dtype=np.float64)
+        albedo, specular_albedo = (sums / s.albedo_spp).astype(np.float32).reshape(2, height, width, 3)
+        return ({scale: box_downsample(albedo, top // scale) for scale in s.ref_scales},
+                {scale: box_downsample(specular_albedo, top // scale) for scale in s.ref_scales})
 
     def _references(self, mi_scene, camera: Camera, frame_index: int) -> dict[int, np.ndarray]:
         s = self.settings

@@ -25,8 +25,10 @@ State = dict[str, torch.Tensor]
 class FrameBatch:
     """A batch of frames as NCHW float32 tensors on one device (see `model.frames` for the conventions).
 
-    `reference` is the target at the method's output scale; it is for losses and metrics only and a
-    method's `step` must never read it.
+    `reference` is the target at the method's output scale, and `reference_albedo` /
+    `reference_specular_albedo` the box-filtered albedos at that resolution (for auxiliary losses such as
+    an L1 on upscaled albedos); they are for losses and metrics only and a method's `step` never sees them
+    (`without_reference`).
     """
 
     color: torch.Tensor  # (N, 3, H, W)
@@ -41,6 +43,8 @@ class FrameBatch:
     specular_albedo: torch.Tensor | None = None  # (N, 3, H, W)
     roughness: torch.Tensor | None = None  # (N, 1, H, W)
     reference: torch.Tensor | None = None  # (N, 3, H*s, W*s)
+    reference_albedo: torch.Tensor | None = None  # (N, 3, H*s, W*s)
+    reference_specular_albedo: torch.Tensor | None = None  # (N, 3, H*s, W*s)
 
     @property
     def batch_size(self) -> int:
@@ -65,12 +69,16 @@ class FrameBatch:
         return replace(self, **{name: t.to(device) for name, t in self.tensors().items()})
 
     def without_reference(self) -> FrameBatch:
-        return replace(self, reference=None)
+        """The frame without any target-resolution buffer: what a method's `step` gets."""
+        return replace(self, reference=None, reference_albedo=None, reference_specular_albedo=None)
 
     @classmethod
     def from_bundles(cls, bundles: Iterable[FrameBundle], scale: int | None = 1,
                      device: torch.device | str = "cpu") -> FrameBatch:
-        """Stack frames of equal resolution; `scale` picks the reference (None: no reference)."""
+        """Stack frames of equal resolution; `scale` picks the reference (None: no reference).
+
+        The albedo references at `scale` are filled when every frame has them, else left None.
+        """
         bundles = list(bundles)
         if not bundles:
             raise ValueError("cannot build a FrameBatch from no frames")
@@ -83,16 +91,23 @@ class FrameBatch:
             array = array[..., None] if array.ndim == 3 else array
             return torch.from_numpy(np.ascontiguousarray(array.transpose(0, 3, 1, 2))).float().to(device)
 
-        reference = None
+        def stack_target(arrays: list[np.ndarray | None]) -> torch.Tensor | None:
+            if any(a is None for a in arrays):
+                return None
+            return torch.from_numpy(np.stack(arrays).transpose(0, 3, 1, 2)).float().contiguous().to(device)
+
+        reference = reference_albedo = reference_specular_albedo = None
         if scale is not None:
-            reference = torch.from_numpy(np.stack([b.reference(scale) for b in bundles]).transpose(0, 3, 1, 2))
-            reference = reference.float().contiguous().to(device)
+            reference = stack_target([b.reference(scale) for b in bundles])
+            reference_albedo = stack_target([b.reference_albedos.get(scale) for b in bundles])
+            reference_specular_albedo = stack_target([b.reference_specular_albedos.get(scale) for b in bundles])
         return cls(color=stack("color"), albedo=stack("albedo"), normal=stack("normal"), depth=stack("depth"),
                    motion=stack("motion"),
                    jitter=torch.tensor([b.jitter for b in bundles], dtype=torch.float32, device=device),
                    camera_cut=torch.tensor([b.camera_cut for b in bundles], dtype=torch.bool, device=device),
                    diffuse=stack("diffuse"), specular=stack("specular"),
-                   specular_albedo=stack("specular_albedo"), roughness=stack("roughness"), reference=reference)
+                   specular_albedo=stack("specular_albedo"), roughness=stack("roughness"), reference=reference,
+                   reference_albedo=reference_albedo, reference_specular_albedo=reference_specular_albedo)
 
 
 def drop_history(state: State | None, frame: FrameBatch) -> State | None:

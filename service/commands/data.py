@@ -26,7 +26,8 @@ def _add_generate(commands) -> None:
         description="Render one sequence per scene recipe into the dataset folder OUT (created if missing). "
                     "Each frame holds a 1spp noisy color (also split into diffuse and specular), noise-free "
                     "albedo, specular albedo, normal, depth and roughness, exact motion vectors, the camera "
-                    "jitter, and box-filtered references at the requested scales. Deterministic for a seed.",
+                    "jitter, and box-filtered references (radiance, diffuse and specular albedo) at the requested "
+                    "scales. Deterministic for a seed.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--scene", action="append", required=True, metavar="NAME",
                         help=f"scene recipe; repeat for several, or 'all'. One of: {', '.join(sorted(SCENES))}")
@@ -35,6 +36,8 @@ def _add_generate(commands) -> None:
                         help="render resolution (references are this times each scale)")
     parser.add_argument("--ref-spp", type=positive_int, default=1024, metavar="N",
                         help="samples per pixel of the references (at the largest scale)")
+    parser.add_argument("--albedo-spp", type=positive_int, default=16, metavar="N",
+                        help="first-hit samples per pixel of the reference albedos (at the largest scale)")
     parser.add_argument("--scales", type=scales_option, default=(1, 2), metavar="S[,S]",
                         help="reference scales to store (1, 2, 4); scale 1 is the 2x2 mean of scale 2")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scene variation and of the noise")
@@ -72,7 +75,7 @@ def _run_generate(args) -> int:
             raise UsageError(f"sequence {target} already exists; pass --overwrite to replace it")
     width, height = args.size
     settings = RenderSettings(width=width, height=height, ref_spp=args.ref_spp, ref_scales=args.scales,
-                              max_depth=args.max_depth, variant=args.variant)
+                              albedo_spp=args.albedo_spp, max_depth=args.max_depth, variant=args.variant)
     for scene in scenes:
         generate_sequence(scene, args.out, frames=args.frames, settings=settings, seed=args.seed,
                           split=args.split, name=args.name, half=args.half, overwrite=args.overwrite,

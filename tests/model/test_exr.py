@@ -7,7 +7,7 @@ import OpenEXR
 import pytest
 
 from model.exr import FrameFormatError, read_frame, write_frame
-from model.frames import BUFFERS, FrameBundle, FrameValidationError
+from model.frames import BUFFERS, TARGET_FIELDS, FrameBundle, FrameValidationError
 
 from .test_frames import make_frame
 
@@ -23,8 +23,12 @@ def assert_same_frame(read: FrameBundle, written: FrameBundle, **tolerance) -> N
             assert actual.dtype == np.float32 and actual.shape == expected.shape, name
             np.testing.assert_allclose(actual, expected, err_msg=name, **tolerance)
     assert read.scales == written.scales
-    for scale in written.scales:
-        np.testing.assert_allclose(read.reference(scale), written.reference(scale), err_msg=f"x{scale}", **tolerance)
+    for attribute in TARGET_FIELDS.values():
+        expected, actual = getattr(written, attribute), getattr(read, attribute)
+        assert sorted(actual) == sorted(expected), attribute
+        for scale in expected:
+            assert actual[scale].dtype == np.float32, attribute
+            np.testing.assert_allclose(actual[scale], expected[scale], err_msg=f"{attribute} x{scale}", **tolerance)
     assert read.jitter == written.jitter
     assert (read.frame_index, read.sequence, read.camera_cut) == (
         written.frame_index, written.sequence, written.camera_cut
@@ -61,6 +65,34 @@ def test_layout_is_a_render_part_plus_one_part_per_larger_scale(tmp_path):
     assert set(parts[2].channels) == {"reference.R", "reference.G", "reference.B"}
     assert (parts[2].width(), parts[2].height()) == (24, 16)
     assert read_frame(path).scales == (1, 2, 4)
+
+
+def test_albedo_references_round_trip_exactly_next_to_each_reference(tmp_path):
+    frame = make_frame(seed=4, scales=(1, 2, 4), albedo_references=True)
+    path = write_frame(tmp_path / "f.exr", frame)
+    parts = OpenEXR.File(str(path), separate_channels=True).parts
+    assert [part.name() for part in parts] == ["render", "reference_x2", "reference_x4"]
+    assert {"reference_albedo.R", "reference_specular_albedo.B", "reference.G", "color.R"} <= set(parts[0].channels)
+    target_channels = {f"{name}.{c}" for name in ("reference", "reference_albedo", "reference_specular_albedo")
+                       for c in "RGB"}
+    assert set(parts[1].channels) == set(parts[2].channels) == target_channels
+    assert_same_frame(read_frame(path), frame, rtol=0, atol=0)
+
+
+def test_albedo_references_round_trip_in_half_within_half_precision(tmp_path):
+    frame = make_frame(seed=6, scales=(2,), albedo_references=True)
+    path = write_frame(tmp_path / "f.exr", frame, half=True)
+    parts = OpenEXR.File(str(path), separate_channels=True).parts
+    assert "reference_albedo.R" not in parts[0].channels and "reference_albedo.R" in parts[1].channels
+    assert all(ch.pixels.dtype == np.float16 for part in parts for ch in part.channels.values())
+    read = read_frame(path)
+    assert_same_frame(read, frame, rtol=1e-3, atol=1e-6)
+    assert not np.array_equal(read.reference_albedo(2), frame.reference_albedo(2))  # really stored as half
+
+
+def test_frames_without_albedo_references_read_with_none(tmp_path):
+    read = read_frame(write_frame(tmp_path / "f.exr", make_frame(scales=(1, 2))))
+    assert read.scales == (1, 2) and read.reference_albedos == {} and read.reference_specular_albedos == {}
 
 
 def test_minimal_frame_round_trips(tmp_path):
@@ -116,8 +148,31 @@ def test_single_part_file_from_another_renderer(tmp_path):
     read = read_frame(tmp_path / "other.exr")
     assert read.jitter == (0.25, -0.125)
     assert (read.frame_index, read.sequence, read.camera_cut, read.scales) == (0, "", False, (1,))
+    assert read.reference_albedos == {} and read.reference_specular_albedos == {}
     np.testing.assert_array_equal(read.reference(1), frame.reference(1))
     np.testing.assert_allclose(read.color, frame.color, rtol=1e-3)
+
+
+def test_single_part_file_with_a_scale_one_reference_albedo(tmp_path):
+    frame = make_frame(scales=(1,), albedo_references=True)
+    channels = raw_channels(frame)
+    for name in ("reference", "reference_albedo"):
+        for c, channel in enumerate(BUFFERS[name].channels):
+            channels[channel] = frame.target_buffers(1)[name][..., c].copy()
+    write_raw_exr(tmp_path / "other.exr", channels, {"jitter": (0.0, 0.0)})
+    read = read_frame(tmp_path / "other.exr")
+    np.testing.assert_array_equal(read.reference_albedo(1), frame.reference_albedo(1))
+    assert read.reference_specular_albedos == {}
+
+
+def test_albedo_reference_without_a_reference_is_refused_on_read(tmp_path):
+    frame = make_frame(scales=(1,), albedo_references=True)
+    channels = raw_channels(frame)
+    for c, channel in enumerate(BUFFERS["reference_albedo"].channels):
+        channels[channel] = frame.reference_albedo(1)[..., c].copy()
+    write_raw_exr(tmp_path / "f.exr", channels, {"jitter": (0.0, 0.0)})
+    with pytest.raises(FrameValidationError, match=r"f.exr: buffer 'reference_albedo': at scale 1 has no radiance"):
+        read_frame(tmp_path / "f.exr")
 
 
 def test_missing_file_is_named(tmp_path):
@@ -193,6 +248,32 @@ def test_reference_part_scale_must_match_its_name(tmp_path):
     extra = OpenEXR.Part({"scale": 3, "displayWindow": window}, reference, "reference_x2")
     OpenEXR.File([render, extra]).write(str(tmp_path / "f.exr"))
     with pytest.raises(FrameFormatError, match=r"'scale': 3 in part 'reference_x2' does not match 2"):
+        read_frame(tmp_path / "f.exr")
+
+
+def _two_part_file(path, frame: FrameBundle, extra_channels: dict[str, np.ndarray]) -> None:
+    """A render part plus a reference_x2 part holding ``extra_channels`` (scale-2 planes)."""
+    window = (np.array([0, 0], np.int32), np.array([5, 3], np.int32))
+    render = OpenEXR.Part({"jitter": np.zeros(2), "scale": 2, "displayWindow": window}, raw_channels(frame), "render")
+    extra = OpenEXR.Part({"scale": 2, "displayWindow": window}, extra_channels, "reference_x2")
+    OpenEXR.File([render, extra]).write(str(path))
+
+
+def test_reference_part_may_hold_only_target_buffers(tmp_path):
+    frame = make_frame()
+    channels = {f"reference.{c}": frame.reference(2)[..., i].copy() for i, c in enumerate("RGB")}
+    channels["albedo.R"] = np.zeros((8, 12), np.float32)
+    _two_part_file(tmp_path / "f.exr", frame, channels)
+    allowed = r"reference.R/G/B, reference_albedo.R/G/B, reference_specular_albedo.R/G/B"
+    with pytest.raises(FrameFormatError, match=rf"part 'reference_x2' may hold only {allowed}, not albedo.R$"):
+        read_frame(tmp_path / "f.exr")
+
+
+def test_reference_part_without_the_radiance_reference_is_refused(tmp_path):
+    frame = make_frame(albedo_references=True)
+    channels = {f"reference_albedo.{c}": frame.reference_albedo(2)[..., i].copy() for i, c in enumerate("RGB")}
+    _two_part_file(tmp_path / "f.exr", frame, channels)
+    with pytest.raises(FrameFormatError, match=r"'reference': part 'reference_x2' has no reference channels"):
         read_frame(tmp_path / "f.exr")
 
 

@@ -25,11 +25,13 @@ def make_frame(
     scales: tuple[int, ...] = (1, 2),
     split: bool = True,
     frame_index: int = 3,
+    albedo_references: bool = False,
 ) -> FrameBundle:
     """A tiny valid frame: random buffers honouring every convention, one background pixel at (0, 0).
 
     diffuse + specular == color exactly, normals are unit length where depth > 0, and the scale-1
-    reference is the 2x2 mean of the scale-2 one.
+    reference is the 2x2 mean of the scale-2 one. ``albedo_references`` adds reference albedos and
+    specular albedos at every reference scale, box-downsampled the same way.
     """
     rng = np.random.default_rng(seed)
     f32 = np.float32
@@ -42,7 +44,13 @@ def make_frame(
     normal[0, 0] = 0.0
     top = max(scales, default=1)
     finest = rng.uniform(0, 5, (height * top, width * top, 3)).astype(f32)
-    references = {scale: box_downsample(finest, top // scale) if scale < top else finest for scale in scales}
+    def pyramid(finest: np.ndarray) -> dict[int, np.ndarray]:
+        return {scale: box_downsample(finest, top // scale) if scale < top else finest for scale in scales}
+
+    references = pyramid(finest)
+    target_shape = (height * top, width * top, 3)
+    reference_albedos = pyramid(rng.uniform(0, 1, target_shape).astype(f32)) if albedo_references else {}
+    reference_specular_albedos = pyramid(rng.uniform(0, 1, target_shape).astype(f32)) if albedo_references else {}
     return FrameBundle(
         color=diffuse + specular,
         albedo=rng.uniform(0, 1, (height, width, 3)).astype(f32),
@@ -58,6 +66,8 @@ def make_frame(
         specular_albedo=rng.uniform(0, 1, (height, width, 3)).astype(f32),
         roughness=rng.uniform(0, 1, (height, width)).astype(f32),
         references=references,
+        reference_albedos=reference_albedos,
+        reference_specular_albedos=reference_specular_albedos,
     )
 
 
@@ -76,6 +86,31 @@ def test_missing_reference_scale_is_a_clear_key_error():
     frame = make_frame(scales=(1,))
     with pytest.raises(KeyError, match=r"no reference at scale 2 \(scales present: 1\)"):
         frame.reference(2)
+    with pytest.raises(KeyError, match=r"no reference_albedo at scale 1 \(scales present: none\)"):
+        frame.reference_albedo(1)
+
+
+def test_albedo_references_are_optional_target_buffers():
+    assert {name for name, spec in BUFFERS.items() if spec.resolution == "target"} == {
+        "reference", "reference_albedo", "reference_specular_albedo"
+    }
+    assert BUFFERS["reference_albedo"].channels == ("reference_albedo.R", "reference_albedo.G", "reference_albedo.B")
+    frame = make_frame(scales=(1, 2), albedo_references=True)
+    frame.reference_albedos[1] = frame.reference_albedos[1].astype(np.float64)
+    frame = validate_frame(frame, "x")
+    assert frame.reference_albedo(1).dtype == np.float32 and frame.reference_albedo(1).flags.c_contiguous
+    assert frame.reference_albedo(2).shape == frame.reference_specular_albedo(2).shape == (8, 12, 3)
+    np.testing.assert_array_equal(frame.reference_specular_albedo(1), frame.reference_specular_albedos[1])
+    assert list(frame.target_buffers(1)) == ["reference", "reference_albedo", "reference_specular_albedo"]
+    assert list(make_frame(scales=(1,)).target_buffers(1)) == ["reference"]
+    assert make_frame().target_buffers(4) == {}
+
+
+def test_albedo_references_may_exceed_one_by_rounding():
+    frame = make_frame(albedo_references=True)
+    frame.reference_albedos[2][3, 3, 0] = 1.0009
+    frame.reference_specular_albedos[1][0, 0, 2] = -0.0009
+    validate_frame(frame, "x")
 
 
 def test_validation_converts_to_float32_contiguous_and_keeps_the_input():
@@ -154,6 +189,18 @@ def _drop_reference(scale):
     return change
 
 
+def _target(attribute, scale, value):
+    def change(frame):
+        getattr(frame, attribute)[scale] = value(frame) if callable(value) else value
+    return change
+
+
+def _poke_target(attribute, scale, index, value):
+    def change(frame):
+        getattr(frame, attribute)[scale][index] = value
+    return change
+
+
 # (id, change to a valid frame, buffer named, regex of the problem)
 BREAKAGES = [
     ("missing color", _set("color", None), "color", r"required buffer is missing"),
@@ -203,6 +250,37 @@ BREAKAGES = [
 ]
 
 
+# The same for the albedo references (frames that have them at scales 1 and 2).
+ALBEDO_REFERENCE_BREAKAGES = [
+    ("reference_albedo size", _target("reference_albedos", 2, np.zeros((8, 10, 3))), "reference_albedo",
+     r"at scale 2 has resolution 10x8, expected 12x8 \(WxH: 2 x the render resolution 6x4\)"),
+    ("reference_specular_albedo at scale 1 upscaled",
+     _target("reference_specular_albedos", 1, lambda f: f.reference_specular_albedos[2]),
+     "reference_specular_albedo", r"at scale 1 has resolution 12x8, expected 6x4"),
+    ("reference_albedo has 4 channels", _target("reference_albedos", 1, np.zeros((4, 6, 4))), "reference_albedo",
+     r"shape \(4, 6, 4\) is not \(H, W, 3\)"),
+    ("reference_albedo fractional scale", _target("reference_albedos", 1.5, np.zeros((6, 9, 3))),
+     "reference_albedo", r"scale 1.5 is not a positive integer"),
+    ("reference_albedo not numeric", _target("reference_albedos", 1, "grey"), "reference_albedo",
+     r"is not a numeric array"),
+    ("reference_albedos not a dict", _set("reference_albedos", [np.zeros((4, 6, 3))]), "reference_albedos",
+     r"is not a dict of scale -> array"),
+    ("NaN reference_albedo", _poke_target("reference_albedos", 2, (7, 11, 2), np.nan), "reference_albedo",
+     r"1 pixels are not finite .* first at pixel \(11, 7\)"),
+    ("Inf reference_specular_albedo", _poke_target("reference_specular_albedos", 1, (1, 2, 0), np.inf),
+     "reference_specular_albedo", r"not finite .* \(2, 1\)"),
+    ("reference_albedo above one", _poke_target("reference_albedos", 1, (2, 3, 1), 1.01), "reference_albedo",
+     r"1 pixels are outside \[0, 1\] \(worst 1.01 at pixel \(3, 2\)\)"),
+    ("reference_specular_albedo below zero", _poke_target("reference_specular_albedos", 2, (0, 5, 0), -0.01),
+     "reference_specular_albedo", r"outside \[0, 1\] \(worst -0.01 at pixel \(5, 0\)\)"),
+    ("reference_albedo without its reference", _drop_reference(2), "reference_albedo",
+     r"at scale 2 has no radiance reference at that scale \(reference scales present: 1\)"),
+    ("reference_specular_albedo without any reference",
+     lambda f: (f.references.clear(), f.reference_albedos.clear()), "reference_specular_albedo",
+     r"at scale 1 has no radiance reference at that scale \(reference scales present: none\)"),
+]
+
+
 @pytest.mark.parametrize("change, buffer, problem", [b[1:] for b in BREAKAGES], ids=[b[0] for b in BREAKAGES])
 def test_every_broken_convention_is_reported(change, buffer, problem):
     frame = make_frame()
@@ -213,6 +291,20 @@ def test_every_broken_convention_is_reported(change, buffer, problem):
     assert caught.value.source == "frame_0003.exr"
     assert str(caught.value).startswith(f"frame_0003.exr: ")
     assert f"'{buffer}': " in str(caught.value)
+    assert caught.match(problem)
+
+
+@pytest.mark.parametrize("change, buffer, problem", [b[1:] for b in ALBEDO_REFERENCE_BREAKAGES],
+                         ids=[b[0] for b in ALBEDO_REFERENCE_BREAKAGES])
+def test_every_broken_albedo_reference_is_reported(change, buffer, problem):
+    frame = make_frame(albedo_references=True)
+    validate_frame(frame, "frame_0003.exr")  # valid before the change
+    change(frame)
+    with pytest.raises(FrameValidationError) as caught:
+        validate_frame(frame, "frame_0003.exr")
+    assert (caught.value.buffer, caught.value.source) == (buffer, "frame_0003.exr")
+    kind = "buffer" if buffer in BUFFERS else "attribute"
+    assert str(caught.value).startswith(f"frame_0003.exr: {kind} '{buffer}': ")
     assert caught.match(problem)
 
 

@@ -29,7 +29,7 @@ def test_generate_help_documents_every_option(capsys):
 @requires_llvm
 def test_generate_writes_a_dataset_and_refuses_to_overwrite(tmp_path, capsys):
     out = tmp_path / "data"
-    args = ["generate", "--scene", "glass", "--frames", "2", "--size", "24x16", "--ref-spp", "4",
+    args = ["generate", "--scene", "glass", "--frames", "2", "--size", "24x16", "--ref-spp", "4", "--albedo-spp", "2",
             "--seed", "7", "--out", str(out), "--split", "test", "--quiet"]
     assert main(args) == 0
     printed = capsys.readouterr().out
@@ -38,6 +38,7 @@ def test_generate_writes_a_dataset_and_refuses_to_overwrite(tmp_path, capsys):
     assert dataset.names("test") == ["glass_s7"]
     frame = read_frame(out / "glass_s7" / "frame_0001.exr")
     assert frame.resolution == (24, 16) and frame.scales == (1, 2) and frame.sequence == "glass_s7"
+    assert sorted(frame.reference_albedos) == sorted(frame.reference_specular_albedos) == [1, 2]
     before = (out / "glass_s7" / "frame_0001.exr").read_bytes()
 
     assert main(args) == 2

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import itertools
+import math
+import shutil
 
 import numpy as np
 import pytest
 import torch
 
 from model.data.crops import BRIGHTNESS_RANGE, SequenceCrops, collate_crops, sample_windows
-from model.dataset import Dataset
+from model.dataset import Dataset, SequenceWriter
+from model.frames import box_downsample
 from model.ops.warp import backward_warp
-from tests.model.training_fixtures import write_sequence, write_tiny_dataset
+from tests.model.training_fixtures import synthetic_frame, write_sequence, write_tiny_dataset
 
 
 @pytest.fixture(scope="module")
@@ -168,3 +171,67 @@ def test_frames_are_decoded_once(dataset_root, monkeypatch):
     frames_in_windows = 6 + 5 - 2  # every frame once; both first frames were decoded at construction
     assert len(reads) == frames_in_windows
     assert np.isfinite(crops.sample(0, 0)["color"].numpy()).all()
+
+
+@pytest.fixture(scope="module")
+def albedo_dataset_root(tmp_path_factory):
+    """One training sequence whose frames carry reference albedos at scales 1 and 2 (box-downsampled)."""
+    root = tmp_path_factory.mktemp("albedo_crops") / "data"
+    dataset = Dataset.create(root)
+    rng = np.random.default_rng(7)
+    with SequenceWriter(root / "albedo", "albedo") as writer:
+        for index in range(4):
+            frame = synthetic_frame(rng, index, 12, 12)
+            for attribute in ("reference_albedos", "reference_specular_albedos"):
+                finest = rng.uniform(0, 1, (24, 24, 3)).astype(np.float32)
+                setattr(frame, attribute, {1: box_downsample(finest, 2), 2: finest})
+            writer.add(frame)
+    dataset.add_sequence_dir("albedo", "train")
+    return root
+
+
+ALBEDO_TARGETS = ("reference_albedo", "reference_specular_albedo")
+
+
+def test_reference_albedos_are_cropped_like_the_reference(albedo_dataset_root):
+    scale1 = SequenceCrops(albedo_dataset_root, "train", crop_size=5, frames=2, scale=1, seed=2, augment=False)
+    scale2 = SequenceCrops(albedo_dataset_root, "train", crop_size=5, frames=2, scale=2, seed=2, augment=False)
+    for index in range(len(scale2)):
+        low, high = scale1.sample(index, epoch=0), scale2.sample(index, epoch=0)
+        position, start = scale2.windows[index]
+        frame = scale2.caches[position][start]
+        top, left = _find_offset(frame.color[0], high["color"][0])
+        for name in ALBEDO_TARGETS:
+            assert high[name].shape == (2, 3, 10, 10)
+            torch.testing.assert_close(high[name][0], getattr(frame, name)[0, :, 2 * top:2 * top + 10,
+                                                                            2 * left:2 * left + 10])
+            torch.testing.assert_close(torch.nn.functional.avg_pool2d(high[name], 2), low[name])
+    frames = collate_crops([scale2.sample(i, 0) for i in range(2)])
+    assert frames[1].reference_albedo.shape == (2, 3, 10, 10)
+    assert frames[1].without_reference().reference_specular_albedo is None
+
+
+def test_reference_albedos_are_flipped_but_not_brightened(albedo_dataset_root):
+    plain_crops = SequenceCrops(albedo_dataset_root, "train", crop_size=6, frames=2, scale=2, seed=4, augment=False)
+    augmented_crops = SequenceCrops(albedo_dataset_root, "train", crop_size=6, frames=2, scale=2, seed=4)
+    seen_flips, factors = set(), []
+    for index, epoch in itertools.product(range(len(plain_crops)), range(4)):
+        plain, augmented = plain_crops.sample(index, epoch), augmented_crops.sample(index, epoch)
+        flip = next(f for f in itertools.product((False, True), repeat=2)
+                    if torch.equal(_flip(plain["albedo"], *f), augmented["albedo"]))
+        seen_flips.add(flip)
+        factor = float(augmented["reference"].sum() / plain["reference"].sum())
+        factors.append(factor)
+        torch.testing.assert_close(augmented["reference"], _flip(plain["reference"], *flip) * factor)
+        for name in ALBEDO_TARGETS:
+            torch.testing.assert_close(augmented[name], _flip(plain[name], *flip), rtol=0, atol=0)
+    assert len(seen_flips) >= 3 and max(abs(math.log(f)) for f in factors) > 0.2  # flips and brightness happened
+
+
+def test_reference_albedos_are_left_out_when_a_sequence_lacks_them(albedo_dataset_root, tmp_path):
+    root = tmp_path / "mixed"
+    shutil.copytree(albedo_dataset_root, root)
+    write_sequence(root, "plain", frames=3, size=(12, 12))
+    Dataset(root).add_sequence_dir("plain", "train")
+    sample = SequenceCrops(root, "train", crop_size=6, frames=2, scale=2).sample(0, 0)
+    assert "reference" in sample and not set(ALBEDO_TARGETS) & set(sample)

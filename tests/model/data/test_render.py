@@ -177,3 +177,57 @@ def test_mis_weight_stays_finite_for_extreme_pdfs():
 def test_a_frame_that_once_had_nan_pixels_is_finite():
     frame = render_frames("diffuse_room", 12, (128, 128), ref_spp=1, seed=1, ref_scales=(1,), only=[3])[0]
     assert np.isfinite(frame.color).all()
+
+
+def uniform_interior(*images: np.ndarray) -> np.ndarray:
+    """Pixels not on the image border whose 3x3 neighbourhood holds one value in every image (all channels)."""
+    height, width = images[0].shape[:2]
+    uniform = np.zeros((height, width), dtype=bool)
+    uniform[1:-1, 1:-1] = True
+    for image in images:
+        image = image if image.ndim == 3 else image[..., None]
+        centre = image[1:-1, 1:-1]
+        for dy, dx in ((i, j) for i in range(3) for j in range(3)):
+            uniform[1:-1, 1:-1] &= (image[dy:dy + height - 2, dx:dx + width - 2] == centre).all(axis=-1)
+    return uniform
+
+
+def test_scale_one_reference_albedos_are_the_mean_of_the_scale_two_ones(fast_camera_frames):
+    frame = fast_camera_frames[0]
+    for name in ("reference_albedo", "reference_specular_albedo"):
+        double = getattr(frame, name)(2)
+        assert double.shape == (2 * frame.height, 2 * frame.width, 3)
+        np.testing.assert_allclose(getattr(frame, name)(1),
+                                   double.reshape(frame.height, 2, frame.width, 2, 3).mean((1, 3)), rtol=1e-6)
+    # Textured surfaces: the target pixels resolve detail that one 1x sample per pixel cannot.
+    blocks = frame.reference_albedo(2).reshape(frame.height, 2, frame.width, 2, 3)
+    assert np.abs(blocks - blocks.mean((1, 3), keepdims=True)).max() > 0.05
+    # Both estimate the same image, so their means agree (a misplaced or mis-scaled estimate would not).
+    assert abs(frame.reference_albedo(1).mean() / frame.albedo.mean() - 1.0) < 0.05
+
+
+def test_reference_albedo_equals_the_guide_on_flat_untextured_diffuse_surfaces(monkeypatch):
+    from model.data import render
+
+    # Force several passes (3072 target pixels at 2x, 5 samples each per pass: 16 = 5 + 5 + 5 + 1).
+    monkeypatch.setattr(render, "MAX_ALBEDO_LANES", 64 * 48 * 5)
+    frame = render_frames("diffuse_room", 1, (32, 24), ref_spp=4)[0]
+    flat = uniform_interior(frame.albedo, frame.specular_albedo, frame.roughness) & (frame.roughness == 1.0)
+    flat &= (frame.depth > 0) & smooth_depth(frame.depth)
+    assert flat.sum() > 100
+    np.testing.assert_array_equal(frame.reference_albedo(1)[flat], frame.albedo[flat])
+    np.testing.assert_array_equal(frame.reference_specular_albedo(1)[flat], frame.specular_albedo[flat])
+    # Elsewhere (object edges) the reference albedo is a mix of surfaces, which the 1x guide is not.
+    edges = ~uniform_interior(frame.albedo)
+    assert np.abs(frame.reference_albedo(1) - frame.albedo).max(axis=-1)[edges].max() > 0.05
+
+
+def test_metal_pixels_have_no_reference_albedo_and_a_reference_specular_albedo():
+    frame = render_frames("metals", 1, (32, 24), ref_spp=4)[0]
+    metal = uniform_interior(frame.albedo, frame.specular_albedo) & (frame.specular_albedo.mean(axis=-1) > 0.5)
+    assert metal.sum() > 10
+    for scale in (1, 2):
+        pixels = np.repeat(np.repeat(metal, scale, axis=0), scale, axis=1)
+        assert frame.reference_albedo(scale)[pixels].max() == 0.0
+        assert frame.reference_specular_albedo(scale)[pixels].min() > 0.0
+    np.testing.assert_array_equal(frame.reference_specular_albedo(1)[metal], frame.specular_albedo[metal])
