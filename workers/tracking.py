@@ -18,6 +18,7 @@ back. Aliases (not stages) mark versions for serving; choosing them is the servi
 
 from __future__ import annotations
 
+import fcntl
 import os
 import re
 import shutil
@@ -87,9 +88,18 @@ class MLflowTracker:
     def client(self) -> MlflowClient:
         if self._client is None:
             database = sqlite_path(self.tracking_uri)
-            if database is not None:
-                database.parent.mkdir(parents=True, exist_ok=True)  # SQLite creates the file, not its folder
-            self._client = MlflowClient(self.tracking_uri, registry_uri=self.tracking_uri)
+            if database is None:
+                self._client = MlflowClient(self.tracking_uri, registry_uri=self.tracking_uri)
+                return self._client
+            database.parent.mkdir(parents=True, exist_ok=True)  # SQLite creates the file, not its folder
+            # MLflow creates and migrates its tables when a client first opens the store, unguarded: two jobs
+            # starting together on a new database race ("duplicate column name"). One process at a time opens it.
+            with open(database.with_name(database.name + ".lock"), "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)
+                client = MlflowClient(self.tracking_uri, registry_uri=self.tracking_uri)
+                client.search_experiments(max_results=1)
+                client.search_registered_models(max_results=1)
+            self._client = client
         return self._client
 
     # ------------------------------------------------------------------------------------ run

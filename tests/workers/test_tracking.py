@@ -107,3 +107,22 @@ def test_tracking_uri_is_one_setting(monkeypatch, tmp_path):
     assert resolve_tracking_uri(None) == "postgresql://mlflow@db/mlflow"
     assert resolve_tracking_uri("sqlite:////x/y.db") == "sqlite:////x/y.db"
     assert sqlite_path("sqlite:////x/y.db").as_posix() == "/x/y.db" and sqlite_path("http://host:5000") is None
+
+
+def test_two_trackers_starting_together_on_a_new_database_both_work(tmp_path):
+    # Two training jobs started at once on a fresh SQLite file raced in MLflow's table creation.
+    import multiprocessing
+
+    uri = f"sqlite:///{tmp_path / 'fresh' / 'mlflow.db'}"
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(2) as pool:
+        run_ids = pool.map(_start_a_run, [(uri, "a"), (uri, "b")])
+    assert len(set(run_ids)) == 2
+
+
+def _start_a_run(arguments):
+    uri, name = arguments
+    tracker = MLflowTracker(uri, experiment="race")
+    tracker.start({"method": name})
+    tracker.finish("FINISHED")
+    return tracker.run_id
