@@ -35,10 +35,9 @@ from model.methods.registry import MethodSpec, register
 from model.ops.accumulate import accumulate
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.pyramid import downsample2x, upsample2x
-from model.ops.reproject import disocclusion_mask
+from model.ops.reproject import reproject_history
 from model.ops.tonemap import log_tonemap, log_tonemap_inverse
 from model.ops.demodulate import demodulate
-from model.ops.warp import backward_warp
 
 __all__ = ["AFN", "AFNConfig", "AFN_PRESETS", "scale_composite", "temporal_accumulate"]
 
@@ -106,18 +105,15 @@ def temporal_accumulate(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Blend demodulated ``radiance`` (N, 3, H, W) with the reprojected history; returns ``(r_TA, count)``.
 
-    The accumulated radiance is warped bilinearly (a sub-pixel motion must not snap history to the pixel grid),
-    its count with "nearest" so it stays the count of the one previous pixel that the depth/normal test
-    (``disocclusion_mask``) compares against. History is trusted only where that test passes and the count is
-    positive (a camera cut zeroes a sample's state, see ``drop_history``).
+    Reprojection (bilinear history, nearest count, depth/normal test, camera cuts) is
+    ``model.ops.reproject.reproject_history``.
     """
     if state is None:
         return accumulate(radiance, None, None, None, alpha_min=TA_ALPHA_MIN)
-    history, _ = backward_warp(state["accumulated"], frame.motion, mode="bilinear", jitter=frame.jitter)
-    count, _ = backward_warp(state["count"], frame.motion, mode="nearest", jitter=frame.jitter)
-    valid = disocclusion_mask(frame.depth, frame.normal, state["depth"], state["normal"], frame.motion,
-                              jitter=frame.jitter)
-    return accumulate(radiance, history, count, valid & (count > 0),
+    history, count, valid = reproject_history(state["accumulated"], state["count"], frame.depth, frame.normal,
+                                              state["depth"], state["normal"], frame.motion, frame.jitter,
+                                              state["jitter"])
+    return accumulate(radiance, history, count, valid,
                       alpha_min=TA_ALPHA_MIN, max_count=TA_MAX_COUNT)
 
 
@@ -266,7 +262,7 @@ class AFN(Method):
         output = self.refinement(fused, guides) * divisor
         output = bicubic_upscale(output, self.scale)
         new_state = {"accumulated": accumulated, "count": count,
-                     "depth": frame.depth.detach(), "normal": frame.normal.detach()}
+                     "depth": frame.depth.detach(), "normal": frame.normal.detach(), "jitter": frame.jitter.detach()}
         return output, new_state
 
 

@@ -20,10 +20,9 @@ import torch.nn.functional as F
 from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.registry import MethodSpec, register
 from model.ops.accumulate import accumulate, accumulate_moments
-from model.ops.reproject import disocclusion_mask
+from model.ops.reproject import reproject_history
 from model.ops.tonemap import luminance
 from model.ops.demodulate import demodulate
-from model.ops.warp import backward_warp
 
 __all__ = [
     "bicubic_upscale",
@@ -58,24 +57,19 @@ class RenderResolutionFilter(Method):
         """Filter one frame at render resolution: (N, 3, H, W) radiance and the new state."""
 
 
-def reproject_history(
+def reproject_state(
     frame: FrameBatch,
     state: State,
     names: tuple[str, ...],
     depth_rel_tol: float,
     normal_cos_tol: float,
 ) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
-    """Warp the history buffers `names` of `state` into this frame; returns (warped, count, valid).
-
-    The buffers are warped bilinearly in one call (a sub-pixel motion must not snap the history to the pixel
-    grid); the sample count is warped with "nearest" so it stays the count of one real previous pixel, the same
-    pixel the depth/normal test compares against.
-    """
+    """Warp the history buffers `names` of `state` into this frame (`model.ops.reproject.reproject_history`,
+    one call for all of them); returns (warped by name, count, valid)."""
     stacked = torch.cat([state[name] for name in names], dim=1)
-    warped, _ = backward_warp(stacked, frame.motion, mode="bilinear", jitter=frame.jitter)
-    count, _ = backward_warp(state["count"], frame.motion, mode="nearest", jitter=frame.jitter)
-    valid = disocclusion_mask(frame.depth, frame.normal, state["depth"], state["normal"], frame.motion,
-                              depth_rel_tol=depth_rel_tol, normal_cos_tol=normal_cos_tol, jitter=frame.jitter)
+    warped, count, valid = reproject_history(stacked, state["count"], frame.depth, frame.normal, state["depth"],
+                                             state["normal"], frame.motion, frame.jitter, state["jitter"],
+                                             depth_rel_tol=depth_rel_tol, normal_cos_tol=normal_cos_tol)
     sizes = [state[name].shape[1] for name in names]
     return dict(zip(names, torch.split(warped, sizes, dim=1))), count, valid
 
@@ -121,11 +115,12 @@ class TemporalAccumulation(RenderResolutionFilter):
         if state is None:
             accumulated, count = accumulate(illumination, None, None, None, alpha_min=self.alpha_min)
         else:
-            warped, history_count, valid = reproject_history(frame, state, ("history",),
+            warped, history_count, valid = reproject_state(frame, state, ("history",),
                                                              self.depth_rel_tol, self.normal_cos_tol)
             accumulated, count = accumulate(illumination, warped["history"], history_count, valid,
                                             alpha_min=self.alpha_min)
-        new_state = {"history": accumulated, "count": count, "depth": frame.depth, "normal": frame.normal}
+        new_state = {"history": accumulated, "count": count, "depth": frame.depth, "normal": frame.normal,
+                     "jitter": frame.jitter}
         return accumulated * divisor, new_state
 
 
@@ -325,7 +320,7 @@ class SVGF(RenderResolutionFilter):
             mean, mean_sq, temporal_variance = accumulate_moments(illumination, None, None, None, None,
                                                                   alpha_min=params.alpha_moments)
         else:
-            warped, history_count, valid = reproject_history(frame, state, ("history", "mean", "mean_sq"),
+            warped, history_count, valid = reproject_state(frame, state, ("history", "mean", "mean_sq"),
                                                              params.depth_rel_tol, params.normal_cos_tol)
             accumulated, count = accumulate(illumination, warped["history"], history_count, valid,
                                             alpha_min=params.alpha_color)
@@ -346,7 +341,7 @@ class SVGF(RenderResolutionFilter):
             if level == 0:
                 feedback = filtered
         new_state = {"history": feedback, "mean": mean, "mean_sq": mean_sq, "count": count,
-                     "depth": frame.depth, "normal": frame.normal}
+                     "depth": frame.depth, "normal": frame.normal, "jitter": frame.jitter}
         return filtered * divisor, new_state
 
 

@@ -43,10 +43,9 @@ from model.methods.repvgg import RepVGGBlock, reparameterize
 from model.ops.accumulate import accumulate
 from model.ops.demodulate import demodulation_divisor
 from model.ops.pyramid import downsample2x, upsample2x
-from model.ops.reproject import disocclusion_mask
+from model.ops.reproject import reproject_history
 from model.ops.splat import WSKPN_SIZES, weight_sharing_fused
 from model.ops.tonemap import log_tonemap
-from model.ops.warp import backward_warp
 
 __all__ = [
     "ImportanceNetConfig",
@@ -162,7 +161,8 @@ class WSKPN(Method):
         m = len(self.sizes)
         filtered = weight_sharing_fused(irradiance, logits[:, :m], logits[:, m:], self.sizes)
         output = bicubic_upscale(filtered * divisor, self.scale)
-        new_state = {"irradiance": irradiance, "count": count, "depth": frame.depth, "normal": frame.normal}
+        new_state = {"irradiance": irradiance, "count": count, "depth": frame.depth, "normal": frame.normal,
+                     "jitter": frame.jitter}
         return output, new_state
 
     @staticmethod
@@ -171,18 +171,11 @@ class WSKPN(Method):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         if state is None:
             return accumulate(irradiance, None, None, None, alpha_min=ACCUMULATION_ALPHA)
-        # One bilinear warp for history and count; the geometry test decides which pixels may use them.
-        warped, _ = backward_warp(
-            torch.cat([state["irradiance"], state["count"]], dim=1), frame.motion, jitter=frame.jitter
+        history, count, valid = reproject_history(
+            state["irradiance"], state["count"], frame.depth, frame.normal, state["depth"], state["normal"],
+            frame.motion, frame.jitter, state["jitter"]
         )
-        valid = disocclusion_mask(
-            frame.depth, frame.normal, state["depth"], state["normal"], frame.motion, jitter=frame.jitter
-        )
-        # A cut zeroes the count (drop_history): such pixels restart at 1 sample like failed ones.
-        valid = valid & (warped[:, 3:] > 0)
-        return accumulate(
-            irradiance, warped[:, :3], warped[:, 3:], valid, alpha_min=ACCUMULATION_ALPHA, max_count=MAX_COUNT
-        )
+        return accumulate(irradiance, history, count, valid, alpha_min=ACCUMULATION_ALPHA, max_count=MAX_COUNT)
 
     @staticmethod
     def _network_inputs(irradiance: torch.Tensor, count: torch.Tensor, frame: FrameBatch) -> torch.Tensor:

@@ -12,7 +12,7 @@ import torch
 
 from model.ops.warp import Jitter, backward_warp
 
-__all__ = ["disocclusion_mask"]
+__all__ = ["disocclusion_mask", "reproject_history"]
 
 
 def disocclusion_mask(
@@ -67,3 +67,39 @@ def disocclusion_mask(
     ).clamp_min(1e-12)
     normal_ok = cos >= normal_cos_tol
     return inside & (depth > 0) & (pd > 0) & depth_ok & normal_ok
+
+
+def reproject_history(
+    history: torch.Tensor,
+    count: torch.Tensor,
+    depth: torch.Tensor,
+    normal: torch.Tensor,
+    prev_depth: torch.Tensor,
+    prev_normal: torch.Tensor,
+    motion: torch.Tensor,
+    jitter: torch.Tensor,
+    prev_jitter: torch.Tensor,
+    depth_rel_tol: float = 0.1,
+    normal_cos_tol: float = 0.9,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bring a pixel-centred history into this frame: (warped history, warped count, valid mask).
+
+    Two kinds of previous buffers live at two kinds of positions, so they are read at different places:
+
+    - ``history`` and ``count`` are what a method accumulated *per pixel*: blends of samples from many jitter
+      offsets, i.e. values at pixel centres. This pixel's centre shows what the previous frame showed at
+      centre + motion (motion varies smoothly over the pixel), so they are read there, without jitter. Reading
+      at centre + jitter + motion would shift the whole history by this frame's jitter every frame.
+    - ``prev_depth`` / ``prev_normal`` are the previous frame's *samples*, taken at its pixel centres + its
+      jitter. This frame's sample (centre + jitter) was at centre + jitter + motion in the previous image,
+      which is centre + (jitter - prev_jitter) + motion in the previous buffer's pixel grid.
+
+    The history is warped bilinearly (a sub-pixel motion must not snap it to the grid), the count with
+    "nearest" so that it stays the count of one real previous pixel. ``jitter`` and ``prev_jitter`` are (N, 2).
+    """
+    warped, _ = backward_warp(history, motion, mode="bilinear")
+    warped_count, _ = backward_warp(count, motion, mode="nearest")
+    valid = disocclusion_mask(depth, normal, prev_depth, prev_normal, motion, depth_rel_tol=depth_rel_tol,
+                              normal_cos_tol=normal_cos_tol, jitter=jitter - prev_jitter)
+    # A camera cut zeroes a sample's state (methods.base.drop_history): count 0 means no history.
+    return warped, warped_count, valid & (warped_count > 0)

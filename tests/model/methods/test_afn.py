@@ -53,7 +53,7 @@ def test_every_preset_gives_finite_output_with_and_without_history(preset):
     for output in (first, second):
         assert output.shape == (1, 3, 16, 16)
         assert torch.isfinite(output).all() and (output >= 0).all()
-    assert set(state) == {"accumulated", "count", "depth", "normal"}
+    assert set(state) == {"accumulated", "count", "depth", "normal", "jitter"}
 
 
 def test_presets_grow_in_size_and_cost():

@@ -79,7 +79,7 @@ def test_every_preset_gives_finite_output_with_and_without_history(preset):
     for output in (first, second):
         assert output.shape == (1, 3, 16, 16)
         assert torch.isfinite(output).all() and (output >= 0).all()
-    assert set(state) == {"irradiance", "count", "depth", "normal"}
+    assert set(state) == {"irradiance", "count", "depth", "normal", "jitter"}
 
 
 def test_odd_sizes_and_batches_through_the_u_net():

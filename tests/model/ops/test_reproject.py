@@ -105,3 +105,26 @@ def test_motion_follows_the_surface():
     assert bool(valid[..., 1:4, 3:5].all())
     # background just uncovered where the object used to be: previous frame saw the object there
     assert not bool(valid[..., 1:4, 1:3].any())
+
+
+def test_reproject_history_ignores_jitter_for_the_history_and_uses_the_jitter_change_for_geometry():
+    from model.ops.reproject import reproject_history
+
+    generator = torch.Generator().manual_seed(3)
+    history = torch.rand(1, 3, 6, 7, generator=generator)
+    count = torch.full((1, 1, 6, 7), 2.0)
+    depth = torch.ones(1, 1, 6, 7)
+    depth[..., :, 4:] = 3.0  # a depth edge between columns 3 and 4
+    normal = torch.zeros(1, 3, 6, 7)
+    normal[:, 2] = 1.0
+    motion = torch.zeros(1, 2, 6, 7)
+    jitter, previous_jitter = torch.tensor([[0.4, 0.0]]), torch.tensor([[-0.4, 0.0]])
+    warped, warped_count, valid = reproject_history(history, count, depth, normal, depth, normal, motion,
+                                                    jitter, previous_jitter)
+    # A static camera: the history comes back where it was, whatever the jitter.
+    torch.testing.assert_close(warped, history)
+    torch.testing.assert_close(warped_count, count)
+    # The geometry test reads the previous samples 0.8 px to the right: nearest reaches the neighbour,
+    # so the column left of the edge sees the far surface and fails, and the last column reads off the image.
+    assert not valid[0, 0, :, 3].any() and not valid[0, 0, :, 6].any()
+    assert valid[0, 0, :, :3].all() and valid[0, 0, :, 4:6].all()
