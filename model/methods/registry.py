@@ -19,6 +19,7 @@ METHOD_MODULES = (
     "model.methods.oidn",
     "model.methods.wskpn",
     "model.methods.afn",
+    "model.methods.jnds",
 )
 
 
