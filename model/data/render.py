@@ -11,6 +11,7 @@ pixel, the box filter of the radiance references.
 
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass
 
@@ -66,9 +67,9 @@ class SceneRenderer:
     def __init__(self, scene: AnimatedScene, settings: RenderSettings, seed: int):
         self.scene, self.settings, self.seed = scene, settings, seed
         self.mi = load_mitsuba(settings.variant)
-        if self.mi.variant() == "scalar_rgb":
-            raise RuntimeError("the 1spp path tracer needs a vectorized Mitsuba variant (llvm_ad_rgb or "
-                               "cuda_ad_rgb); install libLLVM-19 (Debian libllvm19, scripts/setup.sh does it)")
+        # scalar_rgb traces one ray at a time: the same path code runs once per pixel from Python (slow, a
+        # fallback for machines without LLVM 19); the JIT variants trace every pixel in one wavefront.
+        self.scalar = self.mi.variant().startswith("scalar")
         import drjit as dr
 
         self.dr = dr
@@ -180,23 +181,18 @@ class SceneRenderer:
         top = max(s.ref_scales)
         width, height = s.width * top, s.height * top
         pixels = width * height
-        sensor = mi_scene.sensors()[0]  # film positions are in [0, 1]^2: its resolution does not matter
         sums = np.zeros((2, pixels, 3), dtype=np.float64)
         samples_per_pass = max(1, min(s.albedo_spp, MAX_ALBEDO_LANES // pixels))
+        pixel = np.arange(pixels)
         for pass_index, first in enumerate(range(0, s.albedo_spp, samples_per_pass)):
             samples = min(samples_per_pass, s.albedo_spp - first)
-            count = pixels * samples
-            sampler = mi.load_dict({"type": "independent"})
-            sampler.seed(frame_seed(self.seed, frame_index, f"albedo:{pass_index}"), count)
-            pixel = dr.arange(mi.UInt32, count) % pixels  # lane = sample * pixels + pixel
-            offset = sampler.next_2d()
-            film_position = mi.Point2f((mi.Float(pixel % width) + offset.x) / width,
-                                       (mi.Float(pixel // width) + offset.y) / height)
-            ray, _ = sensor.sample_ray_differential(0.0, sampler.next_1d(), film_position, mi.Point2f(0.5, 0.5))
-            ray = mi.Ray3f(ray)
-            si = mi_scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True)
-            guides = self._first_hit_guides(mi_scene, si, si.bsdf(ray))
-            albedo, specular_albedo = self._guide_albedos(_to_numpy(guides["albedo"]), _to_numpy(guides["shape_index"]))
+            seed = frame_seed(self.seed, frame_index, f"albedo:{pass_index}")
+            # Uniform positions inside each pixel; lane = sample * pixels + pixel.
+            offset = np.random.default_rng(seed).random((samples * pixels, 2))
+            film_x = (np.tile(pixel % width, samples) + offset[:, 0]) / width
+            film_y = (np.tile(pixel // width, samples) + offset[:, 1]) / height
+            guides = self._trace_film(mi_scene, film_x, film_y, seed, max_depth=1, guides_only=True)
+            albedo, specular_albedo = self._guide_albedos(guides["albedo"], guides["shape_index"])
             # Summed in float64: identical samples (a flat surface) then average to exactly the 1spp guide value.
             sums[0] += albedo.reshape(samples, pixels, 3).sum(axis=0, dtype=np.float64)
             sums[1] += specular_albedo.reshape(samples, pixels, 3).sum(axis=0, dtype=np.float64)
@@ -215,15 +211,46 @@ class SceneRenderer:
 
     def _trace_1spp(self, mi_scene, jitter: tuple[float, float], seed: int) -> dict[str, np.ndarray]:
         """One path per pixel at the jittered sample position; returns flat NumPy buffers (H*W, ...)."""
-        mi, dr, s = self.mi, self.dr, self.settings
-        count = s.width * s.height
-        sensor = mi_scene.sensors()[0]
+        s = self.settings
+        index = np.arange(s.width * s.height)
+        sample_x = (index % s.width).astype(np.float64) + 0.5 + jitter[0]
+        sample_y = (index // s.width).astype(np.float64) + 0.5 + jitter[1]
+        result = self._trace_film(mi_scene, sample_x / s.width, sample_y / s.height, seed, s.max_depth)
+        result["diffuse"] = np.maximum(result["diffuse"], 0.0)
+        result["specular"] = np.maximum(result["specular"], 0.0)
+        result["color"] = result["diffuse"] + result["specular"]
+        result["film_position"] = np.stack([sample_x, sample_y], axis=1).astype(np.float32)
+        return result
+
+    def _trace_film(self, mi_scene, film_x: np.ndarray, film_y: np.ndarray, seed: int, max_depth: int,
+                    guides_only: bool = False) -> dict[str, np.ndarray]:
+        """Trace one path of `max_depth` through each film position in [0, 1]^2 (`guides_only`: first hits only).
+
+        Returns NumPy arrays, one row per position: the first hit's guides, diffuse and specular radiance, and
+        the camera ray. JIT variants trace all positions as one wavefront; scalar_rgb loops over them, each
+        with its own random stream.
+        """
+        mi = self.mi
+        if not self.scalar:
+            sampler = mi.load_dict({"type": "independent"})
+            sampler.seed(seed, len(film_x))
+            film_position = mi.Point2f(mi.Float(film_x.astype(np.float32)), mi.Float(film_y.astype(np.float32)))
+            traced = self._trace_rays(mi_scene, sampler, film_position, max_depth, guides_only)
+            return {name: _to_numpy(value) for name, value in traced.items()}
         sampler = mi.load_dict({"type": "independent"})
-        sampler.seed(seed, count)
-        index = dr.arange(mi.UInt32, count)
-        x = mi.Float(index % s.width)
-        y = mi.Float(index // s.width)
-        film_position = mi.Point2f((x + 0.5 + jitter[0]) / s.width, (y + 0.5 + jitter[1]) / s.height)
+        rows: dict[str, list] = {}
+        for lane, (x, y) in enumerate(zip(film_x.tolist(), film_y.tolist())):
+            sampler.seed((seed + lane * 0x9E3779B1) & 0xFFFFFFFF, 1)  # the sampler hashes seeds (TEA)
+            traced = self._trace_rays(mi_scene, sampler, mi.Point2f(x, y), max_depth, guides_only)
+            for name, value in traced.items():
+                rows.setdefault(name, []).append(np.asarray(value, dtype=np.float32 if name != "shape_index"
+                                                            else np.int32))
+        return {name: np.stack(values) for name, values in rows.items()}
+
+    def _trace_rays(self, mi_scene, sampler, film_position, max_depth: int, guides_only: bool) -> dict:
+        """The path tracer proper, on Mitsuba types: a wavefront (JIT variants) or one ray (scalar_rgb)."""
+        mi, dr, s = self.mi, self.dr, self.settings
+        sensor = mi_scene.sensors()[0]  # film positions are in [0, 1]^2: its resolution does not matter
         ray, _ = sensor.sample_ray_differential(0.0, sampler.next_1d(), film_position, mi.Point2f(0.5, 0.5))
         camera_ray = mi.Ray3f(ray)
 
@@ -237,18 +264,24 @@ class SceneRenderer:
         eta = mi.Float(1.0)
         guides = {}
         current = mi.Ray3f(camera_ray)
-        for depth in range(s.max_depth):
+        for depth in range(max_depth):
             si = mi_scene.ray_intersect(current, ray_flags=mi.RayFlags.All, coherent=depth == 0, active=active)
-            bsdf = si.bsdf(current)
+            # A scalar miss has no shape to ask for a BSDF (Mitsuba would crash); its path ends below anyway.
+            bsdf = si.bsdf(current) if not self.scalar or si.is_valid() else None
             if depth == 0:
                 guides = self._first_hit_guides(mi_scene, si, bsdf)
+                if guides_only:
+                    break
 
             # Emission reached by the sampled direction, MIS-weighted against next-event estimation.
             emitter = si.emitter(mi_scene, active)
             direction_sample = mi.DirectionSample3f(mi_scene, si, previous_si)
-            emitter_pdf = mi.Float(0.0) if depth == 0 else mi_scene.pdf_emitter_direction(
-                previous_si, direction_sample, ~previous_delta)
-            emitted = throughput * _mis_weight(dr, previous_pdf, emitter_pdf) * emitter.eval(si, active)
+            # Scalar variants return no emitter (None) where the hit emits nothing; Mitsuba must not be asked
+            # for that direction's pdf then (it dereferences the emitter).
+            emitter_pdf = mi.Float(0.0) if depth == 0 or emitter is None else mi_scene.pdf_emitter_direction(
+                previous_si, direction_sample, _negate(previous_delta))
+            radiance = emitter.eval(si, active) if emitter is not None else mi.Spectrum(0.0)
+            emitted = throughput * _mis_weight(dr, previous_pdf, emitter_pdf) * radiance
             # As Mitsuba's film does with invalid samples, a non-finite contribution (0 * inf at a degenerate
             # sample) is dropped rather than poisoning the pixel; the same guard applies to `direct` below.
             emitted = dr.select(active & dr.isfinite(emitted), emitted, 0.0)
@@ -257,7 +290,7 @@ class SceneRenderer:
             else:
                 diffuse += dr.select(first_lobe_diffuse, emitted, 0.0)
                 specular += dr.select(first_lobe_diffuse, 0.0, emitted)
-            if depth + 1 >= s.max_depth:
+            if depth + 1 >= max_depth or (self.scalar and not (active and si.is_valid())):
                 break
 
             active_next = active & si.is_valid()
@@ -289,26 +322,27 @@ class SceneRenderer:
                 survive = dr.minimum(dr.max(throughput) * dr.square(eta), 0.95)
                 active &= sampler.next_1d() < survive
                 throughput *= dr.select(active, dr.rcp(survive), 0.0)
-            dr.eval(diffuse, specular, throughput, current, active, previous_si, previous_pdf, previous_delta,
-                    first_lobe_diffuse, eta)
+            if not self.scalar:
+                dr.eval(diffuse, specular, throughput, current, active, previous_si, previous_pdf, previous_delta,
+                        first_lobe_diffuse, eta)
 
-        result = {name: _to_numpy(value) for name, value in guides.items()}
-        result["diffuse"] = np.maximum(_to_numpy(diffuse), 0.0)
-        result["specular"] = np.maximum(_to_numpy(specular), 0.0)
-        result["color"] = result["diffuse"] + result["specular"]
-        result["view_direction"] = _to_numpy(camera_ray.d)
-        result["camera_origin"] = _to_numpy(camera_ray.o)
-        result["film_position"] = np.stack([_to_numpy(x) + 0.5 + jitter[0], _to_numpy(y) + 0.5 + jitter[1]], 1)
-        return result
+        return {**guides, "diffuse": diffuse, "specular": specular, "view_direction": camera_ray.d,
+                "camera_origin": camera_ray.o}
 
     def _first_hit_guides(self, mi_scene, si, bsdf) -> dict:
         mi, dr = self.mi, self.dr
         valid = si.is_valid()
-        shape_index = mi.Int32(-1)
         shape_names = [obj.name for obj in self.scene.objects]
-        for shape in mi_scene.shapes():
-            position = shape_names.index(shape.id())
-            shape_index = dr.select(valid & (si.shape == mi.ShapePtr(shape)), position, shape_index)
+        if self.scalar:  # one ray: the hit shape is an object (or nothing)
+            shape_index = shape_names.index(si.shape.id()) if valid else -1
+            if not valid:
+                return {"depth": 0.0, "normal": mi.Vector3f(0.0), "albedo": mi.Color3f(0.0), "position": si.p,
+                        "shape_index": -1}
+        else:
+            shape_index = mi.Int32(-1)
+            for shape in mi_scene.shapes():
+                position = shape_names.index(shape.id())
+                shape_index = dr.select(valid & (si.shape == mi.ShapePtr(shape)), position, shape_index)
         albedo = dr.select(valid, bsdf.eval_diffuse_reflectance(si, valid), 0.0)
         normal = dr.select(valid, si.sh_frame.n, 0.0)
         return {"depth": dr.select(valid, si.t, 0.0), "normal": normal, "albedo": albedo,
@@ -341,12 +375,23 @@ class SceneRenderer:
         return motion.astype(np.float32)
 
 
+def _negate(mask):
+    """Logical not of a Dr.Jit mask or, in scalar variants, a Python bool (where ~True would be -2)."""
+    return (not mask) if isinstance(mask, bool) else ~mask
+
+
 def _mis_weight(dr, pdf_a, pdf_b):
     """Power heuristic a^2 / (a^2 + b^2), written as 1 / (1 + (b/a)^2).
 
     The textbook form overflows float32 for pdfs above ~1e19 (a light sampled at a grazing angle from a point
     next to it): inf / inf gives NaN. The ratio form stays finite and gives 1 or 0 at the extremes.
     """
+    if isinstance(pdf_a, (int, float)):  # scalar variants: Python floats, where / 0 raises
+        if not pdf_a > 0:
+            return 0.0
+        ratio = pdf_b / pdf_a
+        weight = 1.0 / (1.0 + ratio * ratio)  # float * float overflows to inf (** would raise)
+        return weight if math.isfinite(weight) else 0.0
     ratio = pdf_b / pdf_a
     weight = dr.rcp(dr.fma(ratio, ratio, 1.0))
     return dr.detach(dr.select((pdf_a > 0) & dr.isfinite(weight), weight, 0.0), True)

@@ -231,3 +231,36 @@ def test_metal_pixels_have_no_reference_albedo_and_a_reference_specular_albedo()
         assert frame.reference_albedo(scale)[pixels].max() == 0.0
         assert frame.reference_specular_albedo(scale)[pixels].min() > 0.0
     np.testing.assert_array_equal(frame.reference_specular_albedo(1)[metal], frame.specular_albedo[metal])
+
+
+_SCALAR_RENDER = """
+import sys, numpy as np
+from tests.model.data.conftest import render_frames
+from model.data.render import RenderSettings, SceneRenderer
+from model.data.scenes import build_scene
+renderer = SceneRenderer(build_scene("metals", 0, 2), RenderSettings(20, 12, ref_spp=64, albedo_spp=2,
+                         variant=sys.argv[1]), seed=0)
+frame = renderer.render_frame(1)
+np.savez(sys.argv[2], depth=frame.depth, normal=frame.normal, albedo=frame.albedo, motion=frame.motion,
+         color=frame.color, reference=frame.reference(1), reference_albedo=frame.reference_albedo(2))
+"""
+
+
+def test_scalar_variant_renders_the_same_guides_and_converges_to_the_same_image(tmp_path):
+    # scalar_rgb is the fallback without LLVM 19: the same path code, one ray at a time. Each variant runs in
+    # its own process, as a user's would.
+    import subprocess
+    import sys
+
+    results = {}
+    for variant in ("llvm_ad_rgb", "scalar_rgb"):
+        out = tmp_path / f"{variant}.npz"
+        subprocess.run([sys.executable, "-c", _SCALAR_RENDER, variant, str(out)], check=True, timeout=300)
+        results[variant] = np.load(out)
+    vector, scalar = results["llvm_ad_rgb"], results["scalar_rgb"]
+    for name in ("depth", "normal", "albedo", "motion"):
+        np.testing.assert_allclose(scalar[name], vector[name], atol=2e-3, err_msg=name)
+    assert np.isfinite(scalar["color"]).all() and not np.array_equal(scalar["color"], vector["color"])
+    assert abs(scalar["reference"].mean() / vector["reference"].mean() - 1.0) < 0.03
+    assert abs(scalar["color"].mean() / vector["reference"].mean() - 1.0) < 0.25
+    np.testing.assert_allclose(scalar["reference_albedo"].mean(), vector["reference_albedo"].mean(), rtol=0.05)
