@@ -20,6 +20,7 @@ METHOD_MODULES = (
     "model.methods.wskpn",
     "model.methods.afn",
     "model.methods.jnds",
+    "model.methods.munet",
 )
 
 
