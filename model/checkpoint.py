@@ -106,12 +106,23 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     return content
 
 
-def load_method(path: str | os.PathLike, device: str | torch.device = "cpu") -> Method:
-    """Rebuild the checkpoint's method through the registry, load its weights, and return it in eval mode."""
+def load_method(path: str | os.PathLike, device: str | torch.device = "cpu", scale: int | None = None) -> Method:
+    """Rebuild the checkpoint's method through the registry, load its weights, and return it in eval mode.
+
+    ``scale`` (None: the checkpoint's own) may differ from the trained scale only for methods whose network
+    works at render resolution and upscales its result by interpolation (``denoises_at_render_resolution``):
+    a WSKPN trained at 1x is then evaluated as "WSKPN + bicubic" at 2x with the same weights.
+    """
     from model.methods.registry import build_method
 
     content = load_checkpoint(path)
     config = content["method"]
-    method = build_method(f"{config['method']}:{config['preset']}", scale=config["scale"])
+    name = f"{config['method']}:{config['preset']}"
+    method = build_method(name, scale=config["scale"])
+    if scale is not None and scale != config["scale"]:
+        if not method.denoises_at_render_resolution:
+            raise ValueError(f"checkpoint {path} holds a scale-{config['scale']} {method.label}, whose network "
+                             f"depends on its output scale; it cannot run at scale {scale}")
+        method = build_method(name, scale=scale)
     method.load_state_dict(content["model"])
     return method.to(device).eval()

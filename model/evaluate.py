@@ -88,11 +88,7 @@ def resolve_method(text: str, scale: int) -> tuple[Method, str]:
     if path.is_file():
         from model.checkpoint import load_method
 
-        method = load_method(path)
-        if method.scale != scale:
-            raise ValueError(f"checkpoint {path} holds a scale-{method.scale} method ({method.label}); "
-                             f"it cannot be evaluated at scale {scale}")
-        return method, str(path)
+        return load_method(path, scale=scale), str(path)
     if path.suffix in CHECKPOINT_SUFFIXES or os.sep in text:
         raise FileNotFoundError(f"checkpoint {text} not found")
     from model.methods.registry import build_method

@@ -97,6 +97,7 @@ class TrainConfig:
     tracking_uri: str | None = None  # None: $DENOISER_TRACKING_URI, else a local SQLite file (workers.tracking)
     experiment: str = "denoiser"
     register_as: str | None = None  # registered model name (None: METHOD-PRESET-xSCALE)
+    init_from: str | None = None  # checkpoint whose weights start a fresh run (e.g. float32 JNDS -> its int8 QAT)
 
     def check(self) -> None:
         """Raise ValueError naming the first field that is out of range."""
@@ -284,7 +285,23 @@ def prepare(config: TrainConfig) -> tuple[SequenceCrops, list[FrameCache], Metho
     method = build_method(config.method, config.scale)
     if not any(p.requires_grad for p in method.parameters()):
         raise ValueError(f"method {method.label!r} has no trainable parameters; only learned methods train")
+    if config.init_from:
+        _load_initial_weights(method, config.init_from)
     return crops, validation, method
+
+
+def _load_initial_weights(method: Method, path: str) -> None:
+    """Start from another checkpoint's weights (a resume from ``out/last.pt`` still takes precedence)."""
+    content = load_checkpoint(path)
+    source = content["method"]
+    if source["method"] != method.name or source["scale"] != method.scale:
+        raise ValueError(f"--init-from {path} holds {source['method']}:{source['preset']} at scale {source['scale']}; "
+                         f"it cannot initialize {method.label} at scale {method.scale}")
+    try:
+        method.load_initial_weights(content["model"])
+    except (KeyError, RuntimeError) as error:
+        message = error.args[0] if error.args else error
+        raise ValueError(f"--init-from {path}: its weights do not fit {method.label}: {message}") from None
 
 
 def resumable_checkpoint(config: TrainConfig, method: Method, total_steps: int) -> dict[str, Any] | None:

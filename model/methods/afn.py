@@ -231,6 +231,7 @@ class AFN(Method):
 
     name = "afn"
     learned = True
+    denoises_at_render_resolution = True
 
     def __init__(self, preset: str = "m", scale: int = 1):
         super().__init__(preset, scale)

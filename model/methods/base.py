@@ -133,6 +133,9 @@ class Method(nn.Module, abc.ABC):
 
     name: str = "method"
     learned: bool = False
+    #: True when the network works at render resolution only and the output is upscaled by interpolation, so
+    #: its weights do not depend on `scale` (a 1x checkpoint runs at 2x as "method + bicubic").
+    denoises_at_render_resolution: bool = False
     #: (spatial, temporal) loss weights the training engine uses unless the user sets them.
     loss_weights: tuple[float, float] = (1.0, 0.25)
 
@@ -158,6 +161,14 @@ class Method(nn.Module, abc.ABC):
         returned for frame t. None means no extra term.
         """
         return None
+
+    def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
+        """Take another checkpoint's weights as the start of a new training run (``--init-from``).
+
+        The same architecture by default; methods whose variants share weights (JNDS float32 -> int8 QAT)
+        accept the other variant's state dict too.
+        """
+        self.load_state_dict(state_dict)
 
     def for_inference(self) -> Method:
         """This method in its fast inference form (eval mode; subclasses fuse layers): sessions, benchmarks

@@ -48,6 +48,8 @@ def bicubic_upscale(image: torch.Tensor, scale: int) -> torch.Tensor:
 class RenderResolutionFilter(Method):
     """A method that filters at render resolution; at scale 2 the filtered frame is bicubic-upscaled."""
 
+    denoises_at_render_resolution = True
+
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         output, state = self.filter_frame(frame, state)
         return bicubic_upscale(output, self.scale), state

@@ -466,6 +466,13 @@ class JNDS(Method):
         if not_quantizer:
             raise KeyError(f"float32 state dict lacks parameters of {self.label}: {', '.join(not_quantizer)}")
 
+    def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
+        if self.quantized and not any("fake_quant" in name or "activation_post_process" in name
+                                      for name in state_dict):
+            self.load_float_weights(state_dict)
+        else:
+            super().load_initial_weights(state_dict)
+
     # -------------------------------------------------------------------------------------- step
 
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:

@@ -137,6 +137,7 @@ class WSKPN(Method):
 
     name = "wskpn"
     learned = True
+    denoises_at_render_resolution = True
 
     def __init__(self, preset: str = DEFAULT_PRESET, scale: int = 1):
         super().__init__(preset, scale)

@@ -13,6 +13,7 @@ SPLITS = ("train", "validation", "test")  # as model.dataset.SPLITS; repeated so
 
 def add_commands(commands) -> None:
     _add_evaluate(commands)
+    _add_compare(commands)
     _add_methods(commands)
 
 
@@ -66,6 +67,66 @@ def _run_evaluate(args) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
         print(f"wrote {args.out}")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------- compare
+
+def _add_compare(commands) -> None:
+    parser = commands.add_parser(
+        "compare", help="picture of one frame: input upscaled, each method's output, reference (PNG)",
+        description="Step each method through a sequence of the dataset up to frame INDEX (history carried, as "
+                    "in evaluation) and draw one row: the 1spp input (bicubic-upscaled at scale 2), every "
+                    "method's output at that frame with its PSNR and FLIP, and the reference. --zoom adds a row "
+                    "of enlarged crops.")
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset folder")
+    parser.add_argument("--sequence", required=True, metavar="NAME", help="sequence of the dataset")
+    parser.add_argument("--frame", type=int, default=-1, metavar="INDEX",
+                        help="frame to show; negative counts from the end (default: -1, the last)")
+    parser.add_argument("--method", action="append", required=True, metavar="NAME[:PRESET]|CHECKPOINT[=LABEL]",
+                        help="method or checkpoint as for 'denoiser evaluate', optionally with a panel label "
+                             "after '='; repeat for several")
+    parser.add_argument("--scale", type=int, choices=(1, 2), default=1, help="output / render resolution ratio")
+    parser.add_argument("--zoom", type=_zoom_option, default=None, metavar="X,Y,SIZE",
+                        help="also show the square at output pixel (X, Y) with side SIZE, enlarged")
+    parser.add_argument("--device", default="cpu", help="torch device the methods run on")
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE.png", help="picture to write")
+    parser.set_defaults(run=_run_compare)
+
+
+def _zoom_option(text: str) -> tuple[int, int, int]:
+    import argparse
+
+    try:
+        x, y, size = (int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"zoom must be X,Y,SIZE (three integers), got {text!r}") from None
+    if x < 0 or y < 0 or size < 2:
+        raise argparse.ArgumentTypeError(f"zoom needs X, Y >= 0 and SIZE >= 2, got {text!r}")
+    return x, y, size
+
+
+def _run_compare(args) -> int:
+    from model.compare import comparison_panels, save_comparison
+    from model.dataset import Dataset
+
+    dataset = Dataset(args.data)
+    if args.sequence not in dataset.names():
+        raise UsageError(f"dataset {args.data} has no sequence {args.sequence!r}; it has: "
+                         f"{', '.join(dataset.names()) or 'none'}")
+    sequence = dataset.sequence(args.sequence)
+    index = args.frame if args.frame >= 0 else len(sequence) + args.frame
+    methods, labels = [], []
+    for text in args.method:
+        method, _, label = text.partition("=")
+        methods.append(method)
+        labels.append(label or None)
+    panels = comparison_panels(sequence, methods, index, args.scale, labels, device=args.device)
+    title = f"{sequence.name}, frame {index}: {sequence[index].width}x{sequence[index].height} -> x{args.scale}"
+    out = save_comparison(panels, args.out, title=title, zoom=args.zoom)
+    for panel in panels[1:-1]:
+        print(f"{panel.title}: PSNR {panel.psnr:.2f} dB, FLIP {panel.flip:.4f}")
+    print(f"wrote {out}")
     return 0
 
 

@@ -66,6 +66,9 @@ def add_commands(commands) -> None:
                         help="output folder for checkpoints; none given: runs/METHOD[-PRESET]")
     parser.add_argument("--resume", action=argparse.BooleanOptionalAction, default=True,
                         help="continue from OUT/last.pt when it exists")
+    parser.add_argument("--init-from", type=Path, default=None, metavar="CHECKPOINT",
+                        help="start a fresh run from this checkpoint's weights (same method and scale; a float32 "
+                             "JNDS checkpoint initializes its -int8 preset for quantization-aware fine-tuning)")
     parser.add_argument("--world-size", type=positive_int, default=1, metavar="N", help="DDP ranks")
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
                         help="auto: CUDA when available (NCCL between ranks), else CPU (gloo)")
@@ -135,7 +138,8 @@ def _run_train(args) -> int:
         validate_every=args.validate_every, checkpoint_every=args.checkpoint_every,
         out=str(args.out or _default_out(args.method)), resume=args.resume, world_size=args.world_size,
         device=args.device, num_threads=args.threads, seed=args.seed, tracking_uri=args.tracking_uri,
-        experiment=args.experiment, register_as=args.register_as)
+        experiment=args.experiment, register_as=args.register_as,
+        init_from=str(args.init_from) if args.init_from else None)
     # Every input problem surfaces here, before any rank starts: ValueError / KeyError exit with status 2.
     resolve_device(config.device)
     crops, _, method = prepare(config)

@@ -98,3 +98,26 @@ def test_bad_files_are_reported(tmp_path):
     torch.save({"weights": torch.zeros(2)}, tmp_path / "foreign.pt")
     with pytest.raises(ValueError, match="expected 'denoiser-checkpoint/1'"):
         load_checkpoint(tmp_path / "foreign.pt")
+
+
+def test_a_render_resolution_method_trained_at_1x_runs_at_2x_with_the_same_weights(tmp_path):
+    from model.methods.baselines import bicubic_upscale
+    from model.methods.registry import build_method
+
+    torch.manual_seed(0)
+    wskpn = build_method("wskpn:xs")
+    path = save_checkpoint(tmp_path / "wskpn.pt", method=wskpn)
+    at_2x = load_method(path, scale=2)
+    assert at_2x.scale == 2
+    frame = example_batch(8, 8, seed=2)
+    with torch.no_grad():
+        expected = bicubic_upscale(wskpn.eval().step(frame, None)[0], 2)
+        assert torch.allclose(at_2x.step(frame, None)[0], expected, atol=1e-6)
+
+
+def test_a_scale_dependent_network_refuses_another_scale(tmp_path):
+    from model.methods.registry import build_method
+
+    path = save_checkpoint(tmp_path / "jnds.pt", method=build_method("jnds:xs", scale=2))
+    with pytest.raises(ValueError, match="depends on its output scale; it cannot run at scale 1"):
+        load_method(path, scale=1)

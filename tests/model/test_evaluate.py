@@ -173,19 +173,20 @@ def test_evaluate_method_on_sequences_in_memory(dataset_dir):
 def test_an_existing_file_is_loaded_as_a_checkpoint(dataset_dir, tmp_path, monkeypatch):
     loaded = []
 
-    def load_method(path):
-        loaded.append(Path(path))
-        return NoisyInput()
+    def load_method(path, scale=None):
+        loaded.append((Path(path), scale))
+        return NoisyInput(scale=scale)
 
     # Stands in for model.checkpoint (its own tests cover the file format): only the routing is tested here.
     monkeypatch.setitem(sys.modules, "model.checkpoint", types.SimpleNamespace(load_method=load_method))
     checkpoint = tmp_path / "trained.pt"
     checkpoint.write_bytes(b"weights")
     report = run(dataset_dir, [str(checkpoint)], frame_limit=1)
-    assert loaded == [checkpoint]
+    assert loaded == [(checkpoint, 1)]
     assert report["methods"][0]["source"] == str(checkpoint) and report["methods"][0]["label"] == "noisy_input"
-    with pytest.raises(ValueError, match="holds a scale-1 method .* cannot be evaluated at scale 2"):
-        run(dataset_dir, [str(checkpoint)], scale=2)
+    # The evaluated scale is passed on: load_method decides whether the checkpoint can run at it.
+    run(dataset_dir, [str(checkpoint)], scale=2, frame_limit=1)
+    assert loaded[-1] == (checkpoint, 2)
 
 
 def test_non_finite_output_is_an_error_naming_method_sequence_and_frame(dataset_dir):

@@ -228,3 +228,38 @@ def test_method_loss_weights_and_auxiliary_loss_reach_the_training_loss(tmp_path
     plain = SequenceLoss(*WithExtra.loss_weights)(outputs, [f.reference for f in frames])
     assert float(terms.total) == pytest.approx(float(plain.total) + 1.5)
     assert terms.detached()["auxiliary_loss"] == pytest.approx(1.5)
+
+
+def test_init_from_starts_a_fresh_run_from_another_checkpoints_weights(data, tmp_path):
+    first = tiny_config(data, tmp_path / "first", steps=2, validate_every=0)
+    train(first)
+    source = weights(tmp_path / "first" / LAST_CHECKPOINT)
+    _, _, method = prepare(tiny_config(data, tmp_path / "second", init_from=str(tmp_path / "first" / LAST_CHECKPOINT)))
+    for name, value in method.state_dict().items():
+        assert torch.equal(value, source[name]), name
+    _, _, fresh = prepare(tiny_config(data, tmp_path / "third"))
+    assert any(not torch.equal(value, source[name]) for name, value in fresh.state_dict().items())
+
+
+def test_init_from_refuses_another_method_or_a_missing_file(data, tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        prepare(tiny_config(data, tmp_path / "a", init_from=str(tmp_path / "missing.pt")))
+    from model.checkpoint import save_checkpoint
+    from model.methods.registry import build_method
+
+    other = save_checkpoint(tmp_path / "wskpn.pt", method=build_method("wskpn:xs"))
+    with pytest.raises(ValueError, match="holds wskpn:xs at scale 1; it cannot initialize"):
+        prepare(tiny_config(data, tmp_path / "b", init_from=str(other)))
+
+
+def test_init_from_loads_float32_jnds_weights_into_its_int8_preset(data, tmp_path):
+    from model.checkpoint import save_checkpoint
+    from model.methods.registry import build_method
+
+    torch.manual_seed(3)
+    float_method = build_method("jnds:xs", scale=2)
+    path = save_checkpoint(tmp_path / "float.pt", method=float_method)
+    _, _, qat = prepare(tiny_config(data, tmp_path / "qat", method="jnds:xs-int8", scale=2, init_from=str(path)))
+    loaded = qat.state_dict()
+    for name, value in float_method.state_dict().items():
+        assert torch.equal(loaded[name], value), name

@@ -111,3 +111,18 @@ class _TinyConv(NoisyInput):
 
     def step(self, frame, state):
         return self.conv(frame.color), {}
+
+
+def test_compare_writes_a_picture_and_names_bad_input(dataset_dir, tmp_path, capsys):
+    out = tmp_path / "cmp.png"
+    assert main(["compare", "--data", str(dataset_dir), "--sequence", "a", "--scale", "2", "--method", "identity",
+                 "--method", "accumulation=TA", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "TA: PSNR" in printed and out.is_file()
+    assert main(["compare", "--data", str(dataset_dir), "--sequence", "zz", "--method", "identity",
+                 "--out", str(out)]) == 2
+    assert "has no sequence 'zz'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["compare", "--data", str(dataset_dir), "--sequence", "a", "--method", "identity", "--zoom", "1,2",
+              "--out", str(out)])
+    assert exit_info.value.code == 2
