@@ -26,10 +26,12 @@ units is good to about 0.05 units, and motion to about 0.002 px below 4 px, 0.03
 
 from __future__ import annotations
 
+import io
 import os
 import re
 import uuid
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import OpenEXR
@@ -96,26 +98,7 @@ def write_frame(path: str | os.PathLike, frame: FrameBundle, *, half: bool = Fal
 def read_frame(path: str | os.PathLike) -> FrameBundle:
     """Read and validate one frame bundle; every error is a FrameError naming the file."""
     source = str(path)
-    exr = _open_exr(Path(path), source)
-    render_part, reference_parts = _split_parts(exr.parts, source)
-    buffers, scale_one_targets = _render_buffers(render_part, source)
-    targets_by_scale = {1: scale_one_targets}
-    targets_by_scale.update((scale, _reference_part_buffers(part, source)) for scale, part in reference_parts.items())
-    targets: dict[str, dict[int, np.ndarray]] = {name: {} for name in TARGET_FIELDS}
-    for scale, scale_targets in targets_by_scale.items():
-        for name, array in scale_targets.items():
-            targets[name][scale] = array
-    header = render_part.header
-    _check_scale_attribute(header, max(targets["reference"], default=1), source)
-    frame = FrameBundle(
-        **buffers,
-        jitter=_jitter_attribute(header, source),
-        frame_index=_int_attribute(header, "frame_index", 0, source),
-        sequence=_string_attribute(header, "sequence", source),
-        camera_cut=bool(_int_attribute(header, "camera_cut", 0, source)),
-        **{TARGET_FIELDS[name]: by_scale for name, by_scale in targets.items()},
-    )
-    return validate_frame(frame, source)
+    return _frame_from_exr(_open_exr(Path(path), source), source)
 
 
 # --- writing ---------------------------------------------------------------------------------------------
@@ -194,9 +177,14 @@ def _open_exr(path: Path, source: str) -> OpenEXR.File:
         magic = file.read(len(EXR_MAGIC))
     if magic != EXR_MAGIC:
         raise FrameFormatError(source, None, "not an OpenEXR file (wrong magic number)")
+    return _read_exr(lambda: str(path), source)
+
+
+def _read_exr(target: Callable[[], str | io.BytesIO], source: str) -> OpenEXR.File:
+    """Every part of the EXR at ``target()`` (a path, or a fresh stream per call), channels as separate planes."""
     try:
-        part_count = len(OpenEXR.File(str(path), header_only=True).parts)
-        exr = OpenEXR.File(str(path), separate_channels=True)
+        part_count = len(OpenEXR.File(target(), header_only=True).parts)
+        exr = OpenEXR.File(target(), separate_channels=True)
     # The bindings raise RuntimeError for unreadable headers and document nothing else: any failure of
     # these calls means the file cannot be read.
     except Exception as error:
@@ -211,6 +199,29 @@ def _open_exr(path: Path, source: str) -> OpenEXR.File:
             f"could not be read)",
         )
     return exr
+
+
+def _frame_from_exr(exr: OpenEXR.File, source: str) -> FrameBundle:
+    """The validated frame bundle an opened EXR holds (``read_frame`` and ``read_frame_bytes``)."""
+    render_part, reference_parts = _split_parts(exr.parts, source)
+    buffers, scale_one_targets = _render_buffers(render_part, source)
+    targets: dict[str, dict[int, np.ndarray]] = {name: {} for name in TARGET_FIELDS}
+    for name, array in scale_one_targets.items():
+        targets[name][1] = array
+    for scale, part in reference_parts.items():
+        for name, array in _reference_part_buffers(part, source).items():
+            targets[name][scale] = array
+    header = render_part.header
+    _check_scale_attribute(header, max(targets["reference"], default=1), source)
+    frame = FrameBundle(
+        **buffers,
+        jitter=_jitter_attribute(header, source),
+        frame_index=_int_attribute(header, "frame_index", 0, source),
+        sequence=_string_attribute(header, "sequence", source),
+        camera_cut=bool(_int_attribute(header, "camera_cut", 0, source)),
+        **{TARGET_FIELDS[name]: by_scale for name, by_scale in targets.items()},
+    )
+    return validate_frame(frame, source)
 
 
 def _split_parts(parts: list, source: str) -> tuple[OpenEXR.Part, dict[int, OpenEXR.Part]]:
@@ -337,3 +348,88 @@ def _string_attribute(header: dict, name: str, source: str) -> str:
     if not isinstance(value, str):
         raise FrameFormatError(source, name, f"{value!r} is not a string")
     return value
+
+
+# --- in-memory frames and output images (the session API) ------------------------------------------------
+#
+# The REST service receives frame bundles as request bodies and answers with one image, so it reads and writes
+# EXR from bytes rather than files. Output images are one-part, float32 R/G/B files: what any EXR viewer opens.
+
+IMAGE_CHANNELS = ("R", "G", "B")
+
+
+def encode_frame_exr(frame: FrameBundle, *, half: bool = False) -> bytes:
+    """The bytes ``write_frame`` would write for ``frame`` (validated the same way), e.g. a request body."""
+    source = "<frame>"
+    frame = validate_frame(frame, source)
+    if frame.frame_index > INT32_MAX:
+        raise FrameValidationError(source, "frame_index", f"{frame.frame_index} does not fit an EXR int")
+    if half:
+        _check_fits_half(frame, source)
+    stream = io.BytesIO()
+    OpenEXR.File(_frame_parts(frame, half)).write(stream)
+    return stream.getvalue()
+
+
+def read_frame_bytes(data: bytes, source: str = "<bytes>") -> FrameBundle:
+    """``read_frame`` for a frame bundle held in memory; errors are FrameErrors naming ``source``."""
+    if data[: len(EXR_MAGIC)] != EXR_MAGIC:
+        problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
+        raise FrameFormatError(source, None, problem)
+    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source), source)
+
+
+def _image_file(rgb: np.ndarray, attributes: dict | None, compression) -> OpenEXR.File:
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[0] == 0 or rgb.shape[1] == 0:
+        raise ValueError(f"an RGB image must have shape (H, W, 3), got {rgb.shape}")
+    # Contiguous float32 planes: the bindings write strided arrays as garbage (see _channel_arrays).
+    channels = {name: np.ascontiguousarray(rgb[:, :, c], dtype=np.float32) for c, name in enumerate(IMAGE_CHANNELS)}
+    header = {"compression": compression, "type": OpenEXR.scanlineimage, **(attributes or {})}
+    return OpenEXR.File(header, channels)
+
+
+def encode_image_exr(rgb: np.ndarray, attributes: dict | None = None,
+                     compression=OpenEXR.NO_COMPRESSION) -> bytes:
+    """One-part float32 R/G/B EXR of an (H, W, 3) image, as bytes; ``attributes`` go into the header.
+
+    Uncompressed by default: on a local network, ZIP costs more CPU time per frame than it saves in transfer.
+    """
+    stream = io.BytesIO()
+    _image_file(rgb, attributes, compression).write(stream)
+    return stream.getvalue()
+
+
+def write_image(destination: str | os.PathLike | io.IOBase, rgb: np.ndarray, attributes: dict | None = None,
+                compression=OpenEXR.ZIP_COMPRESSION) -> None:
+    """Write an (H, W, 3) image as a one-part float32 R/G/B EXR to a path (atomically) or a binary stream."""
+    if isinstance(destination, (str, os.PathLike)):
+        path = Path(destination)
+        temporary = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+        try:
+            try:
+                _image_file(rgb, attributes, compression).write(str(temporary))
+            except RuntimeError as error:
+                raise OSError(f"{path}: cannot write EXR ({error})") from None
+            os.replace(temporary, path)
+        finally:
+            temporary.unlink(missing_ok=True)
+    else:
+        _image_file(rgb, attributes, compression).write(destination)
+
+
+def decode_image_exr(data: bytes, source: str = "<bytes>") -> np.ndarray:
+    """The (H, W, 3) float32 R/G/B image of a one-part EXR (``encode_image_exr``'s output or any RGB file)."""
+    if data[: len(EXR_MAGIC)] != EXR_MAGIC:
+        raise FrameFormatError(source, None, "not an OpenEXR file (wrong magic number)")
+    try:
+        exr = OpenEXR.File(io.BytesIO(data), separate_channels=True)
+    except Exception as error:
+        raise FrameFormatError(source, None, f"unreadable or truncated EXR ({error})") from None
+    if not exr.parts:
+        raise FrameFormatError(source, None, "EXR file has no readable parts")
+    channels = exr.parts[0].channels
+    missing = [name for name in IMAGE_CHANNELS if name not in channels]
+    if missing:
+        raise FrameFormatError(source, None, f"not an RGB image: lacks channels {', '.join(missing)}")
+    return np.stack([channels[name].pixels for name in IMAGE_CHANNELS], axis=-1).astype(np.float32)

@@ -12,7 +12,8 @@ import sys
 
 # Each module adds its subcommands with add_commands(subparsers); commands import their heavy
 # dependencies only when they run.
-COMMAND_MODULES = ("service.commands.data", "service.commands.evaluate", "service.commands.train")
+COMMAND_MODULES = ("service.commands.data", "service.commands.evaluate", "service.commands.train",
+                   "service.commands.client", "service.commands.serve")
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1

@@ -169,12 +169,22 @@ def launch(config: TrainConfig, *, track: bool = True, imports: Sequence[str] = 
 def launcher_main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m workers.ddp", description="Run the ranks of a training job "
                                      "(started by workers.ddp.TrainingJob; MASTER_ADDR/MASTER_PORT must be set).")
-    parser.add_argument("--config-json", required=True, help="TrainConfig as JSON")
+    parser.add_argument("--config-json", default=None, help="TrainConfig as JSON")
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE.json",
+                        help="TrainConfig as a JSON file (instead of --config-json)")
+    parser.add_argument("--torchrun", action="store_true",
+                        help="this process is one rank started by torchrun (RANK, WORLD_SIZE, LOCAL_RANK and the "
+                             "rendezvous come from its environment): multi-node training")
     parser.add_argument("--track", action="store_true", help="rank 0 logs to MLflow")
     parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
                         help="module every rank imports first (methods registered outside the registry)")
     args = parser.parse_args(argv)
-    config = TrainConfig.from_dict(json.loads(args.config_json))
+    if (args.config_json is None) == (args.config is None):
+        parser.error("give exactly one of --config-json and --config")
+    text = args.config_json if args.config_json is not None else args.config.read_text()
+    config = TrainConfig.from_dict(json.loads(text))
+    if args.torchrun:
+        return _torchrun_rank(config, args.track, args.imports)
     if config.world_size == 1:
         _rank_main(0, config.to_dict(), args.track, args.imports)
         return 0
@@ -182,6 +192,33 @@ def launcher_main(argv: list[str]) -> int:
 
     torch.multiprocessing.start_processes(_rank_main, args=(config.to_dict(), args.track, args.imports),
                                           nprocs=config.world_size, join=True, start_method="spawn")
+    return 0
+
+
+def _torchrun_rank(config: TrainConfig, track: bool, imports: list[str]) -> int:
+    """One rank of a multi-node job started by torchrun: torchrun set MASTER_ADDR/PORT, RANK and WORLD_SIZE."""
+    import importlib
+
+    import torch
+
+    from model.train import train
+
+    rank, world_size = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+    if world_size != config.world_size:
+        raise SystemExit(f"torchrun started {world_size} ranks, the config asks for world_size {config.world_size}")
+    for module in imports:
+        importlib.import_module(module)
+    if config.device != "cpu" and torch.cuda.is_available():
+        # One GPU per local rank: device indices count within a node, ranks across nodes.
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+    tracker = None
+    if track and rank == 0:
+        from workers.tracking import MLflowTracker
+
+        tracker = MLflowTracker(config.tracking_uri, config.experiment)
+    result = train(config, tracker=tracker, rank=rank, world_size=world_size)
+    if rank == 0:
+        print(json.dumps({"result": result}, default=str))
     return 0
 
 

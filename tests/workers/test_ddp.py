@@ -90,3 +90,26 @@ def test_free_port_is_bindable():
 def test_config_is_checked_before_anything_starts(data, tmp_path):
     with pytest.raises(ValueError, match="does not split evenly"):
         TrainingJob(dataclasses.replace(tiny_config(data, tmp_path), world_size=3))
+
+
+@pytest.mark.slow
+def test_torchrun_ranks_train_like_the_launcher(data, tmp_path):
+    """Multi-node training runs each rank under torchrun (`python -m workers.ddp --torchrun`); one node, 2 ranks."""
+    import json
+    import subprocess
+    import sys
+
+    single = train(tiny_config(data, tmp_path / "one"))
+    config = tiny_config(data, tmp_path / "torchrun", world_size=2)
+    config_file = tmp_path / "train.json"
+    config_file.write_text(json.dumps(config.to_dict()))
+    command = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc-per-node", "2",
+               "--rdzv-backend", "c10d", "--rdzv-endpoint", f"127.0.0.1:{free_port()}",
+               "-m", "workers.ddp", "--torchrun", "--config", str(config_file), "--import", FIXTURES]
+    finished = subprocess.run(command, capture_output=True, text=True, timeout=300,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert finished.returncode == 0, finished.stderr[-3000:]
+    one, two = load_checkpoint(single["checkpoint"]), load_checkpoint(tmp_path / "torchrun" / "last.pt")
+    assert two["step"] == 3
+    for name, tensor in one["model"].items():
+        torch.testing.assert_close(two["model"][name], tensor, rtol=1e-5, atol=1e-6)

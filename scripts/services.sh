@@ -1,0 +1,94 @@
+#!/usr/bin/env bash
+# Starts, stops or reports the local stack (no Docker): Redis (if nothing listens on its port), the REST API,
+# one Celery worker (queues cpu, solo pool) and the MLflow UI. Settings: DENOISER_* variables (defaults:
+# data and the MLflow SQLite store under ./var). Logs: var/logs/<name>.log; process ids: var/run/<name>.pid.
+#   bash scripts/services.sh start|stop|restart|status [api|worker|mlflow]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DATA_DIR=${DENOISER_DATA_DIR:-var}
+API_PORT=${DENOISER_API_PORT:-8000}
+MLFLOW_PORT=${DENOISER_MLFLOW_PORT:-5000}
+export DENOISER_DATA_DIR=$DATA_DIR
+export DENOISER_MLFLOW_UI_URL=${DENOISER_MLFLOW_UI_URL:-http://127.0.0.1:$MLFLOW_PORT}
+export DRJIT_LIBLLVM_PATH=${DRJIT_LIBLLVM_PATH:-/usr/lib/x86_64-linux-gnu/libLLVM-19.so}
+LOGS=$DATA_DIR/logs
+RUN=$DATA_DIR/run
+mkdir -p "$LOGS" "$RUN"
+DENOISER=.venv/bin/denoiser
+
+port_open() { .venv/bin/python -c "import socket,sys; socket.create_connection(('127.0.0.1', $1), timeout=1).close()" 2>/dev/null; }
+running() { [ -f "$RUN/$1.pid" ] && kill -0 "$(cat "$RUN/$1.pid")" 2>/dev/null; }
+
+ensure_redis() {
+  if port_open 6379; then return; fi
+  echo "[services] Redis is not running on 127.0.0.1:6379: starting it"
+  command -v redis-server >/dev/null 2>&1 || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server; }
+  redis-server --daemonize yes --bind 127.0.0.1 --port 6379 --save "" --appendonly no
+  for _ in $(seq 50); do port_open 6379 && return; sleep 0.2; done
+  echo "[services] Redis did not start" >&2; exit 1
+}
+
+start_one() {  # name command...
+  local name=$1; shift
+  if running "$name"; then echo "[services] $name already running (pid $(cat "$RUN/$name.pid"))"; return; fi
+  # Its own session (setsid): stopping it ends its children too (DDP ranks, uvicorn workers).
+  setsid nohup "$@" >> "$LOGS/$name.log" 2>&1 < /dev/null &
+  echo $! > "$RUN/$name.pid"
+  echo "[services] started $name (pid $!, log $LOGS/$name.log)"
+}
+
+stop_one() {
+  local name=$1
+  if ! running "$name"; then rm -f "$RUN/$name.pid"; return; fi
+  local pid; pid=$(cat "$RUN/$name.pid")
+  kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid" 2>/dev/null || true
+  for _ in $(seq 100); do kill -0 "$pid" 2>/dev/null || break; sleep 0.1; done
+  kill -KILL -- "-$pid" 2>/dev/null || true
+  rm -f "$RUN/$name.pid"
+  echo "[services] stopped $name"
+}
+
+wait_http() {  # url what
+  for _ in $(seq 120); do
+    if .venv/bin/python -c "import httpx,sys; sys.exit(0 if httpx.get('$1', timeout=2).status_code < 500 else 1)" 2>/dev/null; then return; fi
+    sleep 0.5
+  done
+  echo "[services] $2 did not answer at $1: see $LOGS" >&2; exit 1
+}
+
+start() {
+  local which=${1:-all}
+  ensure_redis
+  if [ "$which" = all ] || [ "$which" = mlflow ]; then
+    start_one mlflow "$DENOISER" mlflow-ui --port "$MLFLOW_PORT"
+  fi
+  if [ "$which" = all ] || [ "$which" = worker ]; then
+    start_one worker "$DENOISER" worker --queues cpu --loglevel info
+  fi
+  if [ "$which" = all ] || [ "$which" = api ]; then
+    start_one api "$DENOISER" serve --port "$API_PORT"
+    wait_http "http://127.0.0.1:$API_PORT/health" "the API"
+  fi
+  if [ "$which" = all ] || [ "$which" = mlflow ]; then wait_http "http://127.0.0.1:$MLFLOW_PORT/" "the MLflow UI"; fi
+}
+
+stop() {
+  local which=${1:-all}
+  for name in api worker mlflow; do
+    if [ "$which" = all ] || [ "$which" = "$name" ]; then stop_one "$name"; fi
+  done
+}
+
+status() {
+  for name in api worker mlflow; do
+    if running "$name"; then echo "$name: running (pid $(cat "$RUN/$name.pid"))"; else echo "$name: stopped"; fi
+  done
+}
+
+case "${1:-}" in
+  start) start "${2:-all}" ;;
+  stop) stop "${2:-all}" ;;
+  restart) stop "${2:-all}"; start "${2:-all}" ;;
+  status) status ;;
+  *) echo "usage: scripts/services.sh start|stop|restart|status [api|worker|mlflow]" >&2; exit 2 ;;
+esac

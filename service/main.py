@@ -1,0 +1,54 @@
+"""The FastAPI application: `uvicorn service.main:app` (or `denoiser serve`).
+
+Routers live in service/routes/, one module per resource; every one but /health and /ready needs the API key
+when one is configured. Errors share one JSON shape (service/errors.py).
+"""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+
+from fastapi import Depends, FastAPI
+
+from service.auth import require_api_key
+from service.errors import install_error_handlers
+from service.routes import datasets, health, jobs, models, sessions
+
+API_VERSION = "1.0"
+
+DESCRIPTION = """
+Trains and serves real-time neural denoisers (and 2x upscalers) for path-traced frames.
+
+* **/datasets**: upload EXR frame sequences (a zip or tar of sequence folders, or frame by frame), inspect, delete.
+* **/jobs**: `generate`, `train`, `evaluate`, `benchmark` and `infer` jobs run by Celery workers; progress, logs,
+  MLflow run, cancel; `infer` results downloadable as EXR.
+* **/models**: models registered in MLflow, their versions, metrics and aliases.
+* **/sessions**: stream frame bundles (EXR) through a model; the server keeps each session's temporal history.
+
+Errors: `{"error": {"code", "message", "details"}}` with a 4xx status for the caller's mistakes.
+Authentication: header `X-API-Key` when the server has `DENOISER_API_KEY` set.
+"""
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI):
+    from service.sessions import get_session_store
+    from service.storage import get_storage
+
+    get_storage()
+    store = get_session_store()
+    yield
+    store.close()
+
+
+def create_app() -> FastAPI:
+    app = FastAPI(title="denoiser-service", version=API_VERSION, description=DESCRIPTION, lifespan=_lifespan)
+    install_error_handlers(app)
+    app.include_router(health.router)
+    protected = [Depends(require_api_key)]
+    for module in (datasets, jobs, models, sessions):
+        app.include_router(module.router, dependencies=protected)
+    return app
+
+
+app = create_app()

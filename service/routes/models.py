@@ -1,0 +1,131 @@
+"""/models: registered models (MLflow registry), their versions with tags and metrics, and aliases.
+
+HTTP only: service.registry does the work; its UnknownModelError becomes 404, ValueError (a malformed version or
+alias name) 422, RegistryUnavailable 503.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path as FilePath
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Path, Response
+
+from service.errors import ApiError
+from service.registry import (
+    ModelVersionInfo,
+    RegisteredModelInfo,
+    Registry,
+    RegistryUnavailable,
+    UnknownModelError,
+    registry_for,
+)
+from service.schemas import AliasIn, AliasOut, ModelDetail, ModelSummary, ModelVersionOut
+from service.settings import Settings, get_settings
+
+router = APIRouter(prefix="/models", tags=["models"])
+
+
+def registry_dependency(settings: Annotated[Settings, Depends(get_settings)]) -> Registry:
+    """The registry of the request's settings (tests override get_settings; one Registry per configuration)."""
+    return registry_for(settings.resolved_tracking_uri(), FilePath(settings.data_dir))
+
+
+RegistryDep = Annotated[Registry, Depends(registry_dependency)]
+ModelName = Annotated[str, Path(description="registered model name", examples=["jnds-xs-x2"])]
+VersionNumber = Annotated[str, Path(description="version number", examples=["2"])]
+AliasName = Annotated[str, Path(description="alias name (letters, digits, '_' and '-')", examples=["champion"])]
+
+
+def _error_response(description: str, code: str, message: str) -> dict:
+    return {"description": description, "content": {"application/json": {"example": {
+        "error": {"code": code, "message": message, "details": None}}}}}
+
+
+_NOT_FOUND = _error_response("no such model, version or alias", "not_found",
+                             "version 9 of model 'jnds-xs-x2' does not exist")
+_INVALID = _error_response("malformed version number or alias name", "invalid_request",
+                           "alias 'v3' of model 'jnds-xs-x2': Version alias name 'v3' is reserved.")
+_UNAVAILABLE = _error_response("the MLflow tracking store cannot be reached", "registry_unavailable",
+                               "model registry error for registered models: connection refused")
+
+
+@contextmanager
+def registry_errors() -> Iterator[None]:
+    """The registry's errors as API errors (also used by /sessions, which resolves models)."""
+    try:
+        yield
+    except UnknownModelError as error:
+        raise ApiError(404, "not_found", str(error)) from None
+    except ValueError as error:
+        raise ApiError(422, "invalid_request", str(error)) from None
+    except RegistryUnavailable as error:
+        raise ApiError(503, "registry_unavailable", str(error)) from None
+
+
+def version_out(info: ModelVersionInfo) -> ModelVersionOut:
+    return ModelVersionOut(name=info.name, version=info.version, run_id=info.run_id, created_at=info.created_at,
+                           method=info.method, preset=info.preset, scale=info.scale, params=info.params,
+                           flops_per_pixel=info.flops_per_pixel, metrics=info.metrics, tags=info.tags,
+                           aliases=info.aliases, ref=f"models:/{info.name}/{info.version}")
+
+
+def _summary(info: RegisteredModelInfo) -> ModelSummary:
+    return ModelSummary(name=info.name, description=info.description, latest_version=info.latest_version,
+                        aliases=info.aliases)
+
+
+def _alias_out(name: str, alias: str, info: ModelVersionInfo) -> AliasOut:
+    return AliasOut(name=name, alias=alias, version=info.version, model_version=version_out(info))
+
+
+@router.get("", response_model=list[ModelSummary], summary="List registered models",
+            responses={503: _UNAVAILABLE})
+def list_models(registry: RegistryDep) -> list[ModelSummary]:
+    with registry_errors():
+        return [_summary(info) for info in registry.list_models()]
+
+
+@router.get("/{name}", response_model=ModelDetail, summary="A registered model with all its versions",
+            responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
+def get_model(name: ModelName, registry: RegistryDep) -> ModelDetail:
+    """Versions oldest first, each with method, preset, scale, parameter count, FLOPs per pixel and the metrics
+    recorded on it (validation PSNR from training, ms per frame from a benchmark, when known)."""
+    with registry_errors():
+        info = registry.get_model(name)
+    return ModelDetail(**_summary(info).model_dump(), versions=[version_out(v) for v in info.versions])
+
+
+@router.get("/{name}/versions/{version}", response_model=ModelVersionOut, summary="One version of a model",
+            responses={404: _NOT_FOUND, 422: _INVALID, 503: _UNAVAILABLE})
+def get_version(name: ModelName, version: VersionNumber, registry: RegistryDep) -> ModelVersionOut:
+    with registry_errors():
+        return version_out(registry.get_version(name, version))
+
+
+@router.put("/{name}/aliases/{alias}", response_model=AliasOut, summary="Point an alias at a version",
+            responses={400: _error_response("the body is not JSON", "bad_request",
+                                            "There was an error parsing the body"),
+                       404: _NOT_FOUND, 422: _INVALID, 503: _UNAVAILABLE})
+def set_alias(name: ModelName, alias: AliasName, body: AliasIn, registry: RegistryDep) -> AliasOut:
+    """Creates the alias or moves it. Sessions resolve an alias once, when they are created: moving it changes
+    the model of new sessions only."""
+    with registry_errors():
+        return _alias_out(name, alias, registry.set_alias(name, alias, body.version))
+
+
+@router.get("/{name}/aliases/{alias}", response_model=AliasOut, summary="The version an alias points at",
+            responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
+def get_alias(name: ModelName, alias: AliasName, registry: RegistryDep) -> AliasOut:
+    with registry_errors():
+        return _alias_out(name, alias, registry.get_alias(name, alias))
+
+
+@router.delete("/{name}/aliases/{alias}", status_code=204, summary="Remove an alias",
+               responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
+def delete_alias(name: ModelName, alias: AliasName, registry: RegistryDep) -> Response:
+    with registry_errors():
+        registry.delete_alias(name, alias)
+    return Response(status_code=204)

@@ -1,0 +1,257 @@
+"""/sessions: stream frame bundles through a registered model; the server keeps each stream's history.
+
+HTTP only: service.sessions.SessionStore holds the sessions (memory + Redis mirror) and runs the frames. Here:
+the request body is read with the frame size limit, parsed as a frame bundle EXR, and the output is answered as a
+one-part float32 RGB EXR with timing headers. Parsing, inference and encoding run in the thread pool so the event
+loop keeps serving other sessions meanwhile.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import datetime, timezone
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Path, Request, Response
+from starlette.concurrency import run_in_threadpool
+
+from model.exr import encode_image_exr, read_frame_bytes
+from model.frames import FrameBundle, FrameError
+from service.errors import ApiError
+from service.routes.models import registry_errors
+from service.schemas import SessionIn, SessionModelOut, SessionOut
+from service.sessions import (
+    FrameRejected,
+    ModelNotLoadable,
+    Session,
+    SessionLimitReached,
+    SessionNotFound,
+    SessionStore,
+    SessionStoreUnavailable,
+    get_session_store,
+)
+from service.settings import Settings, get_settings
+
+router = APIRouter(prefix="/sessions", tags=["sessions"])
+
+StoreDep = Annotated[SessionStore, Depends(get_session_store)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+SessionId = Annotated[str, Path(description="session id", examples=["0f8fad5bd9cb469fa16570867728950e"])]
+
+FRAME_TYPES = ("application/octet-stream", "image/x-exr")
+EXR_MEDIA_TYPE = "image/x-exr"
+FRAME_SOURCE = "frame body"  # how frame errors name the request body
+
+
+def _error_response(description: str, code: str, message: str) -> dict:
+    return {"description": description, "content": {"application/json": {"example": {
+        "error": {"code": code, "message": message, "details": None}}}}}
+
+
+_NOT_FOUND = _error_response("no such session (never created, deleted, or expired)", "not_found",
+                             "session '0f8fad5bd9cb469fa16570867728950e' does not exist (expired or deleted)")
+_UNAVAILABLE = _error_response("Redis (the session store) or the model registry cannot be reached",
+                               "session_store_unavailable", "session '0f8f...' is not in memory and the session "
+                                                            "store (Redis) is unreachable: Connection refused")
+
+
+@contextmanager
+def session_errors() -> Iterator[None]:
+    """The store's and the registry's errors as API errors."""
+    try:
+        with registry_errors():
+            yield
+    except SessionNotFound as error:
+        raise ApiError(404, error.code, error.message, error.details) from None
+    except FrameRejected as error:
+        raise ApiError(409, error.code, error.message, error.details) from None
+    except SessionLimitReached as error:
+        raise ApiError(429, error.code, error.message, error.details) from None
+    except ModelNotLoadable as error:
+        raise ApiError(422, error.code, error.message, error.details) from None
+    except SessionStoreUnavailable as error:
+        raise ApiError(503, error.code, error.message, error.details) from None
+
+
+def _time(seconds: float) -> datetime:
+    return datetime.fromtimestamp(seconds, tz=timezone.utc)
+
+
+def session_out(session: Session) -> SessionOut:
+    return SessionOut(id=session.id, model=SessionModelOut(**session.model.__dict__),
+                      created_at=_time(session.created_at), last_used_at=_time(session.last_used_at),
+                      expires_at=_time(session.expires_at), frames_processed=session.frames_processed,
+                      next_frame_index=session.next_frame_index, on_gap=session.on_gap,
+                      resolution=list(session.resolution) if session.resolution else None)
+
+
+def _session_link(path: str, method: str) -> dict:
+    pointer = path.replace("~", "~0").replace("/", "~1")
+    return {"operationRef": f"#/paths/{pointer}/{method}", "parameters": {"session_id": "$response.body#/id"}}
+
+
+# OpenAPI links: where the id of a created session goes (clients and stateful API testers follow them).
+_SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
+                  "PostFrame": _session_link("/sessions/{session_id}/frames", "post"),
+                  "ResetSession": _session_link("/sessions/{session_id}/reset", "post"),
+                  "DeleteSession": _session_link("/sessions/{session_id}", "delete")}
+
+
+@router.post("", status_code=201, response_model=SessionOut, summary="Open a session on a registered model",
+             responses={201: {"description": "the session; its URL is in the Location header",
+                              "links": _SESSION_LINKS},
+                        400: _error_response("the body is not JSON", "bad_request",
+                                             "There was an error parsing the body"),
+                        404: _error_response("unknown model, version or alias", "not_found",
+                                             "model 'jnds-xs-x2' has no alias 'champion' (aliases: none)"),
+                        422: _error_response("malformed request, or the version's checkpoint cannot be loaded",
+                                             "invalid_request", "give a version or an alias of model "
+                                                                "'jnds-xs-x2', not both"),
+                        429: _error_response("the server's session limit is reached", "too_many_sessions",
+                                             "16 sessions are open, the server's limit is 16: delete a session "
+                                             "or wait for an idle one to expire (1800 s)"),
+                        503: _UNAVAILABLE})
+def create_session(body: SessionIn, response: Response, store: StoreDep) -> SessionOut:
+    """The model is `version` of `model`, else the version `alias` points at now, else its latest version; it is
+    loaded (shared with other sessions of the same version) before the session is answered."""
+    with session_errors():
+        session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap)
+    response.headers["Location"] = f"/sessions/{session.id}"
+    return session_out(session)
+
+
+@router.get("", response_model=list[SessionOut], summary="List live sessions", responses={503: _UNAVAILABLE})
+def list_sessions(store: StoreDep) -> list[SessionOut]:
+    with session_errors():
+        return [session_out(session) for session in store.list()]
+
+
+@router.get("/{session_id}", response_model=SessionOut, summary="A session's model and stream position",
+            responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
+def get_session(session_id: SessionId, store: StoreDep) -> SessionOut:
+    with session_errors():
+        return session_out(store.get(session_id))
+
+
+@router.post("/{session_id}/reset", response_model=SessionOut, summary="Drop a session's history",
+             responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
+def reset_session(session_id: SessionId, store: StoreDep) -> SessionOut:
+    """The next frame starts a new history at any frame_index and may have a new resolution."""
+    with session_errors():
+        return session_out(store.reset(session_id))
+
+
+@router.delete("/{session_id}", status_code=204, summary="Close a session",
+               responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
+def delete_session(session_id: SessionId, store: StoreDep) -> Response:
+    with session_errors():
+        store.delete(session_id)
+    return Response(status_code=204)
+
+
+_FRAME_HEADERS = {
+    "X-Frame-Index": {"description": "frame_index of the frame this output is for", "schema": {"type": "integer"}},
+    "X-History": {"description": "what happened to the history: started, continued, reset-gap (frames were "
+                                 "skipped, on_gap=reset) or reset-camera-cut (the frame has camera_cut set)",
+                  "schema": {"type": "string", "enum": ["started", "continued", "reset-gap", "reset-camera-cut"]}},
+    "X-Inference-Ms": {"description": "milliseconds in method.step", "schema": {"type": "number"}},
+    "X-Server-Ms": {"description": "milliseconds of the whole request in the server (body read, EXR decode, "
+                                   "inference, EXR encode)", "schema": {"type": "number"}},
+}
+
+
+@router.post(
+    "/{session_id}/frames",
+    response_class=Response,
+    summary="Denoise (and upscale) the next frame of the stream",
+    responses={
+        200: {"description": "the output: one-part EXR, float32 R, G, B at scale x render resolution",
+              "content": {EXR_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary"}}},
+              "headers": _FRAME_HEADERS},
+        400: _error_response("the body is not a valid frame bundle EXR (the message names the buffer and problem)",
+                             "invalid_frame", "frame body: buffer 'color': 3 values are negative (radiance must be "
+                                              ">= 0)"),
+        404: _NOT_FOUND,
+        409: _error_response("frame_index or resolution does not continue the session (codes frame_gap, "
+                             "frame_out_of_order, resolution_mismatch)", "frame_out_of_order",
+                             "frame_index 4 repeats the last frame processed (4); this session expects "
+                             "frame_index 5 (reset the session to restart the stream)"),
+        413: _error_response("the body is larger than the server's frame limit", "payload_too_large",
+                             "the frame is at least 268435457 bytes; the limit is 268435456 bytes"),
+        415: _error_response("Content-Type not accepted", "unsupported_media_type",
+                             "Content-Type text/plain is not accepted here; send application/octet-stream, "
+                             "image/x-exr"),
+        503: _UNAVAILABLE,
+    },
+    openapi_extra={"requestBody": {
+        "required": True,
+        "description": "one frame bundle EXR, as model.exr.write_frame writes it (references optional, ignored)",
+        "content": {kind: {"schema": {"type": "string", "format": "binary"}} for kind in FRAME_TYPES}}},
+)
+async def post_frame(session_id: SessionId, request: Request, store: StoreDep, settings: SettingsDep) -> Response:
+    """Frame order: the first frame (or the first after a reset) starts the history at any frame_index; then
+    frame_index == next continues it; a larger one skips frames (history reset, X-History: reset-gap, or 409
+    frame_gap when the session has on_gap=reject); a smaller one (a repeat or backwards) is 409
+    frame_out_of_order. Every frame must have the resolution of the first one since the last reset (409
+    resolution_mismatch)."""
+    started = time.perf_counter()
+    _check_content_type(request)
+    with session_errors():
+        await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
+    body = await _read_body(request, settings.max_frame_bytes)
+    with session_errors():
+        result, data = await run_in_threadpool(_run_frame, store, session_id, body)
+    headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
+               "X-Inference-Ms": f"{result.inference_ms:.3f}",
+               "X-Server-Ms": f"{(time.perf_counter() - started) * 1000:.3f}"}
+    return Response(content=data, media_type=EXR_MEDIA_TYPE, headers=headers)
+
+
+def _run_frame(store: SessionStore, session_id: str, body: bytes):
+    frame = _parse_frame(body)
+    result = store.process_frame(session_id, frame)
+    data = encode_image_exr(result.output, {"frame_index": result.frame_index, "sequence": frame.sequence,
+                                            "scale": result.session.model.scale})
+    return result, data
+
+
+def _parse_frame(body: bytes) -> FrameBundle:
+    try:
+        return read_frame_bytes(body, FRAME_SOURCE)
+    except FrameError as error:
+        raise ApiError(400, "invalid_frame", str(error),
+                       {"buffer": error.buffer, "problem": error.problem}) from None
+
+
+def _check_content_type(request: Request) -> None:
+    declared = request.headers.get("content-type")
+    if declared is None:
+        return  # raw bytes without a type: read as a frame like application/octet-stream
+    media_type = declared.split(";", 1)[0].strip().lower()
+    if media_type not in FRAME_TYPES:
+        raise ApiError(415, "unsupported_media_type", f"Content-Type {media_type} is not accepted here; send "
+                                                      f"{', '.join(FRAME_TYPES)}", {"accepted": list(FRAME_TYPES)})
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    """The whole body, refusing (413) past ``limit`` bytes without reading further."""
+    declared = request.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > limit:
+        raise _too_large(int(declared), limit)
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise _too_large(size, limit, at_least=True)
+        chunks.append(chunk)
+    if size == 0:
+        raise ApiError(400, "invalid_frame", f"{FRAME_SOURCE}: empty; send one frame bundle EXR")
+    return b"".join(chunks)
+
+
+def _too_large(size: int, limit: int, at_least: bool = False) -> ApiError:
+    return ApiError(413, "payload_too_large",
+                    f"the frame is {'at least ' if at_least else ''}{size} bytes; the limit is {limit} bytes",
+                    {"limit": limit})

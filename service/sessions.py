@@ -1,0 +1,493 @@
+"""Inference sessions: a registered model plus one stream's temporal history, kept between frame requests.
+
+A session runs ``method.step(frame, state)`` once per posted frame, carrying ``state`` (the method's history)
+from frame to frame exactly as training and evaluation do, so a stream sent frame by frame gives what the method
+gives in process.
+
+Frame order. The first frame (or the first after a reset) starts the history at any ``frame_index``. Then:
+index == next -> continue; index > next (frames were skipped) -> the history is dropped and restarted
+(``on_gap="reset"``) or the frame refused (``on_gap="reject"``, ``FrameRejected`` "frame_gap"); index < next
+(a repeat or a step backwards) -> refused ("frame_out_of_order"). A frame flagged ``camera_cut`` continues the
+index sequence but the method drops its history itself (``drop_history``), as in training. Every frame of a
+session has the render resolution of the first frame since the last reset ("resolution_mismatch" otherwise).
+
+Where sessions live. In memory (the loaded method, its state tensors on ``settings.session_device``) and in
+Redis, one hash per session at ``denoiser:session:<id>`` with two fields: ``meta`` (JSON: model, counters,
+timestamps, a ``revision`` bumped by every change) and ``state`` (the state tensors, ``torch.save`` bytes, empty
+for no history). Both are written together after every frame, with the key's TTL set to the session TTL, so:
+
+- a restarted API process finds each live session in Redis and continues it from its last frame;
+- Redis is the record of which sessions exist: a key that expired or was deleted ends the session;
+- a memory copy older than Redis (another API process served the session) is reloaded before use.
+
+Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
+Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
+``for_inference`` form under ``torch.no_grad``. Frames of one session are serialized by a per-session lock;
+different sessions run concurrently. If Redis is unreachable, sessions keep working from memory (a warning is
+logged) but cannot survive a restart meanwhile.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import re
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import redis
+import torch
+from redis.backoff import NoBackoff
+from redis.retry import Retry
+
+from model.checkpoint import load_method
+from model.frames import FrameBundle
+from model.methods.base import FrameBatch, Method, State
+from service.registry import Registry, UnknownModelError, registry_for
+from service.settings import Settings
+
+log = logging.getLogger("denoiser.sessions")
+
+KEY_PREFIX = "denoiser:session:"
+ON_GAP_POLICIES = ("reset", "reject")
+SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
+REDIS_PAUSE_SECONDS = 5.0  # after a Redis failure, serve from memory this long before trying Redis again
+
+# X-History values: what happened to the history before this frame.
+STARTED, CONTINUED, RESET_GAP, RESET_CAMERA_CUT = "started", "continued", "reset-gap", "reset-camera-cut"
+
+
+class SessionError(Exception):
+    """A session request the store refuses; ``code`` and ``details`` go into the API's error body."""
+
+    code = "session_error"
+
+    def __init__(self, message: str, code: str | None = None, details: Any = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.code = code or self.code
+        self.details = details
+
+
+class SessionNotFound(SessionError):
+    code = "not_found"
+
+
+class SessionLimitReached(SessionError):
+    code = "too_many_sessions"
+
+
+class FrameRejected(SessionError):
+    """The frame does not fit the session: frame_gap, frame_out_of_order or resolution_mismatch."""
+
+
+class SessionStoreUnavailable(SessionError):
+    code = "session_store_unavailable"
+
+
+class ModelNotLoadable(SessionError):
+    """The registered checkpoint cannot be turned into a method here (unknown method, damaged file)."""
+
+    code = "model_not_loadable"
+
+
+@dataclass(frozen=True)
+class SessionModel:
+    name: str
+    version: str
+    alias: str | None
+    method: str
+    preset: str
+    scale: int
+    params: int
+
+
+@dataclass
+class Session:
+    id: str
+    model: SessionModel
+    on_gap: str
+    created_at: float  # seconds since the epoch
+    last_used_at: float
+    ttl_seconds: int
+    frames_processed: int = 0
+    next_frame_index: int | None = None  # None: no history, the next frame starts one
+    resolution: tuple[int, int] | None = None  # (width, height) at render resolution
+    revision: int = 0
+    # Runtime only (not in the metadata):
+    state: State | None = field(default=None, repr=False)
+    method: Method | None = field(default=None, repr=False)
+    mirrored_revision: int = field(default=-1, repr=False)  # the revision Redis holds, as far as we know
+
+    @property
+    def expires_at(self) -> float:
+        return self.last_used_at + self.ttl_seconds
+
+    def expired(self, now: float) -> bool:
+        return now >= self.expires_at
+
+    def metadata(self) -> dict[str, Any]:
+        return {"id": self.id, "model": self.model.__dict__, "on_gap": self.on_gap, "created_at": self.created_at,
+                "last_used_at": self.last_used_at, "frames_processed": self.frames_processed,
+                "next_frame_index": self.next_frame_index,
+                "resolution": list(self.resolution) if self.resolution else None, "revision": self.revision}
+
+    @classmethod
+    def from_metadata(cls, meta: dict[str, Any], ttl_seconds: int) -> Session:
+        return cls(id=meta["id"], model=SessionModel(**meta["model"]), on_gap=meta["on_gap"],
+                   created_at=meta["created_at"], last_used_at=meta["last_used_at"], ttl_seconds=ttl_seconds,
+                   frames_processed=meta["frames_processed"], next_frame_index=meta["next_frame_index"],
+                   resolution=tuple(meta["resolution"]) if meta["resolution"] else None, revision=meta["revision"])
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    output: np.ndarray  # (H * scale, W * scale, 3) float32
+    frame_index: int
+    history: str  # STARTED, CONTINUED, RESET_GAP or RESET_CAMERA_CUT
+    inference_ms: float  # method.step alone
+    session: Session
+
+
+def serialize_state(state: State | None) -> bytes:
+    """State tensors -> bytes (empty for no history). Cloned to CPU so a view saves only its own elements."""
+    if state is None:
+        return b""
+    buffer = io.BytesIO()
+    torch.save({name: tensor.detach().to("cpu").clone() for name, tensor in state.items()}, buffer)
+    return buffer.getvalue()
+
+
+def deserialize_state(data: bytes | None, device: torch.device | str = "cpu") -> State | None:
+    if not data:
+        return None
+    return torch.load(io.BytesIO(data), map_location=device, weights_only=True)
+
+
+class SessionStore:
+    """Every live session of this API process, mirrored to Redis (see the module notes)."""
+
+    def __init__(self, settings: Settings, *, registry: Registry | None = None,
+                 redis_client: redis.Redis | None = None, prefix: str | None = None,
+                 clock: Callable[[], float] = time.time) -> None:
+        self.ttl_seconds = settings.session_ttl_seconds
+        self.max_sessions = settings.max_sessions
+        self.device = torch.device(settings.session_device)
+        self.prefix = prefix or KEY_PREFIX
+        self.clock = clock
+        self.registry = registry or registry_for(settings.resolved_tracking_uri(), Path(settings.data_dir))
+        # One quick retry, no backoff: a frame must not wait seconds on a Redis that is down (redis-py's default
+        # retries with exponential backoff), and after a failure Redis is left alone for REDIS_PAUSE_SECONDS.
+        self.redis = redis_client if redis_client is not None else redis.Redis.from_url(
+            settings.redis_url, socket_timeout=5, socket_connect_timeout=1, retry=Retry(NoBackoff(), 1))
+        self._redis_paused_until = 0.0
+        if settings.session_threads:
+            # Process-wide in torch: the API process runs only session inference, so set once here.
+            torch.set_num_threads(settings.session_threads)
+        self._sessions: dict[str, Session] = {}
+        self._locks: dict[str, threading.Lock] = {}
+        self._methods: dict[tuple[str, str], Method] = {}
+        self._lock = threading.RLock()  # guards the three dicts
+        self._methods_lock = threading.Lock()  # one method load at a time, so each version loads once
+        self._create_lock = threading.Lock()  # the capacity check and the insert are one step
+
+    # ------------------------------------------------------------------------------------ public
+
+    def create(self, model: str, version: str | None = None, alias: str | None = None,
+               on_gap: str = "reset") -> Session:
+        """A new session of registered model ``model`` at ``version``, ``alias`` or (neither) its latest version.
+
+        Raises UnknownModelError (KeyError) / ValueError from the registry, SessionLimitReached past the cap.
+        """
+        if on_gap not in ON_GAP_POLICIES:
+            raise ValueError(f"on_gap must be one of {', '.join(ON_GAP_POLICIES)}, got {on_gap!r}")
+        info = self.registry.resolve_version(model, version, alias)
+        self._check_capacity()  # before loading weights for a session that cannot be created
+        method = self._method(info.name, info.version)
+        with self._create_lock:
+            self._check_capacity()
+            now = self.clock()
+            session = Session(
+                id=uuid.uuid4().hex,
+                model=SessionModel(name=info.name, version=info.version, alias=alias, method=method.name,
+                                   preset=method.preset, scale=method.scale, params=method.parameter_count()),
+                on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method)
+            with self._lock:
+                self._sessions[session.id] = session
+            self._mirror(session)
+        log.info("session %s created: %s version %s", session.id, info.name, info.version)
+        return session
+
+    def get(self, session_id: str) -> Session:
+        """The session as it is now (without loading its state when it is not in memory); SessionNotFound."""
+        return self._current(session_id, activate=False)
+
+    def list(self) -> list[Session]:
+        sessions = []
+        for session_id in sorted(self._live_ids()):
+            try:
+                sessions.append(self.get(session_id))
+            except SessionNotFound:  # expired or deleted meanwhile
+                continue
+        return sorted(sessions, key=lambda s: (s.created_at, s.id))
+
+    def reset(self, session_id: str) -> Session:
+        """Drop the session's history (and its established resolution); the next frame starts a new one."""
+        with self._lock_for(session_id):
+            session = self._current(session_id, activate=False)
+            session.state, session.next_frame_index, session.resolution = None, None, None
+            session.last_used_at = self.clock()
+            session.revision += 1
+            with self._lock:
+                self._sessions[session.id] = session  # complete now even if it was only in Redis: no history
+            self._mirror(session)
+            return session
+
+    def delete(self, session_id: str) -> None:
+        with self._lock_for(session_id):
+            self._current(session_id, activate=False)  # SessionNotFound for an unknown or expired id
+            self._forget(session_id)
+            try:
+                self._redis(lambda client: client.delete(self._key(session_id)))
+            except redis.RedisError as error:
+                log.warning("session %s: could not delete its Redis copy: %s", session_id, error)
+        log.info("session %s deleted", session_id)
+
+    def process_frame(self, session_id: str, frame: FrameBundle) -> FrameResult:
+        """Run one frame through the session's method; raises SessionNotFound or FrameRejected."""
+        self._purge_expired()
+        with self._lock_for(session_id):
+            session = self._current(session_id, activate=True)
+            if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
+                session.method = self._method(session.model.name, session.model.version)
+            resolution = (frame.width, frame.height)
+            if session.resolution is not None and resolution != session.resolution:
+                raise FrameRejected(
+                    f"frame {frame.frame_index} is {resolution[0]}x{resolution[1]} but this session's frames are "
+                    f"{session.resolution[0]}x{session.resolution[1]}; reset the session to change resolution",
+                    code="resolution_mismatch",
+                    details={"expected": list(session.resolution), "received": list(resolution)})
+            history, state = self._history_for(session, frame)
+            batch = FrameBatch.from_bundles([frame], scale=None, device=self.device)
+            with torch.no_grad():
+                start = time.perf_counter()
+                output, state = session.method.step(batch, state)
+                if output.device.type == "cuda":
+                    torch.cuda.synchronize(output.device)
+                inference_ms = (time.perf_counter() - start) * 1000
+            # A copy in HWC order: the response is encoded after the lock is released, while the next frame
+            # of this session may already run.
+            image = output[0].permute(1, 2, 0).to("cpu", torch.float32).contiguous().numpy()
+            session.state = state
+            session.next_frame_index = frame.frame_index + 1
+            session.frames_processed += 1
+            session.resolution = resolution
+            session.last_used_at = self.clock()
+            session.revision += 1
+            self._mirror(session)
+            return FrameResult(output=image, frame_index=frame.frame_index, history=history,
+                               inference_ms=inference_ms, session=session)
+
+    def close(self) -> None:
+        """Drop every in-memory session and loaded method (Redis keeps the sessions for the next process)."""
+        global _store
+        with self._lock:
+            self._sessions.clear()
+            self._locks.clear()
+            self._methods.clear()
+        try:
+            self.redis.close()
+        except redis.RedisError:
+            pass
+        with _store_lock:
+            if _store is self:
+                _store = None
+
+    # ----------------------------------------------------------------------------------- frames
+
+    def _history_for(self, session: Session, frame: FrameBundle) -> tuple[str, State | None]:
+        """Apply the frame-index rules: the X-History label and the state to give ``step``."""
+        expected, index = session.next_frame_index, frame.frame_index
+        if expected is None:
+            return STARTED, None
+        if index < expected:
+            what = "repeats" if index == expected - 1 else "goes back from"
+            raise FrameRejected(
+                f"frame_index {index} {what} the last frame processed ({expected - 1}); this session expects "
+                f"frame_index {expected} (reset the session to restart the stream)",
+                code="frame_out_of_order", details={"expected": expected, "received": index})
+        if index > expected:
+            if session.on_gap == "reject":
+                raise FrameRejected(
+                    f"frame_index {index} skips {index - expected} frame(s) after {expected - 1}; this session "
+                    f"(on_gap=reject) expects frame_index {expected}",
+                    code="frame_gap", details={"expected": expected, "received": index})
+            return RESET_GAP, None
+        return (RESET_CAMERA_CUT if frame.camera_cut else CONTINUED), session.state
+
+    # ---------------------------------------------------------------------------------- storage
+
+    def _key(self, session_id: str) -> str:
+        return f"{self.prefix}{session_id}"
+
+    def _lock_for(self, session_id: str) -> threading.Lock:
+        with self._lock:
+            return self._locks.setdefault(session_id, threading.Lock())
+
+    def _forget(self, session_id: str) -> None:
+        with self._lock:
+            self._sessions.pop(session_id, None)
+            self._locks.pop(session_id, None)
+            # Weights no session in memory uses any more are released; a session restored later reloads them.
+            used = {(s.model.name, s.model.version) for s in self._sessions.values()}
+            for key in [key for key in self._methods if key not in used]:
+                del self._methods[key]
+
+    def _current(self, session_id: str, activate: bool) -> Session:
+        """The up-to-date session: memory, unless Redis holds a newer revision or says the session is gone.
+
+        ``activate``: also load its state and method into memory (frames need them; views do not).
+        """
+        if not SESSION_ID.match(session_id):
+            raise SessionNotFound(f"session {session_id!r} does not exist")
+        now = self.clock()
+        with self._lock:
+            session = self._sessions.get(session_id)
+        if session is not None and session.expired(now):
+            self._forget(session_id)
+            session = None
+        try:
+            raw = self._redis(lambda client: client.hget(self._key(session_id), "meta"))
+        except redis.RedisError as error:
+            if session is None:
+                raise SessionStoreUnavailable(f"session {session_id!r} is not in memory and the session store "
+                                              f"(Redis) is unreachable: {error}") from None
+            log.warning("session %s: Redis unreachable, serving from memory: %s", session_id, error)
+            return session
+        meta = json.loads(raw) if raw is not None else None
+        if meta is None or meta["last_used_at"] + self.ttl_seconds <= now:
+            if session is not None and session.mirrored_revision != session.revision:
+                return session  # our last mirror failed, so Redis lacks it: memory is the record
+            self._forget(session_id)
+            raise SessionNotFound(f"session {session_id!r} does not exist (expired or deleted)")
+        if session is not None and session.revision >= meta["revision"]:
+            return session
+        # Not in memory (e.g. after a restart) or older than Redis (another API process served it).
+        fresh = Session.from_metadata(meta, self.ttl_seconds)
+        if not activate:
+            return fresh
+        try:
+            data = self._redis(lambda client: client.hget(self._key(session_id), "state"))
+            fresh.state = deserialize_state(data, self.device)
+        except redis.RedisError as error:
+            raise SessionStoreUnavailable(f"session {session_id!r}: cannot read its history from Redis: {error}") \
+                from None
+        fresh.method = self._method(fresh.model.name, fresh.model.version)
+        fresh.mirrored_revision = fresh.revision
+        with self._lock:
+            self._sessions[session_id] = fresh
+        log.info("session %s restored from Redis at frame %s", session_id, fresh.next_frame_index)
+        return fresh
+
+    def _redis(self, call: Callable[[redis.Redis], Any]) -> Any:
+        """``call(client)``, unless Redis failed less than REDIS_PAUSE_SECONDS ago (then ConnectionError at once)."""
+        if time.monotonic() < self._redis_paused_until:
+            raise redis.ConnectionError("Redis failed moments ago; not retried yet")
+        try:
+            return call(self.redis)
+        except redis.RedisError:
+            self._redis_paused_until = time.monotonic() + REDIS_PAUSE_SECONDS
+            raise
+
+    def _mirror(self, session: Session) -> None:
+        """Write the session (metadata and state together) to Redis and restart its TTL."""
+        key = self._key(session.id)
+        mapping = {"meta": json.dumps(session.metadata()), "state": serialize_state(session.state)}
+
+        def write(client: redis.Redis) -> None:
+            pipeline = client.pipeline(transaction=True)
+            pipeline.hset(key, mapping=mapping)
+            pipeline.expire(key, self.ttl_seconds)
+            pipeline.execute()
+
+        try:
+            self._redis(write)
+            session.mirrored_revision = session.revision
+        except redis.RedisError as error:
+            log.warning("session %s: could not mirror to Redis (a restart would lose it): %s", session.id, error)
+
+    def _purge_expired(self) -> None:
+        """Drop idle sessions from memory (Redis drops them by their TTL); called on every store operation that
+        walks or adds sessions, so expired sessions do not hold memory for long on a busy server."""
+        now = self.clock()
+        with self._lock:
+            expired = [sid for sid, s in self._sessions.items() if s.expired(now)]
+        for session_id in expired:
+            self._forget(session_id)
+            log.info("session %s expired", session_id)
+
+    def _live_ids(self) -> set[str]:
+        self._purge_expired()
+        with self._lock:
+            ids = set(self._sessions)
+        try:
+            keys = self._redis(lambda client: list(client.scan_iter(match=f"{self.prefix}*", count=1000)))
+            ids.update(key.decode()[len(self.prefix):] for key in keys)
+        except redis.RedisError as error:
+            log.warning("session store (Redis) unreachable, counting sessions in memory only: %s", error)
+        return {session_id for session_id in ids if SESSION_ID.match(session_id)}
+
+    def _check_capacity(self) -> None:
+        live = len(self._live_ids())
+        if live >= self.max_sessions:
+            raise SessionLimitReached(
+                f"{live} sessions are open, the server's limit is {self.max_sessions}: delete a session or wait "
+                f"for an idle one to expire ({self.ttl_seconds} s)",
+                details={"max_sessions": self.max_sessions, "open": live})
+
+    def _method(self, name: str, version: str) -> Method:
+        """The model version's method in inference form, loaded once and shared by its sessions."""
+        key = (name, version)
+        with self._methods_lock:
+            with self._lock:
+                method = self._methods.get(key)
+            if method is None:
+                checkpoint = self.registry.checkpoint(name, version)
+                try:
+                    method = load_method(checkpoint, self.device).for_inference()
+                except (KeyError, ValueError) as error:  # build_method / load_checkpoint name the problem
+                    message = error.args[0] if isinstance(error, KeyError) and error.args else error
+                    raise ModelNotLoadable(f"version {version} of model {name!r} cannot be loaded: {message}",
+                                           details={"model": name, "version": version}) from None
+                for parameter in method.parameters():
+                    parameter.requires_grad_(False)
+                with self._lock:
+                    self._methods[key] = method
+                log.info("loaded %s version %s (%s) for sessions", name, version, method.label)
+            return method
+
+
+_store: SessionStore | None = None
+_store_lock = threading.Lock()
+
+
+def get_session_store() -> SessionStore:
+    """The process's session store (created from the settings on first use; ``close()`` ends it)."""
+    global _store
+    with _store_lock:
+        if _store is None:
+            from service.settings import get_settings
+
+            _store = SessionStore(get_settings())
+        return _store
+
+
+__all__ = ["FrameRejected", "FrameResult", "ModelNotLoadable", "Session", "SessionError", "SessionLimitReached",
+           "SessionModel", "SessionNotFound", "SessionStore", "SessionStoreUnavailable", "UnknownModelError",
+           "get_session_store"]

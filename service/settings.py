@@ -1,0 +1,38 @@
+"""The one settings object of the service and the workers, read from DENOISER_* environment variables."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Every knob of the API and the workers. Environment: DENOISER_<FIELD> (e.g. DENOISER_API_KEY)."""
+
+    model_config = SettingsConfigDict(env_prefix="DENOISER_", extra="ignore")
+
+    data_dir: Path = Field(Path("var"), description="root of everything the service stores (see storage.py)")
+    redis_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker, result backend, session mirror")
+    tracking_uri: str | None = Field(None, description="MLflow tracking URI; none: sqlite under data_dir")
+    mlflow_ui_url: str | None = Field(None, description="public URL of the MLflow UI, for links in job records")
+    api_key: str | None = Field(None, description="when set, every request but /health needs X-API-Key")
+    max_upload_bytes: int = Field(2 * 1024**3, gt=0, description="largest accepted dataset upload")
+    max_frame_bytes: int = Field(256 * 1024**2, gt=0, description="largest accepted single-frame EXR")
+    session_ttl_seconds: int = Field(1800, gt=0, description="idle time after which a session expires")
+    max_sessions: int = Field(16, gt=0, description="live sessions; one more answers 429")
+    session_device: str = Field("cpu", description="torch device sessions run on")
+    session_threads: int | None = Field(None, gt=0, description="torch threads for session inference")
+    job_time_limit_seconds: int = Field(24 * 3600, gt=0, description="longest job; the visibility timeout exceeds it")
+
+    def resolved_tracking_uri(self) -> str:
+        if self.tracking_uri:
+            return self.tracking_uri
+        return f"sqlite:///{(self.data_dir / 'mlflow' / 'mlflow.db').resolve()}"
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    return Settings()

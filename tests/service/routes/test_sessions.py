@@ -1,0 +1,230 @@
+"""/sessions over HTTP: a streamed sequence equals in-process inference, restore after a restart, every error."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import OpenEXR
+import pytest
+from fastapi.testclient import TestClient
+
+from model.exr import _frame_parts, decode_image_exr
+from service.routes import models as models_routes
+from service.routes import sessions as sessions_routes
+from service.sessions import get_session_store
+from tests.service.session_fixtures import (
+    MODEL_NAME,
+    FakeClock,
+    assert_same_image,
+    frame_bytes,
+    in_process_outputs,
+    make_store,
+    registry_settings,
+    shared_registry,
+    stream_frames,
+)
+
+__all__ = ["make_store", "registry_settings"]  # fixtures used by name
+
+
+@pytest.fixture
+def api(make_app, make_store):
+    """``api(store=None, clock=None, **setting_changes)`` -> (TestClient, store): /sessions and /models on a store
+    of this test's Redis prefix (a second call without ``store`` plays a restarted API)."""
+
+    def build(store=None, clock=None, **changes):
+        store = store or make_store(clock=clock, **changes)
+        app = make_app(sessions_routes.router, models_routes.router, tracking_uri=shared_registry().uri, **changes)
+        app.dependency_overrides[get_session_store] = lambda: store
+        return TestClient(app), store
+
+    return build
+
+
+def create(client: TestClient, **body) -> dict:
+    response = client.post("/sessions", json={"model": MODEL_NAME, **body})
+    assert response.status_code == 201, response.text
+    assert response.headers["location"] == f"/sessions/{response.json()['id']}"
+    return response.json()
+
+
+def post_frame(client: TestClient, session_id: str, content, content_type: str | None = "image/x-exr"):
+    headers = {"Content-Type": content_type} if content_type else {}
+    if not isinstance(content, (bytes, bytearray)) and hasattr(content, "color"):
+        content = frame_bytes(content)
+    return client.post(f"/sessions/{session_id}/frames", content=content, headers=headers)
+
+
+def error_of(response, status: int, code: str) -> str:
+    assert response.status_code == status, response.text
+    body = response.json()["error"]
+    assert body["code"] == code, body
+    return body["message"]
+
+
+def test_a_16_frame_stream_gives_what_the_method_gives_in_process(api):
+    client, _ = api()
+    session = create(client, version="2")
+    assert session["model"] == {"name": MODEL_NAME, "version": "2", "alias": None, "method": "jnds",
+                                "preset": "xs", "scale": 2, "params": session["model"]["params"]}
+    assert session["next_frame_index"] is None and session["resolution"] is None
+    frames = stream_frames(16, seed=7)
+    expected = in_process_outputs(shared_registry().checkpoints["2"], frames)
+    for index, frame in enumerate(frames):
+        response = post_frame(client, session["id"], frame, "application/octet-stream" if index % 2 else None)
+        assert response.status_code == 200, response.text
+        assert response.headers["content-type"] == "image/x-exr"
+        assert response.headers["x-frame-index"] == str(index)
+        assert response.headers["x-history"] == ("started" if index == 0 else "continued")
+        inference, server = float(response.headers["x-inference-ms"]), float(response.headers["x-server-ms"])
+        assert 0 < inference <= server
+        output = decode_image_exr(response.content)
+        assert output.shape == (32, 32, 3)  # scale 2
+        assert_same_image(output, expected[index])
+    state = client.get(f"/sessions/{session['id']}").json()
+    assert (state["frames_processed"], state["next_frame_index"], state["resolution"]) == (16, 16, [16, 16])
+
+
+def test_a_restarted_api_continues_the_session_from_redis(api):
+    frames = stream_frames(4, seed=3)
+    expected = in_process_outputs(shared_registry().checkpoints["1"], frames)
+    client, _ = api()
+    session = create(client, alias="champion")
+    assert session["model"]["version"] == "1" and session["model"]["alias"] == "champion"
+    for frame in frames[:3]:
+        assert post_frame(client, session["id"], frame).status_code == 200
+
+    restarted, store = api()  # a new store (nothing in memory) on the same Redis
+    assert not store._sessions
+    assert [s["id"] for s in restarted.get("/sessions").json()] == [session["id"]]
+    assert restarted.get(f"/sessions/{session['id']}").json()["next_frame_index"] == 3
+    response = post_frame(restarted, session["id"], frames[3])
+    assert response.status_code == 200 and response.headers["x-history"] == "continued"
+    assert_same_image(decode_image_exr(response.content), expected[3])
+
+
+def test_session_lifecycle(api):
+    client, _ = api()
+    first, second = create(client), create(client, on_gap="reject")
+    assert first["model"]["version"] == "2"  # no version, no alias: the latest
+    listed = client.get("/sessions").json()
+    assert [s["id"] for s in listed] == [first["id"], second["id"]]
+    assert listed[1]["on_gap"] == "reject"
+    assert post_frame(client, first["id"], stream_frames(1)[0]).status_code == 200
+
+    reset = client.post(f"/sessions/{first['id']}/reset")
+    assert reset.status_code == 200
+    assert reset.json()["next_frame_index"] is None and reset.json()["frames_processed"] == 1
+    assert client.delete(f"/sessions/{first['id']}").status_code == 204
+    for response in (client.get(f"/sessions/{first['id']}"), client.delete(f"/sessions/{first['id']}"),
+                     client.post(f"/sessions/{first['id']}/reset"),
+                     post_frame(client, first["id"], stream_frames(1)[0])):
+        assert "does not exist" in error_of(response, 404, "not_found")
+    assert [s["id"] for s in client.get("/sessions").json()] == [second["id"]]
+
+
+@pytest.mark.parametrize("body, status, message", [
+    ({"model": "nope"}, 404, "model 'nope' does not exist"),
+    ({"model": MODEL_NAME, "version": "7"}, 404, f"version 7 of model '{MODEL_NAME}' does not exist"),
+    ({"model": MODEL_NAME, "alias": "gold"}, 404, f"model '{MODEL_NAME}' has no alias 'gold'"),
+    ({"model": MODEL_NAME, "version": "1", "alias": "champion"}, 422, "give a version or an alias"),
+    ({"model": MODEL_NAME, "on_gap": "skip"}, 422, "on_gap"),
+    ({"model": MODEL_NAME, "version": "one"}, 422, "version"),
+    ({"model": MODEL_NAME, "colour": "red"}, 422, "colour"),
+])
+def test_bad_session_requests(api, body, status, message):
+    client, _ = api()
+    response = client.post("/sessions", json=body)
+    assert response.status_code == status, response.text
+    assert message in response.json()["error"]["message"]
+
+
+def test_past_the_session_cap_is_429(api):
+    client, _ = api(max_sessions=1)
+    create(client)
+    assert "the server's limit is 1" in error_of(client.post("/sessions", json={"model": MODEL_NAME}), 429,
+                                                  "too_many_sessions")
+
+
+def test_idle_sessions_expire(api):
+    clock = FakeClock()
+    client, _ = api(clock=clock, session_ttl_seconds=30)
+    session = create(client)
+    clock.advance(31)
+    assert "expired or deleted" in error_of(client.get(f"/sessions/{session['id']}"), 404, "not_found")
+    assert client.get("/sessions").json() == []
+
+
+def test_frame_order_over_http(api):
+    client, _ = api()
+    frames = stream_frames(6)
+    reset, reject = create(client), create(client, on_gap="reject")
+    for session in (reset, reject):
+        assert post_frame(client, session["id"], frames[0]).headers["x-history"] == "started"
+    gap = post_frame(client, reset["id"], frames[3])
+    assert gap.status_code == 200 and gap.headers["x-history"] == "reset-gap"
+    message = error_of(post_frame(client, reject["id"], frames[3]), 409, "frame_gap")
+    assert "expects frame_index 1" in message
+    message = error_of(post_frame(client, reset["id"], frames[3]), 409, "frame_out_of_order")
+    assert "frame_index 3 repeats" in message
+    assert client.get(f"/sessions/{reject['id']}").json()["next_frame_index"] == 1
+
+    larger = stream_frames(1, size=8, start=1)[0]
+    message = error_of(post_frame(client, reject["id"], larger), 409, "resolution_mismatch")
+    assert "8x8 but this session's frames are 16x16" in message
+    client.post(f"/sessions/{reject['id']}/reset")
+    response = post_frame(client, reject["id"], larger)
+    assert response.headers["x-history"] == "started" and decode_image_exr(response.content).shape == (16, 16, 3)
+
+
+def _raw_exr(frame, drop: str | None = None) -> bytes:
+    """The frame's EXR without validation (so it can hold what read_frame refuses), minus channel ``drop``."""
+    parts = _frame_parts(frame, half=False)
+    if drop:
+        channels = {name: channel.pixels for name, channel in parts[0].channels.items() if name != drop}
+        parts[0] = OpenEXR.Part(parts[0].header, channels, "render")
+    stream = io.BytesIO()
+    OpenEXR.File(parts).write(stream)
+    return stream.getvalue()
+
+
+def test_bad_frame_bodies_are_4xx_naming_the_problem(api):
+    client, _ = api(max_frame_bytes=40_000)
+    session = create(client)
+    frame = stream_frames(1)[0]
+    valid = frame_bytes(frame)
+    assert len(valid) < 40_000
+    sid = session["id"]
+
+    assert "not an OpenEXR file" in error_of(post_frame(client, sid, b"P6 16 16 255 ..."), 400, "invalid_frame")
+    assert "empty" in error_of(post_frame(client, sid, b""), 400, "invalid_frame")
+    assert "truncated" in error_of(post_frame(client, sid, valid[: len(valid) // 2]), 400, "invalid_frame")
+    assert "buffer 'depth': required buffer is missing" in error_of(
+        post_frame(client, sid, _raw_exr(frame, drop="depth.Z")), 400, "invalid_frame")
+    frame.color[2, 3, 1] = np.nan
+    response = post_frame(client, sid, _raw_exr(frame))
+    assert "buffer 'color'" in error_of(response, 400, "invalid_frame")
+    assert response.json()["error"]["details"]["buffer"] == "color"
+
+    message = error_of(post_frame(client, sid, valid, "text/plain"), 415, "unsupported_media_type")
+    assert "application/octet-stream, image/x-exr" in message
+    too_large = valid + bytes(40_000)
+    assert "the limit is 40000 bytes" in error_of(post_frame(client, sid, too_large), 413, "payload_too_large")
+    # Without a Content-Length (chunked), the body is cut off at the limit too.
+    chunks = (too_large[i:i + 8192] for i in range(0, len(too_large), 8192))
+    response = client.post(f"/sessions/{sid}/frames", content=chunks, headers={"Content-Type": "image/x-exr"})
+    assert "at least" in error_of(response, 413, "payload_too_large")
+    assert post_frame(client, "0" * 32, valid).status_code == 404
+    # None of it touched the session.
+    assert client.get(f"/sessions/{sid}").json()["frames_processed"] == 0
+    assert post_frame(client, sid, valid).status_code == 200
+
+
+def test_openapi_documents_the_frame_endpoint(api):
+    client, _ = api()
+    operation = client.get("/openapi.json").json()["paths"]["/sessions/{session_id}/frames"]["post"]
+    assert set(operation["requestBody"]["content"]) == {"application/octet-stream", "image/x-exr"}
+    ok = operation["responses"]["200"]
+    assert "image/x-exr" in ok["content"] and {"X-History", "X-Inference-Ms", "X-Server-Ms"} <= set(ok["headers"])
+    assert {"400", "404", "409", "413", "415"} <= set(operation["responses"])

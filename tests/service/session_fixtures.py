@@ -1,0 +1,169 @@
+"""A small registered model, frames and fixtures for the /models and /sessions tests.
+
+Creating an MLflow SQLite store costs seconds (table creation and migrations), so one store per test process
+holds the registered model ``MODEL_NAME`` (a JNDS ``xs`` at scale 2 with seeded random weights: versions 1 and 2
+with different weights, alias ``champion`` -> 1); tests that change aliases register their own model names with
+``register_model``. Each test still gets its own data folder (so its own checkpoint cache) and its own Redis key
+prefix in db 15.
+"""
+
+from __future__ import annotations
+
+import atexit
+import shutil
+import tempfile
+import uuid
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from model.checkpoint import save_checkpoint
+from model.exr import encode_frame_exr
+from model.frames import FrameBundle
+from model.methods.base import FrameBatch, Method
+from model.methods.registry import build_method
+from tests.model.training_fixtures import synthetic_frame
+
+MODEL_NAME = "jnds-xs-x2"
+METHOD = "jnds:xs"
+SCALE = 2
+SIZE = 16  # render resolution of the test frames (output 32x32)
+
+
+@dataclass(frozen=True)
+class SharedRegistry:
+    uri: str
+    folder: Path
+    checkpoints: dict[str, Path]  # version -> checkpoint file as saved before registration
+
+
+def _method(seed: int) -> Method:
+    torch.manual_seed(seed)
+    return build_method(METHOD, scale=SCALE)
+
+
+def _tags(method: Method, **extra: str) -> dict[str, str]:
+    return {"method": method.name, "preset": method.preset, "scale": str(method.scale),
+            "params": str(method.parameter_count()), "flops_per_pixel": "13416", **extra}
+
+
+@lru_cache(maxsize=1)
+def shared_registry() -> SharedRegistry:
+    """The process's tracking store with MODEL_NAME versions 1 and 2 registered and alias champion -> 1."""
+    from workers.tracking import MLflowTracker
+
+    folder = Path(tempfile.mkdtemp(prefix="denoiser-test-registry-"))
+    atexit.register(shutil.rmtree, folder, True)
+    uri = f"sqlite:///{folder / 'mlflow.db'}"
+    tracker = MLflowTracker(uri, experiment="service-tests")
+    tracker.start({"method": METHOD})
+    checkpoints = {}
+    for version, seed in (("1", 1), ("2", 2)):
+        method = _method(seed)
+        checkpoint = save_checkpoint(folder / f"v{version}.pt", method=method)
+        extra = {"validation_psnr": "21.5000"} if version == "1" else {"ms_per_frame": "3.25", "metric.flip": "0.2"}
+        registered = tracker.log_model(checkpoint, MODEL_NAME, _tags(method, **extra))
+        assert registered["version"] == version
+        checkpoints[version] = checkpoint
+    tracker.finish("FINISHED")
+    tracker.client.set_registered_model_alias(MODEL_NAME, "champion", "1")
+    return SharedRegistry(uri=uri, folder=folder, checkpoints=checkpoints)
+
+
+def register_model(name: str, versions: int = 1) -> None:
+    """Register ``versions`` versions of a new model ``name`` in the shared store (for tests that change aliases)."""
+    from workers.tracking import MLflowTracker
+
+    registry = shared_registry()
+    tracker = MLflowTracker(registry.uri, experiment="service-tests")
+    tracker.start({"method": METHOD})
+    for _ in range(versions):
+        tracker.log_model(registry.checkpoints["1"], name, _tags(_method(1)))
+    tracker.finish("FINISHED")
+
+
+def unique_name(prefix: str) -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:8]}"
+
+
+# --- frames ----------------------------------------------------------------------------------------------
+
+
+def stream_frames(count: int, *, size: int = SIZE, seed: int = 0, start: int = 0,
+                  cuts: tuple[int, ...] = ()) -> list[FrameBundle]:
+    """Valid frames with frame_index start..start+count-1 (references at scales 1 and 2, which sessions ignore)."""
+    rng = np.random.default_rng(seed)
+    return [synthetic_frame(rng, start + i, size, size, camera_cut=(start + i) in cuts) for i in range(count)]
+
+
+def frame_bytes(frame: FrameBundle) -> bytes:
+    return encode_frame_exr(frame)
+
+
+def in_process_outputs(checkpoint: Path, frames: list[FrameBundle]) -> list[np.ndarray]:
+    """What the method gives in process: step over the frames from state None, outputs as (H, W, 3)."""
+    from model.checkpoint import load_method
+
+    method = load_method(checkpoint).for_inference()
+    outputs, state = [], None
+    with torch.no_grad():
+        for frame in frames:
+            output, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
+            outputs.append(output[0].permute(1, 2, 0).numpy().copy())
+    return outputs
+
+
+def assert_same_image(actual: np.ndarray, expected: np.ndarray) -> None:
+    assert actual.shape == expected.shape
+    np.testing.assert_allclose(actual, expected, rtol=1e-5, atol=1e-6)
+
+
+# --- fixtures --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def registry_settings(settings, monkeypatch):
+    """The conftest settings (tmp data folder, Redis db 15) with the shared tracking store."""
+    from service.settings import get_settings
+
+    monkeypatch.setenv("DENOISER_TRACKING_URI", shared_registry().uri)
+    get_settings.cache_clear()
+    yield get_settings()
+    get_settings.cache_clear()
+
+
+@pytest.fixture
+def make_store(registry_settings, redis_db):
+    """``make_store(**setting_changes, clock=...)``: a SessionStore on Redis db 15 under this test's own key prefix;
+    every store of one test shares the prefix, so a second store plays the restarted API."""
+    from service.sessions import SessionStore
+
+    prefix = f"denoiser:session:test-{uuid.uuid4().hex[:8]}:"
+    stores = []
+
+    def build(clock=None, **changes):
+        active = registry_settings.model_copy(update=changes) if changes else registry_settings
+        store = SessionStore(active, prefix=prefix, **({"clock": clock} if clock else {}))
+        stores.append(store)
+        return store
+
+    yield build
+    for store in stores:
+        store.close()
+
+
+class FakeClock:
+    """A clock tests move by hand (expiry without sleeping)."""
+
+    def __init__(self, start: float = 1_800_000_000.0) -> None:
+        self.now = start
+
+    def __call__(self) -> float:
+        return self.now
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds

@@ -1,0 +1,331 @@
+"""The CLI's client subcommands (and serve / worker / mlflow-ui): exit statuses, messages, --param parsing."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import io
+import json
+import socket
+import sys
+import zipfile
+
+import pytest
+
+from model.dataset import SequenceWriter
+from service.cli import UsageError, main
+from service.commands import client as client_commands
+from service.commands import serve as serve_commands
+from service.commands.client import collect_params, parse_param
+from tests.model.test_frames import make_frame
+
+from .fake_api import FakeApi
+
+
+@pytest.fixture
+def api(monkeypatch):
+    """Every client subcommand talks to this fake; the URL and key the command resolved are recorded."""
+    fake = FakeApi()
+    fake.resolved = []
+    resolve = client_commands._client
+
+    def fake_client(args):
+        with resolve(args) as real:
+            fake.resolved.append((real.url, real._http.headers.get("X-API-Key")))
+        return fake.client()
+
+    monkeypatch.setattr(client_commands, "_client", fake_client)
+    return fake
+
+
+def closed_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def write_sequence(root, name="seq_a", frames=2):
+    with SequenceWriter(root / name, name) as writer:
+        for index in range(frames):
+            writer.add(dataclasses.replace(make_frame(index, frame_index=index), sequence=name,
+                                           camera_cut=index == 0))
+    return root / name
+
+
+# --- reaching the server -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("argv", [["jobs"], ["models"], ["job", "j1"], ["alias", "m", "champion", "1"],
+                                  ["submit", "train", "--param", "steps=1"]])
+def test_connection_refused_exits_2_naming_the_url(argv, capsys):
+    url = f"http://127.0.0.1:{closed_port()}"
+    assert main(argv + ["--url", url, "--timeout", "2"]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot reach the denoiser service at {url}" in err and "denoiser serve" in err
+
+
+def test_url_and_key_come_from_options_then_environment(api, monkeypatch):
+    monkeypatch.setenv("DENOISER_URL", "http://env.test:1234")
+    monkeypatch.setenv("DENOISER_API_KEY", "from-env")
+    assert main(["jobs"]) == 0
+    assert main(["jobs", "--url", "http://option.test:9", "--api-key", "from-option"]) == 0
+    monkeypatch.delenv("DENOISER_URL")
+    monkeypatch.delenv("DENOISER_API_KEY")
+    assert main(["jobs"]) == 0
+    assert api.resolved == [("http://env.test:1234", "from-env"), ("http://option.test:9", "from-option"),
+                            ("http://127.0.0.1:8000", None)]
+
+
+def test_server_4xx_exits_2_with_the_server_message(api, capsys):
+    assert main(["job", "job-404"]) == 2
+    assert "the server refused the request (404 not_found): job 'job-404' does not exist" in capsys.readouterr().err
+    assert main(["submit", "train", "--param", "dataset=nope"]) == 2
+    assert "dataset 'nope' does not exist" in capsys.readouterr().err
+    assert main(["alias", "wskpn-xs", "champion", "9"]) == 2
+    assert "has no version '9'" in capsys.readouterr().err
+
+
+def test_unauthorized_exits_2(api, capsys):
+    api.api_key = "s3cret"
+    assert main(["jobs"]) == 2
+    assert "401 unauthorized" in capsys.readouterr().err
+
+
+def test_server_5xx_exits_1(api, monkeypatch, capsys):
+    from .fake_api import error
+
+    monkeypatch.setattr(api, "list_jobs", lambda request: error(500, "internal_error", "internal error: boom"))
+    assert main(["jobs"]) == 1
+    assert "server error (500 internal_error): internal error: boom" in capsys.readouterr().err
+
+
+# --- --param parsing -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("steps=200", ("steps", 200)),
+    ("lr=1e-3", ("lr", 0.001)),
+    ("half=true", ("half", True)),
+    ("method=wskpn:xs", ("method", "wskpn:xs")),
+    ('scenes=["glass","kitchen"]', ("scenes", ["glass", "kitchen"])),
+    ('name="123"', ("name", "123")),
+    ("register_as=", ("register_as", "")),
+    ("note=a=b", ("note", "a=b")),
+    ("limit=null", ("limit", None)),
+])
+def test_parse_param(text, expected):
+    assert parse_param(text) == expected
+
+
+@pytest.mark.parametrize("text", ["steps", "=3", " =3"])
+def test_parse_param_needs_key_and_equals(text):
+    with pytest.raises(argparse.ArgumentTypeError, match="KEY=VALUE"):
+        parse_param(text)
+
+
+def test_collect_params_merges_the_file_and_repeats(tmp_path):
+    file = tmp_path / "params.json"
+    file.write_text(json.dumps({"dataset": "demo", "steps": 10, "methods": ["svgf"]}))
+    params = collect_params(file, [("steps", 20), ("methods", "svgf"), ("methods", "oidn:high")])
+    assert params == {"dataset": "demo", "steps": 20, "methods": ["svgf", "oidn:high"]}
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "No such file"), ("{not json", "not valid JSON"), ("[1, 2]", "expected a JSON object"),
+])
+def test_bad_params_json_exits_2(api, tmp_path, capsys, content, message):
+    file = tmp_path / "params.json"
+    if content is not None:
+        file.write_text(content)
+    assert main(["submit", "train", "--params-json", str(file)]) == 2
+    assert message in capsys.readouterr().err
+    assert api.jobs == {}
+
+
+def test_bad_param_is_an_argparse_error(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["submit", "train", "--param", "steps"])
+    assert info.value.code == 2
+    assert "expected KEY=VALUE, got 'steps'" in capsys.readouterr().err
+
+
+def test_params_json_from_stdin(api, monkeypatch):
+    monkeypatch.setattr(sys, "stdin", io.StringIO('{"steps": 3}'))
+    assert main(["submit", "train", "--params-json", "-", "--param", "method=wskpn:xs", "--device", "gpu"]) == 0
+    job = next(iter(api.jobs.values()))
+    assert job["params"] == {"steps": 3, "method": "wskpn:xs"} and job["queue"] == "gpu"
+
+
+# --- jobs ----------------------------------------------------------------------------------------------------
+
+
+def test_submit_follow_prints_progress_lines_and_the_result(api, capsys):
+    assert main(["submit", "evaluate", "--param", "methods=svgf", "--follow", "--progress", "lines",
+                 "--poll", "0"]) == 0
+    out, err = capsys.readouterr()
+    assert "submitted evaluate job job-0001 (queue cpu, state queued)" in out
+    assert err.splitlines() == ["[queued] 0/4 (0%)  waiting for a worker",
+                                "[running] 1/4 (25%)  step 1  eta 3s",
+                                "[running] 3/4 (75%)  step 3  eta 1s",
+                                "[succeeded] 4/4 (100%)  done"]
+    assert "job job-0001 succeeded" in out and '"psnr": 31.5' in out
+    assert "mlflow run: http://mlflow.test/#/runs/run-1" in out
+
+
+def test_submit_follow_with_a_bar(api, capsys):
+    assert main(["submit", "train", "--follow", "--progress", "bar", "--poll", "0"]) == 0
+    out, err = capsys.readouterr()
+    assert "4/4" in err and "succeeded" in err  # tqdm draws on stderr
+    assert "job job-0001 succeeded" in out
+
+
+def test_follow_of_a_failed_job_exits_1(api, capsys):
+    api.script = [("running", {"current": 1, "total": 2}), ("failed", {"current": 1, "total": 2})]
+    api.final_error = {"code": "worker_error", "message": "CUDA out of memory"}
+    assert main(["submit", "train", "--follow", "--progress", "none", "--poll", "0"]) == 1
+    out = capsys.readouterr().out
+    assert "job job-0001 failed" in out and "error (worker_error): CUDA out of memory" in out
+
+
+def test_job_shows_logs_and_cancels(api, capsys):
+    main(["submit", "train", "--param", "steps=5"])
+    capsys.readouterr()
+    assert main(["job", "job-0001", "--logs", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "job job-0001: train on cpu" in out and '"steps": 5' in out
+    assert out.rstrip().endswith("line 8\nline 9")
+    assert main(["job", "job-0001", "--cancel"]) == 0
+    assert "asked job job-0001 to cancel" in capsys.readouterr().out
+    assert main(["job", "job-0001", "--cancel"]) == 2  # already finished: the server's 409
+    assert "409 conflict" in capsys.readouterr().err
+
+
+def test_jobs_table_filters(api, capsys):
+    main(["submit", "train"])
+    main(["submit", "evaluate"])
+    capsys.readouterr()
+    assert main(["jobs", "--kind", "evaluate"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == ["id", "kind", "state", "queue", "progress", "created"]
+    assert len(lines) == 2 and "job-0002" in lines[1] and "evaluate" in lines[1]
+    assert main(["jobs", "--state", "running"]) == 0
+    assert capsys.readouterr().out.strip() == "no jobs"
+
+
+def test_results_download(api, tmp_path, capsys):
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zipped:
+        zipped.writestr("seq_a/frame_0000.exr", b"exr")
+    api.results_zip = buffer.getvalue()
+    main(["submit", "infer"])
+    assert main(["results", "job-0001", "--out", str(tmp_path / "out")]) == 0
+    assert "wrote 1 file(s)" in capsys.readouterr().out
+    assert (tmp_path / "out" / "seq_a" / "frame_0000.exr").read_bytes() == b"exr"
+
+
+# --- datasets, models ----------------------------------------------------------------------------------------
+
+
+def test_upload_and_datasets(api, tmp_path, capsys):
+    write_sequence(tmp_path / "loose")
+    (tmp_path / "loose" / "notes.txt").write_text("x")
+    assert main(["upload", str(tmp_path / "loose"), "--name", "demo", "--split", "test"]) == 0
+    out, err = capsys.readouterr()
+    assert "uploaded dataset demo: 1 sequences, 2 frames" in out
+    assert "left out 1 file(s) no manifest lists: notes.txt" in err
+    assert api.uploads[-1][0] == {"split": "test", "name": "demo"}
+    assert main(["upload", str(tmp_path / "missing")]) == 2
+    assert main(["datasets"]) == 0
+    assert "demo" in capsys.readouterr().out
+    assert main(["datasets", "demo"]) == 0
+    assert "seq_a" in capsys.readouterr().out
+    assert main(["datasets", "demo", "--delete"]) == 0
+    assert main(["datasets", "demo"]) == 2
+
+
+def test_models_and_alias(api, capsys):
+    assert main(["models"]) == 0
+    out = capsys.readouterr().out
+    assert "wskpn-xs" in out and "champion->1" in out
+    assert main(["models", "wskpn-xs"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].split() == ["version", "method", "scale", "val", "PSNR", "ms/frame", "aliases", "created"]
+    assert lines[2].split()[:6] == ["1", "wskpn:xs", "1", "30.25", "4.50", "champion"]
+    assert main(["alias", "wskpn-xs", "champion", "2"]) == 0
+    assert "wskpn-xs@champion -> version 2" in capsys.readouterr().out
+    assert api.models["wskpn-xs"]["aliases"] == {"champion": "2"}
+    assert main(["models", "nope"]) == 2
+
+
+# --- stream --------------------------------------------------------------------------------------------------
+
+
+def test_stream_prints_timings_and_writes_exrs(api, tmp_path, capsys):
+    sequence = write_sequence(tmp_path / "data", frames=3)
+    assert main(["stream", str(sequence), "--model", "wskpn-xs", "--alias", "champion", "--out",
+                 str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("session s1: wskpn-xs version 1 (wskpn:xs, scale 1), 3 frames")
+    assert [line.split()[1] for line in out[1:4]] == ["0", "1", "2"]
+    assert "inference    1.50 ms" in out[1] and "started" in out[1] and "continued" in out[2]
+    assert out[4].startswith("3 frames in") and "median inference    1.50 ms" in out[4]
+    assert "history: started 1, continued 2" in out[4]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [f"frame_000{i}.exr" for i in range(3)]
+    assert api.sessions == {}  # deleted at the end
+
+
+def test_stream_errors(api, tmp_path, capsys):
+    assert main(["stream", str(tmp_path), "--model", "wskpn-xs", "--out", str(tmp_path / "out")]) == 2
+    assert "not a sequence folder" in capsys.readouterr().err
+    sequence = write_sequence(tmp_path / "data")
+    assert main(["stream", str(sequence), "--model", "nope", "--out", str(tmp_path / "out")]) == 2
+    assert "registered model 'nope' does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["stream", str(sequence), "--model", "m", "--version", "1", "--alias", "a", "--out", "x"])
+
+
+# --- serve, worker, mlflow-ui --------------------------------------------------------------------------------
+
+
+def test_serve_runs_uvicorn_on_the_app(monkeypatch):
+    import uvicorn
+
+    calls = []
+    monkeypatch.setattr(uvicorn, "run", lambda target, **options: calls.append((target, options)))
+    assert main(["serve", "--host", "0.0.0.0", "--port", "8080"]) == 0
+    assert calls == [("service.main:app", {"host": "0.0.0.0", "port": 8080, "log_level": "info", "reload": False})]
+    with pytest.raises(SystemExit):
+        main(["serve", "--port", "70000"])
+
+
+def test_worker_runs_the_celery_app_with_the_solo_pool(monkeypatch, capsys):
+    from workers.celery_app import app
+
+    calls = []
+    monkeypatch.setattr(app, "worker_main", calls.append)
+    assert main(["worker", "--queues", "cpu,gpu", "--loglevel", "debug"]) == 0
+    assert calls == [["worker", "--pool=solo", "--queues=cpu,gpu", "--loglevel=DEBUG"]]
+    assert main(["worker", "--queues", "cpu,tpu"]) == 2
+    assert "unknown: tpu" in capsys.readouterr().err
+    with pytest.raises(UsageError):
+        serve_commands.worker_argv(" , ", "info")
+
+
+def test_mlflow_ui_runs_on_the_resolved_tracking_uri(monkeypatch, tmp_path, capsys):
+    from service.settings import get_settings
+
+    calls = []
+    monkeypatch.setattr(serve_commands.subprocess, "call", lambda argv: calls.append(argv) or 0)
+    monkeypatch.setenv("DENOISER_DATA_DIR", str(tmp_path / "var"))
+    monkeypatch.delenv("DENOISER_TRACKING_URI", raising=False)
+    get_settings.cache_clear()
+    try:
+        assert main(["mlflow-ui", "--port", "5055"]) == 0
+    finally:
+        get_settings.cache_clear()
+    database = (tmp_path / "var" / "mlflow" / "mlflow.db").resolve()
+    assert calls == [[sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", f"sqlite:///{database}",
+                      "--host", "127.0.0.1", "--port", "5055"]]
+    assert database.parent.is_dir()
+    assert main(["mlflow-ui", "--tracking-uri", "http://mlflow:5000"]) == 2
+    assert "open it in a browser" in capsys.readouterr().err

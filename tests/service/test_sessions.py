@@ -1,0 +1,228 @@
+"""service.sessions.SessionStore: frame-order rules, shared weights, the Redis mirror and restore, expiry, the cap."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import redis
+import torch
+from redis.backoff import NoBackoff
+from redis.retry import Retry
+
+from service.registry import UnknownModelError
+from service.sessions import (
+    CONTINUED,
+    RESET_CAMERA_CUT,
+    RESET_GAP,
+    STARTED,
+    FrameRejected,
+    SessionLimitReached,
+    SessionNotFound,
+    SessionStore,
+    deserialize_state,
+    serialize_state,
+)
+from tests.service.session_fixtures import (
+    MODEL_NAME,
+    FakeClock,
+    assert_same_image,
+    in_process_outputs,
+    make_store,
+    registry_settings,
+    shared_registry,
+    stream_frames,
+)
+
+__all__ = ["make_store", "registry_settings"]  # fixtures used by name
+
+
+def test_a_stream_gives_what_the_method_gives_in_process(make_store):
+    store = make_store()
+    session = store.create(MODEL_NAME, version="2")
+    frames = stream_frames(6)
+    expected = in_process_outputs(shared_registry().checkpoints["2"], frames)
+    results = [store.process_frame(session.id, frame) for frame in frames]
+    assert [r.history for r in results] == [STARTED] + [CONTINUED] * 5
+    for result, image in zip(results, expected):
+        assert result.output.shape == (32, 32, 3) and result.output.dtype == np.float32
+        assert_same_image(result.output, image)
+    assert session.frames_processed == 6 and session.next_frame_index == 6 and session.resolution == (16, 16)
+
+
+def test_frame_index_rules(make_store):
+    store = make_store()
+    frames = stream_frames(8)
+    reset = store.create(MODEL_NAME, on_gap="reset")
+    assert store.process_frame(reset.id, frames[3]).history == STARTED  # any index starts the history
+    assert store.process_frame(reset.id, frames[4]).history == CONTINUED
+    with pytest.raises(FrameRejected, match="frame_index 4 repeats the last frame processed") as caught:
+        store.process_frame(reset.id, frames[4])
+    assert caught.value.code == "frame_out_of_order" and caught.value.details == {"expected": 5, "received": 4}
+    with pytest.raises(FrameRejected, match="goes back") as caught:
+        store.process_frame(reset.id, frames[1])
+    assert caught.value.code == "frame_out_of_order"
+    gap = store.process_frame(reset.id, frames[7])
+    assert gap.history == RESET_GAP and reset.next_frame_index == 8
+    # A reset gap restarts the history: the output equals a fresh start on that frame.
+    assert_same_image(gap.output, store.process_frame(store.create(MODEL_NAME).id, frames[7]).output)
+
+    reject = store.create(MODEL_NAME, on_gap="reject")
+    store.process_frame(reject.id, frames[0])
+    with pytest.raises(FrameRejected, match=r"skips 2 frame\(s\)") as caught:
+        store.process_frame(reject.id, frames[3])
+    assert caught.value.code == "frame_gap" and reject.next_frame_index == 1  # a refused frame changes nothing
+    assert store.process_frame(reject.id, frames[1]).history == CONTINUED
+
+
+def test_a_camera_cut_is_reported_and_drops_the_history(make_store):
+    store = make_store()
+    frames = stream_frames(4, cuts=(2,))
+    session = store.create(MODEL_NAME, version="1")
+    histories = [store.process_frame(session.id, frame).history for frame in frames]
+    assert histories == [STARTED, CONTINUED, RESET_CAMERA_CUT, CONTINUED]
+
+
+def test_frames_must_keep_the_session_resolution_until_a_reset(make_store):
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    store.process_frame(session.id, stream_frames(1)[0])
+    larger = stream_frames(1, size=24, start=1)[0]
+    with pytest.raises(FrameRejected, match="frame 1 is 24x24 but this session's frames are 16x16") as caught:
+        store.process_frame(session.id, larger)
+    assert caught.value.code == "resolution_mismatch"
+    store.reset(session.id)
+    result = store.process_frame(session.id, larger)
+    assert result.history == STARTED and result.output.shape == (48, 48, 3)
+
+
+def test_sessions_of_one_version_share_its_weights(make_store):
+    store = make_store()
+    first, second = store.create(MODEL_NAME, version="1"), store.create(MODEL_NAME, alias="champion")
+    other = store.create(MODEL_NAME)  # latest: version 2
+    assert first.method is second.method and other.method is not first.method
+    assert (second.model.version, second.model.alias, other.model.version) == ("1", "champion", "2")
+    assert not any(p.requires_grad for p in first.method.parameters()) and not first.method.training
+    store.delete(first.id)
+    store.delete(second.id)
+    assert list(store._methods) == [(MODEL_NAME, "2")]  # weights no session uses are released
+
+
+def test_unknown_models_versions_and_aliases(make_store):
+    store = make_store()
+    with pytest.raises(UnknownModelError, match="model 'nope' does not exist"):
+        store.create("nope")
+    with pytest.raises(UnknownModelError, match="version 5 of model"):
+        store.create(MODEL_NAME, version="5")
+    with pytest.raises(UnknownModelError, match="has no alias 'gold'"):
+        store.create(MODEL_NAME, alias="gold")
+    with pytest.raises(ValueError, match="on_gap must be one of reset, reject"):
+        store.create(MODEL_NAME, on_gap="skip")
+    with pytest.raises(SessionNotFound):
+        store.get("0" * 32)
+    with pytest.raises(SessionNotFound):
+        store.get("../../etc")
+
+
+def test_state_bytes_round_trip_exactly():
+    base = torch.randn(1, 8, 32, 32)
+    state = {"a": base[:, :1], "b": base[:, 1:2], "count": torch.ones(1, 1, 1, 1)}
+    data = serialize_state(state)
+    assert len(data) < base.numel() * 4 / 2  # views are saved as themselves, not with their whole storage
+    restored = deserialize_state(data)
+    assert set(restored) == set(state) and all(torch.equal(restored[k], state[k]) for k in state)
+    assert serialize_state(None) == b"" and deserialize_state(b"") is None
+
+
+def test_a_restarted_store_continues_each_session_from_redis(make_store, redis_db):
+    frames = stream_frames(5)
+    expected = in_process_outputs(shared_registry().checkpoints["1"], frames)
+    first = make_store()
+    session = first.create(MODEL_NAME, version="1")
+    for frame in frames[:3]:
+        first.process_frame(session.id, frame)
+    key = f"{first.prefix}{session.id}"
+    assert 0 < redis_db.ttl(key) <= first.ttl_seconds
+
+    restarted = make_store()  # the same Redis and prefix, nothing in memory: a new API process
+    view = restarted.get(session.id)
+    assert (view.next_frame_index, view.frames_processed, view.resolution) == (3, 3, (16, 16))
+    fourth = restarted.process_frame(session.id, frames[3])
+    assert fourth.history == CONTINUED
+    assert_same_image(fourth.output, expected[3])
+
+    # The first process's memory copy is now older than Redis: it reloads before continuing, not forking.
+    fifth = first.process_frame(session.id, frames[4])
+    assert fifth.history == CONTINUED
+    assert_same_image(fifth.output, expected[4])
+    assert [s.id for s in restarted.list()] == [session.id]
+
+
+def test_idle_sessions_expire(make_store, redis_db):
+    clock = FakeClock()
+    store = make_store(clock=clock, session_ttl_seconds=60)
+    session = store.create(MODEL_NAME)
+    clock.advance(59)
+    store.process_frame(session.id, stream_frames(1)[0])  # use restarts the idle time
+    clock.advance(59)
+    assert store.get(session.id).id == session.id
+    clock.advance(2)
+    with pytest.raises(SessionNotFound, match="expired or deleted"):
+        store.get(session.id)
+    assert store.list() == [] or all(s.id != session.id for s in store.list())
+    # Expired in memory, and in Redis by its TTL.
+    assert 0 < redis_db.ttl(f"{store.prefix}{session.id}") <= 60
+
+
+def test_the_session_cap(make_store):
+    store = make_store(max_sessions=2)
+    first = store.create(MODEL_NAME)
+    store.create(MODEL_NAME)
+    with pytest.raises(SessionLimitReached, match="2 sessions are open, the server's limit is 2") as caught:
+        store.create(MODEL_NAME)
+    assert caught.value.details == {"max_sessions": 2, "open": 2}
+    # Sessions in Redis count too (a restarted process has none in memory yet).
+    with pytest.raises(SessionLimitReached):
+        make_store(max_sessions=2).create(MODEL_NAME)
+    store.delete(first.id)
+    store.create(MODEL_NAME)
+    with pytest.raises(SessionNotFound):
+        store.delete(first.id)
+
+
+def test_concurrent_frames_of_one_session_are_serialized(make_store):
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    frames = stream_frames(2)
+    store.process_frame(session.id, frames[0])
+    outcomes, barrier = [], threading.Barrier(4)
+
+    def post():
+        barrier.wait()
+        try:
+            outcomes.append(store.process_frame(session.id, frames[1]).history)
+        except FrameRejected as error:
+            outcomes.append(error.code)
+
+    threads = [threading.Thread(target=post) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(outcomes) == [CONTINUED] + ["frame_out_of_order"] * 3
+    assert session.frames_processed == 2
+
+
+def test_sessions_keep_working_in_memory_when_redis_is_down(registry_settings, caplog):
+    down = redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2, socket_timeout=0.2,
+                       retry=Retry(NoBackoff(), 0))
+    store = SessionStore(registry_settings, redis_client=down, prefix="denoiser:session:test-down:")
+    try:
+        session = store.create(MODEL_NAME)
+        results = [store.process_frame(session.id, frame).history for frame in stream_frames(2)]
+        assert results == [STARTED, CONTINUED]
+        assert [s.id for s in store.list()] == [session.id]
+        assert "could not mirror to Redis" in caplog.text
+    finally:
+        store.close()

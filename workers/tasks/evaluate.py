@@ -1,0 +1,207 @@
+"""The ``evaluate`` and ``benchmark`` jobs: model.evaluate's protocol on a stored dataset split.
+
+Both write ``report.json`` (the full report) and ``report.md`` (its table) into the job folder and summarize the
+methods in the job result; ``benchmark`` defaults its method list to the non-learned baselines and OIDN's three
+presets and also draws ``quality_speed.png`` (PSNR against time per frame, log scale, Pareto front). With
+``track`` the run goes to MLflow (experiment ``denoiser-evaluation``): parameters, one metric per method and
+measure, the files as artifacts; and a registered model version that was evaluated gets its measurements as
+version tags (``ms_per_frame``, ``metric.<name>``), which GET /models shows.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+from service.schemas import BenchmarkParams, EvaluateParams
+from service.storage import Storage
+from workers.tasks.checks import open_dataset, split_sequences
+from workers.tasks.context import JobContext
+from workers.tasks.methods import check_method, is_model_ref, runnable
+
+DEFAULT_BENCHMARK_METHODS = ("identity", "accumulation", "svgf", "oidn:fast", "oidn:balanced", "oidn:high")
+EXPERIMENT = "denoiser-evaluation"
+REPORT_JSON = "report.json"
+REPORT_MARKDOWN = "report.md"
+CHART = "quality_speed.png"
+ARTIFACTS = (REPORT_JSON, REPORT_MARKDOWN, CHART)
+SUMMARY_KEYS = ("label", "source", "method", "preset", "scale", "params", "flops_per_pixel", "ms_per_frame",
+                "time_ratio_to_oidn")
+
+
+def default_methods(scale: int) -> list[str]:
+    from model.methods.registry import method_spec, parse_method_name
+
+    return [m for m in DEFAULT_BENCHMARK_METHODS if scale in method_spec(parse_method_name(m)[0]).scales]
+
+
+def check(params: EvaluateParams, storage: Storage) -> dict[str, Any]:
+    dataset = open_dataset(storage, params.dataset)
+    split_sequences(dataset, params.dataset, params.split, params.scale)
+    methods = params.methods if params.methods is not None else default_methods(params.scale)
+    for method in methods:
+        check_method(method, params.scale, storage)
+    return {**params.model_dump(), "methods": list(methods)}
+
+
+def run(context: JobContext) -> dict[str, Any]:
+    from model.evaluate import TIMING_REFERENCE, evaluate, format_table
+
+    model = BenchmarkParams if context.record["kind"] == "benchmark" else EvaluateParams
+    params = model.model_validate(context.params)
+    methods = list(params.methods or default_methods(params.scale))
+    dataset_dir = context.storage.dataset(params.dataset)
+    sequences = split_sequences(open_dataset(context.storage, params.dataset), params.dataset, params.split,
+                                params.scale)
+    timed_separately = params.oidn_timing and TIMING_REFERENCE not in methods
+    total = (len(methods) + int(timed_separately)) * len(sequences)
+    runs = 0
+
+    def say(message: str) -> None:
+        nonlocal runs, total
+        total = max(total, runs + 1)
+        context.progress(runs, total, message)
+        runs += 1
+
+    tracker = _start_tracking(context, params, methods) if params.track else None
+    try:
+        report = evaluate(dataset_dir, [runnable(m, context.storage) for m in methods], split=params.split,
+                          scale=params.scale, frame_limit=params.frames, threads=params.threads, vdp=params.vdp,
+                          timing_reference=TIMING_REFERENCE if params.oidn_timing else None,
+                          device=context.torch_device, progress=say)
+        context.progress(total, total, "writing the report")
+        for entry, text in zip(report["methods"], methods):
+            entry["source"] = text  # the reference as given, not the cached checkpoint's path
+        report["dataset"] = params.dataset
+        files = _write_files(context.folder, report, format_table(report), chart=context.record["kind"] ==
+                             "benchmark")
+        if tracker is not None:
+            _log_results(tracker, report, files)
+            tracker.finish("FINISHED")
+    except BaseException:
+        if tracker is not None:
+            tracker.finish("KILLED" if context.cancelled.is_set() else "FAILED")
+        raise
+    if params.track:
+        _tag_registered_versions(context, report, f"{params.dataset}/{params.split}")
+    return summary(context.job_id, report, files)
+
+
+def summary(job_id: str, report: dict, files: dict[str, Path]) -> dict[str, Any]:
+    reference = report["timing_reference"]
+    return {
+        "dataset": report["dataset"], "split": report["split"], "scale": report["scale"],
+        "sequences": len(report["sequences"]), "frames": sum(s["frames"] for s in report["sequences"]),
+        "threads": report["threads"], "device": report["device"],
+        "timing_reference": None if reference is None else {"label": reference["label"],
+                                                            "ms_per_frame": reference["ms_per_frame"]},
+        "methods": [{**{key: entry.get(key) for key in SUMMARY_KEYS}, "metrics": entry["metrics"]}
+                    for entry in report["methods"]],
+        "table": files["table"],
+        "artifacts": {name: f"/jobs/{job_id}/artifacts/{name}" for name in files if name in ARTIFACTS},
+    }
+
+
+def _write_files(folder: Path, report: dict, table: str, chart: bool) -> dict[str, Any]:
+    (folder / REPORT_JSON).write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
+    (folder / REPORT_MARKDOWN).write_text(table + "\n")
+    files: dict[str, Any] = {REPORT_JSON: folder / REPORT_JSON, REPORT_MARKDOWN: folder / REPORT_MARKDOWN,
+                             "table": table}
+    if chart:
+        path = quality_speed_chart(report, folder / CHART)
+        if path is not None:
+            files[CHART] = path
+    return files
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats on both time (lower) and quality (higher), by time."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], float("-inf")
+    for index in order:
+        if points[index][1] > best:
+            front.append(index)
+            best = points[index][1]
+    return front
+
+
+def quality_speed_chart(report: dict, path: Path) -> Path | None:
+    """PSNR (y) against ms per frame (x, log scale), one point per method, the Pareto front drawn."""
+    from matplotlib.figure import Figure
+
+    entries = [e for e in report["methods"] if e["ms_per_frame"] and e["metrics"].get("psnr") is not None]
+    if not entries:
+        return None
+    points = [(e["ms_per_frame"], e["metrics"]["psnr"]) for e in entries]
+    figure = Figure(figsize=(7, 4.5))
+    axis = figure.subplots()
+    axis.scatter([p[0] for p in points], [p[1] for p in points], zorder=3)
+    for entry, (x, y) in zip(entries, points):
+        axis.annotate(entry["label"], (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    front = pareto_front(points)
+    axis.plot([points[i][0] for i in front], [points[i][1] for i in front], linestyle="--", color="gray",
+              zorder=2, label="Pareto front")
+    axis.set_xscale("log")
+    axis.set_xlabel(f"ms per frame (median, {report['threads']} threads, {report['device']})")
+    axis.set_ylabel("PSNR dB (display-encoded)")
+    axis.set_title(f"{report['dataset']} / {report['split']}, scale {report['scale']}", fontsize=10)
+    axis.grid(True, which="both", alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------- MLflow
+
+def _metric_key(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_\-. :/]", "_", text)
+
+
+def _start_tracking(context: JobContext, params: EvaluateParams, methods: list[str]):
+    from workers.tracking import MLflowTracker
+
+    tracker = MLflowTracker(context.settings.resolved_tracking_uri(), EXPERIMENT,
+                            run_name=f"{context.record['kind']} {params.dataset}/{params.split} "
+                                     f"(job {context.job_id[:8]})")
+    tracker.start({"kind": context.record["kind"], "job_id": context.job_id, "dataset": params.dataset,
+                   "split": params.split, "scale": params.scale, "methods": ",".join(methods),
+                   "frames": params.frames, "vdp": params.vdp, "device": context.torch_device})
+    context.set_mlflow_run(tracker.run_id, getattr(tracker, "_experiment_id", None))
+    return tracker
+
+
+def _log_results(tracker, report: dict, files: dict[str, Any]) -> None:
+    metrics: dict[str, float] = {}
+    for entry in report["methods"]:
+        name = _metric_key(entry["source"])
+        values = {**entry["metrics"], "ms_per_frame": entry["ms_per_frame"],
+                  "time_ratio_to_oidn": entry["time_ratio_to_oidn"]}
+        metrics.update({f"{name}/{key}": value for key, value in values.items() if value is not None})
+    tracker.log_metrics(metrics, step=0)
+    for name, path in files.items():
+        if name in ARTIFACTS:
+            tracker.client.log_artifact(tracker.run_id, str(path))
+
+
+def _tag_registered_versions(context: JobContext, report: dict, evaluated_on: str) -> None:
+    """Measurements of evaluated registered versions as version tags (best effort: only metadata is at stake)."""
+    refs = [entry for entry in report["methods"] if is_model_ref(entry["source"])]
+    if not refs:
+        return
+    try:
+        from service.registry import get_registry
+
+        registry = get_registry()
+        for entry in refs:
+            version = registry.resolve(entry["source"]).info
+            tags = {f"metric.{key}": f"{value:.6g}" for key, value in entry["metrics"].items() if value is not None}
+            if entry["ms_per_frame"] is not None:
+                tags["ms_per_frame"] = f"{entry['ms_per_frame']:.6g}"
+            tags["evaluated_on"] = evaluated_on
+            for key, value in tags.items():
+                registry.client.set_model_version_tag(version.name, version.version, key, value)
+    except Exception:
+        context.logger.warning("could not tag the evaluated model versions", exc_info=True)
