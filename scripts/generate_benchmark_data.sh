@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Renders the dataset the README's evaluation tables use: whole scenes held out of training.
-#   train:      diffuse_room, textured_detail, metals, moving_object, fast_camera, dark_fireflies
+#   train:      diffuse_room, textured_detail, metals, moving_object, fast_camera, dark_fireflies,
+#               swinging_light (added for the 2x results: lighting that changes, a recipe unlike moving_light)
 #   validation: other seeds of diffuse_room and moving_object
 #   test:       glass, moving_light, camera_cut (recipes never seen in training)
 # 128x128 render resolution, references at 1x and 2x (256 spp at 256x256: 1024 per 1x pixel).
@@ -12,5 +13,7 @@ gen() { .venv/bin/denoiser generate --size 128 --ref-spp 256 --scales 1,2 --quie
 gen --split train --frames 12 --seed 1 --scene diffuse_room --scene textured_detail --scene metals \
     --scene moving_object --scene fast_camera --scene dark_fireflies
 gen --split train --frames 12 --seed 2 --scene textured_detail --scene metals
+gen --split train --frames 12 --seed 1 --scene swinging_light
+gen --split train --frames 12 --seed 2 --scene swinging_light
 gen --split validation --frames 8 --seed 3 --scene diffuse_room --scene moving_object
 gen --split test --frames 12 --seed 4 --scene glass --scene moving_light --scene camera_cut

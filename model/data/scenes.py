@@ -313,6 +313,30 @@ def moving_light(rng: np.random.Generator, frames: int) -> AnimatedScene:
     return AnimatedScene("moving_light", [camera] * frames, objects, sky=(0.02, 0.02, 0.03))
 
 
+@recipe("swinging_light", "a lamp swings across a room over a slow camera orbit: lighting changes, history misleads")
+def swinging_light(rng: np.random.Generator, frames: int) -> AnimatedScene:
+    # Teaches what moving_light tests (lighting that changes under valid geometry) with another motion, room
+    # and camera, so that the held-out moving_light recipe stays unseen in training.
+    objects = _room(rng, frames, wall=ImageTexture(_random_texture(rng), tiles=2.0))
+    for i, (x, z) in enumerate(_scattered_positions(rng, 4)):
+        if i % 2:
+            objects.append(_sphere(f"ball{i}", (x, 0.35, z), 0.35, plastic(_colour(rng), 0.3), frames))
+        else:
+            half = rng.uniform(0.25, 0.45)
+            objects.append(_box(f"box{i}", (x, half, z), (half, half, half), rng.uniform(0, 90),
+                                diffuse(_colour(rng)), frames))
+    swing, phase = rng.uniform(1.2, 1.8), rng.uniform(0, 2 * np.pi)
+    cycles = rng.uniform(0.6, 1.2)
+    light_path = []
+    for t in _progress(frames):
+        x = swing * np.sin(phase + 2 * np.pi * cycles * t)
+        light_path.append(compose(translate(x, 2.4 + 0.3 * np.cos(phase + 2 * np.pi * cycles * t), 0.3),
+                                  scale(0.15)))
+    objects.append(SceneObject("swinging_light", "sphere", light_path, diffuse((0.0, 0.0, 0.0)),
+                               emission=(45.0, 42.0, 36.0)))
+    return AnimatedScene("swinging_light", _orbit_cameras(rng, frames, 8.0), objects, sky=(0.03, 0.03, 0.04))
+
+
 @recipe("moving_object", "a box slides across a textured wall, disoccluding it, under a static camera")
 def moving_object(rng: np.random.Generator, frames: int) -> AnimatedScene:
     objects = _room(rng, frames, wall=ImageTexture(_random_texture(rng), tiles=3.0)) + [_ceiling_light(frames)]

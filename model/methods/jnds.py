@@ -451,6 +451,15 @@ class JNDS(Method):
         self.network.channels_last_inputs = True
         return self
 
+    def float_twin(self) -> JNDS | None:
+        """The float32 network of the same architecture, for counting parameters and FLOPs of an int8 model:
+        its packed int8 weights are not torch parameters, and torch's FLOP counter skips quantized kernels."""
+        return JNDS(self.preset.removesuffix(INT8_SUFFIX), self.scale) if self.is_int8 else None
+
+    def parameter_count(self) -> int:
+        twin = self.float_twin()
+        return twin.parameter_count() if twin is not None else super().parameter_count()
+
     def load_float_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
         """Load a float32 JNDS state dict of the same base preset into this QAT model (the paper's second phase).
 

@@ -47,6 +47,11 @@ def test_recipes_cover_the_named_hard_cases():
     assert [o.name for o in _moving(light_scene)] == ["moving_light"] and _moving(light_scene)[0].emission
     assert len({c for c in light_scene.cameras}) == 1
 
+    swinging = build_scene("swinging_light", 0, 8)
+    lights = [o for o in swinging.objects if o.emission is not None]
+    assert [o.name for o in _moving(swinging)] == ["swinging_light"] == [o.name for o in lights]
+    assert len({c for c in swinging.cameras}) == 8  # the camera moves too, unlike moving_light's
+
     object_scene = build_scene("moving_object", 0, 8)
     assert [o.emission for o in _moving(object_scene)] == [None]
 

@@ -275,6 +275,19 @@ def test_int8_conversion_is_close_to_the_fake_quantized_model(preset, scale):
         assert difference.max() <= INT8_MAX_TOLERANCE * expected.abs().max()
 
 
+def test_int8_model_reports_the_parameters_and_flops_of_its_float_network():
+    from model.methods.registry import flops_per_pixel
+
+    frames = [example_batch(16, 16, seed=s) for s in range(3)]
+    int8 = calibrated_qat("xs", 2, frames).for_inference()
+    float_method = build_method("jnds:xs", scale=2)
+    assert int8.is_int8
+    # Packed int8 weights are not torch parameters and the FLOP counter skips quantized kernels.
+    assert sum(p.numel() for p in int8.parameters()) < float_method.parameter_count()
+    assert int8.parameter_count() == float_method.parameter_count()
+    assert flops_per_pixel(int8) == pytest.approx(flops_per_pixel(float_method))
+
+
 def test_int8_needs_calibration_and_float_weights_load_into_qat():
     float_method = build_method("jnds:xs", scale=2)
     qat = build_method("jnds:xs-int8", scale=2)
