@@ -60,7 +60,9 @@ def _check_folder_name(name: str, what: str) -> str:
     return name
 
 
-def _write_json_atomically(path: Path, content: dict) -> None:
+def write_json_atomically(path: Path, content: dict) -> None:
+    """Write ``content`` as indented JSON under a temporary name beside ``path``, then rename it over ``path``:
+    readers see the old file or the new one, never half of one."""
     temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
     try:
         temporary.write_text(json.dumps(content, indent=2) + "\n")
@@ -302,7 +304,7 @@ class SequenceWriter:
             "frames": self._frames,
             "metadata": self.metadata,
         }
-        _write_json_atomically(temporary / MANIFEST, manifest)
+        write_json_atomically(temporary / MANIFEST, manifest)
         _move_folder_into_place(temporary, self.path, self.overwrite)
 
 
@@ -356,7 +358,7 @@ class Dataset:
         root.mkdir(parents=True, exist_ok=True)
         if (root / MANIFEST).exists():
             raise FileExistsError(f"{root / MANIFEST} already exists; open it with Dataset({str(root)!r})")
-        _write_json_atomically(root / MANIFEST, {"format": DATASET_FORMAT, "sequences": {}})
+        write_json_atomically(root / MANIFEST, {"format": DATASET_FORMAT, "sequences": {}})
         return cls(root)
 
     def names(self, split: str | None = None) -> list[str]:
@@ -440,7 +442,7 @@ class Dataset:
             raise DatasetError(f"{self.manifest_path}: no sequence named '{name}'") from None
 
     def _save(self) -> None:
-        _write_json_atomically(self.manifest_path, {"format": DATASET_FORMAT, "sequences": self._entries})
+        write_json_atomically(self.manifest_path, {"format": DATASET_FORMAT, "sequences": self._entries})
 
     def __len__(self) -> int:
         return len(self._entries)

@@ -2,7 +2,9 @@
 
 Every method is driven exactly as in inference, ``output, state = method.step(frame, state)`` frame by frame,
 with its history carried through the sequence (``state=None`` on the first frame; camera cuts are flagged in the
-frames and honoured by the method). The method never sees the reference: it gets ``frame.without_reference()``.
+frames and honoured by the method). The method never sees the reference: it gets ``frame.without_reference()``,
+passed through ``model.sanitize.sanitize_frame`` (NaN/Inf and out-of-range values repaired, outside the timed
+step); the repaired pixels are counted per sequence and buffer in the report (``sanitized_inputs``).
 
 Quality, per frame then averaged per sequence (``model.metrics``): PSNR, SSIM and FLIP on display-encoded images,
 SMAPE on linear HDR; per sequence: the temporal error and FovVideoVDP's JOD. A method's mean over a split
@@ -33,6 +35,7 @@ from model.dataset import Dataset, Sequence
 from model.methods.base import FrameBatch, Method
 from model.metrics import VDP_DISPLAY, VDP_FRAMES_PER_SECOND, FovVideoVdp, frame_metrics, temporal_error
 from model.ops.tonemap import display_encode
+from model.sanitize import SanitizeReport, sanitize_frame
 
 FRAME_METRICS = ("psnr", "ssim", "flip", "smape")
 SEQUENCE_METRICS = ("temporal_error", "fvvdp_jod")
@@ -128,7 +131,9 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
     """Step ``method`` through ``sequence``: step times of the frames after warm-up, and (``with_metrics``)
     per-sequence means of the frame metrics, the temporal error and, when ``vdp`` is given, the JOD.
 
-    Returns {"frames", "step_seconds": [...], and with metrics "metrics": {name: value or None}}.
+    Every input frame goes through ``sanitize_frame`` first (not timed). Returns {"frames", "step_seconds": [...],
+    "sanitized": the repaired-pixel counts (``SanitizeReport.to_dict``), and with metrics "metrics": {name: value
+    or None} and "per_frame": {frame metric: [value per frame]}}.
     """
     device = torch.device(device)
     method.eval()
@@ -137,9 +142,11 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
     frame_values: dict[str, list[float]] = {name: [] for name in FRAME_METRICS}
     outputs_ldr: list[torch.Tensor] = []
     references_ldr: list[torch.Tensor] = []
+    sanitized = SanitizeReport()
     with torch.inference_mode():
         for index, frame in enumerate(sequence.frames):
-            inputs = frame.without_reference().to(device)
+            inputs, repaired = sanitize_frame(frame.without_reference().to(device))
+            sanitized = sanitized + repaired
             _synchronize(device)
             start = time.perf_counter()
             output, state = method.step(inputs, state)
@@ -154,8 +161,9 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
             outputs_ldr.append(display_encode(output[0]))
             references_ldr.append(display_encode(frame.reference[0]))
 
-    result: dict = {"frames": len(sequence.frames), "step_seconds": step_seconds}
+    result: dict = {"frames": len(sequence.frames), "step_seconds": step_seconds, "sanitized": sanitized.to_dict()}
     if with_metrics:
+        result["per_frame"] = frame_values
         metrics: dict[str, float | None] = {name: statistics.fmean(v) for name, v in frame_values.items()}
         outputs, references = torch.stack(outputs_ldr), torch.stack(references_ldr)
         # On display-encoded frames, as the other LDR metrics: flicker in the dark counts as the eye sees it,
@@ -279,7 +287,7 @@ def evaluate(dataset_dir: str | os.PathLike, methods: list[Method | str], split:
     reference = _timing_reference(timing_reference, entrants, scale)
     runners = entrants + ([reference] if reference is not None and reference.timing_only else [])
 
-    with _torch_threads(threads):
+    with torch_threads(threads):
         descriptions = [method_description(e.method, e.source) for e in entrants]
         for entrant in runners:
             entrant.method.to(device)
@@ -314,6 +322,8 @@ def evaluate(dataset_dir: str | os.PathLike, methods: list[Method | str], split:
                 "label": reference.method.label, "ms_per_frame": reference_ms,
                 "timing": _timing(reference_seconds, sequences, warmup_frames, device)},
             "fvvdp": _vdp_section(metric, entrants),
+            # The same for every method (the inputs are): counts from the first method's runs.
+            "sanitized_inputs": {s.name: runners[0].runs[s.name]["sanitized"] for s in sequences},
             "methods": [summarize_method(description, e.runs, sequences, warmup_frames, device, reference_ms)
                         for description, e in zip(descriptions, entrants)],
         }
@@ -334,7 +344,7 @@ class _Entrant:
 
 
 @contextmanager
-def _torch_threads(threads: int | None) -> Iterator[None]:
+def torch_threads(threads: int | None) -> Iterator[None]:
     previous = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)
@@ -412,6 +422,11 @@ def format_table(report: dict) -> str:
                f"input {inputs} -> output {outputs} (scale {report['scale']}); time per frame = median after "
                f"{report['warmup_frames_per_sequence']} warm-up frames per sequence, {report['threads']} threads, "
                f"{report['device']}; {reference_text}")
+    repaired = {name: counts["total"] for name, counts in report.get("sanitized_inputs", {}).items()
+                if counts["total"]}
+    if repaired:
+        caption += "; inputs sanitized (NaN/Inf or out of range, pixels): " + ", ".join(
+            f"{name} {total}" for name, total in repaired.items())
     if not report["fvvdp"]["enabled"]:
         caption += "; FovVideoVDP skipped"
     elif not report["fvvdp"]["available"]:

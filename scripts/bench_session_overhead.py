@@ -6,32 +6,39 @@
     .venv/bin/python scripts/bench_session_overhead.py --url http://gpu-box:8000 --model jnds-s-x2@champion \\
         --checkpoint jnds-s.pt --api-key "$DENOISER_API_KEY"
 
-Without ``--url`` the API runs in this process (uvicorn on a free port, in a thread) on a temporary data folder
-and MLflow store; the method (``--method`` preset with seeded random weights, or ``--checkpoint``) is saved,
-registered there, and a session is opened on it by name. Timing does not depend on the weights. With ``--url``,
-the model must already be registered on that server (``--model NAME``, ``NAME/VERSION`` or ``NAME@ALIAS``) and
-``--checkpoint`` gives the same weights for the in-process side.
+Without ``--url`` the API is started here on a free port, on a temporary data folder and MLflow store: by default
+as its own process (``uvicorn service.main:app``), as in a deployment, so client and server share no Python
+interpreter; ``--server thread`` runs it in a thread of this process instead (client and server then share one
+GIL, which inflates the round trip). The method (``--method`` preset with seeded random weights, or
+``--checkpoint``) is saved, registered there, and a session is opened on it by name. Timing does not depend on the
+weights. With ``--url``, the model must already be registered on that server (``--model NAME``, ``NAME/VERSION``
+or ``NAME@ALIAS``) and ``--checkpoint`` gives the same weights for the in-process side.
 
-Frames are synthetic valid frame bundles (or the first sequence of ``--data``, cycled and renumbered), encoded to
-EXR before timing. Timed per frame, after ``--warmup`` frames, median over ``--frames``:
+Frames are synthetic valid frame bundles (or the first sequence of ``--data``, cycled and renumbered). The client
+is service.client.DenoiserClient. Timed per frame, after ``--warmup`` frames, median over ``--frames``:
 
-- round trip: the client's POST until the whole output EXR has arrived (upload, server, download);
-- server: the X-Server-Ms header (body read, EXR decode, step, Redis mirror, EXR encode);
+- client encode: the frame bundle to EXR bytes (service.client.frame_bytes, ``--compression``);
+- round trip: send_frame_raw's POST until the whole output EXR has arrived (upload, server, download);
+- server: the X-Server-Ms header (body read, EXR decode, step, EXR encode; the Redis mirror is written in the
+  background);
 - step: the X-Inference-Ms header (method.step in the session);
 - in process: method.step on the same frames, here, with the same torch thread count, history carried;
   interleaved with the HTTP stream (frame i over HTTP, then frame i here), so load from other processes on a
   shared machine hits both alike.
 
-The overhead ratio is round trip / in-process step. In-process mode shares one Python process (and its GIL)
-between client and server, which a real deployment does not; ``--url`` measures a separate server.
+The overhead ratio is round trip / in-process step; client encode is reported beside it, not in it. Round trip /
+step in session is printed too: on a busy machine the two steps drift apart (different processes; the server's
+background Redis write of frame i overlaps the in-process step of frame i), so read both.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import socket
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
@@ -44,10 +51,13 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model.checkpoint import load_method, save_checkpoint  # noqa: E402
-from model.exr import decode_image_exr, encode_frame_exr  # noqa: E402
+from model.exr import decode_image_exr  # noqa: E402
 from model.frames import FrameBundle  # noqa: E402
 from model.methods.base import FrameBatch  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
+from service.client import FRAME_COMPRESSIONS, DenoiserClient, frame_bytes  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def parse_args() -> argparse.Namespace:
@@ -57,7 +67,12 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--scale", type=int, default=2, help="output / render resolution (default 2)")
     parser.add_argument("--checkpoint", type=Path, help="a model.checkpoint file instead of --method")
     parser.add_argument("--model", help="already registered model: NAME, NAME/VERSION or NAME@ALIAS")
-    parser.add_argument("--url", help="a running API (default: start one in this process)")
+    parser.add_argument("--url", help="a running API (default: start one here, see --server)")
+    parser.add_argument("--server", choices=("process", "thread"), default="process",
+                        help="without --url: run the API as its own uvicorn process (default) or in a thread here")
+    parser.add_argument("--compression", choices=sorted(FRAME_COMPRESSIONS), default=None,
+                        help="EXR compression of the frames sent (default: the client's, "
+                             "service.client.FRAME_COMPRESSION)")
     parser.add_argument("--api-key", default=os.environ.get("DENOISER_API_KEY"), help="X-API-Key for --url")
     parser.add_argument("--redis-url", default=os.environ.get("DENOISER_REDIS_URL", "redis://127.0.0.1:6379/0"),
                         help="Redis of the in-process API (session mirror)")
@@ -101,12 +116,9 @@ def dataset_frames(path: Path, count: int) -> list[FrameBundle]:
     except DatasetError:  # not a sequence folder: a dataset folder
         sequence = Dataset(path).sequences()[0]
     source = list(sequence)
-    frames = []
-    for index in range(count):
-        frame = source[index % len(source)]
-        frame.frame_index, frame.camera_cut = index, False
-        frames.append(frame)
-    return frames
+    # Copies: cycling repeats a source frame, and each repeat has its own index.
+    return [dataclasses.replace(source[index % len(source)], frame_index=index, camera_cut=False)
+            for index in range(count)]
 
 
 # --- the API ---------------------------------------------------------------------------------------------
@@ -118,15 +130,11 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def start_local_api(work: Path, args: argparse.Namespace, checkpoint: Path) -> tuple[str, str, object]:
-    """Register ``checkpoint`` in a fresh store under ``work`` and serve the API from a thread; (url, model, server)."""
+def register_checkpoint(work: Path, args: argparse.Namespace, checkpoint: Path) -> tuple[dict, str]:
+    """Register ``checkpoint`` in a fresh store under ``work``; (the API's DENOISER_* settings, the model name)."""
     tracking_uri = f"sqlite:///{work / 'mlflow' / 'mlflow.db'}"
-    os.environ.update({"DENOISER_DATA_DIR": str(work / "data"), "DENOISER_TRACKING_URI": tracking_uri,
-                       "DENOISER_REDIS_URL": args.redis_url, "DENOISER_SESSION_THREADS": str(args.threads)})
-    os.environ.pop("DENOISER_API_KEY", None)
-    from service.settings import get_settings
-
-    get_settings.cache_clear()
+    env = {"DENOISER_DATA_DIR": str(work / "data"), "DENOISER_TRACKING_URI": tracking_uri,
+           "DENOISER_REDIS_URL": args.redis_url, "DENOISER_SESSION_THREADS": str(args.threads)}
     model = args.model
     if model is None:
         from workers.tracking import MLflowTracker
@@ -138,35 +146,74 @@ def start_local_api(work: Path, args: argparse.Namespace, checkpoint: Path) -> t
         tracker.log_model(checkpoint, model, {"method": method.name, "preset": method.preset,
                                               "scale": str(method.scale), "params": str(method.parameter_count())})
         tracker.finish("FINISHED")
+    return env, model
 
-    import uvicorn
 
-    try:
+def wait_until_up(url: str, alive, what: str) -> None:
+    import httpx
+
+    deadline = time.monotonic() + 120
+    while True:
+        try:
+            if httpx.get(f"{url}/health", timeout=1).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        if not alive() or time.monotonic() > deadline:
+            raise SystemExit(f"{what} did not start")
+        time.sleep(0.1)
+
+
+class ProcessApi:
+    """``uvicorn service.main:app`` as a child process (the deployment's program), stopped on ``stop()``."""
+
+    def __init__(self, env: dict) -> None:
+        port = free_port()
+        environment = {**os.environ, **env}
+        environment.pop("DENOISER_API_KEY", None)
+        environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), environment.get("PYTHONPATH")]))
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "service.main:app", "--host", "127.0.0.1", "--port", str(port),
+             "--log-level", "warning", "--no-access-log"], cwd=REPO, env=environment)
+        self.url = f"http://127.0.0.1:{port}"
+        try:
+            wait_until_up(self.url, lambda: self.process.poll() is None, "the API process")
+        except BaseException:
+            self.stop()
+            raise
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(30)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+class ThreadApi:
+    """The API served from a thread of this process (client and server share the GIL)."""
+
+    def __init__(self, env: dict) -> None:
+        import uvicorn
+
+        os.environ.update(env)
+        os.environ.pop("DENOISER_API_KEY", None)
+        from service.settings import get_settings
+
+        get_settings.cache_clear()
         from service.main import create_app
 
-        app = create_app()
-    except ImportError as error:  # a router module of another resource is missing: serve sessions and models
-        print(f"note: full app unavailable ({error}); serving /sessions and /models only")
-        from fastapi import FastAPI
+        port = free_port()
+        self.server = uvicorn.Server(uvicorn.Config(create_app(), host="127.0.0.1", port=port, log_level="warning"))
+        thread = threading.Thread(target=self.server.run, daemon=True)
+        thread.start()
+        self.url = f"http://127.0.0.1:{port}"
+        wait_until_up(self.url, thread.is_alive, "the in-process API")
 
-        from service.errors import install_error_handlers
-        from service.routes import models as models_routes
-        from service.routes import sessions as sessions_routes
-
-        app = FastAPI()
-        install_error_handlers(app)
-        app.include_router(models_routes.router)
-        app.include_router(sessions_routes.router)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        if not thread.is_alive() or time.monotonic() > deadline:
-            raise SystemExit("the in-process API did not start")
-        time.sleep(0.05)
-    return f"http://127.0.0.1:{port}", model, server
+    def stop(self) -> None:
+        self.server.should_exit = True
 
 
 def session_body(model: str) -> dict:
@@ -200,38 +247,34 @@ class InProcess:
         return elapsed
 
 
-def run(url: str, model: str, frames: list[FrameBundle], bodies: list[bytes], local: InProcess, warmup: int,
-        api_key: str | None) -> dict:
-    """Each frame over HTTP, then the same frame in process: interleaved, so load from other processes on a
-    shared machine hits both alike."""
-    import httpx
-
-    headers = {"X-API-Key": api_key} if api_key else {}
-    times: dict[str, list[float]] = {"round_trip": [], "server": [], "inference": [], "local": []}
-    outputs = []
-    with httpx.Client(base_url=url, headers=headers, timeout=120) as client:
-        created = client.post("/sessions", json={**session_body(model), "on_gap": "reject"})
-        if created.status_code != 201:
-            raise SystemExit(f"POST /sessions: {created.status_code} {created.text}")
-        session = created.json()
-        frames_url = f"/sessions/{session['id']}/frames"
+def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, warmup: int, api_key: str | None,
+        compression: str | None) -> dict:
+    """Each frame encoded and sent over HTTP, then the same frame in process: interleaved, so load from other
+    processes on a shared machine hits both alike."""
+    times: dict[str, list[float]] = {"encode": [], "round_trip": [], "server": [], "inference": [], "local": []}
+    outputs, sizes = [], []
+    options = {} if compression is None else {"compression": compression}
+    with DenoiserClient(url, api_key=api_key, timeout=120) as client:
+        session = client.create_session(**session_body(model), on_gap="reject")
         try:
-            for index, (frame, body) in enumerate(zip(frames, bodies)):
+            for index, frame in enumerate(frames):
                 started = time.perf_counter()
-                response = client.post(frames_url, content=body, headers={"Content-Type": "image/x-exr"})
-                elapsed = (time.perf_counter() - started) * 1000
-                if response.status_code != 200:
-                    raise SystemExit(f"frame {index}: {response.status_code} {response.text}")
-                outputs.append(response.content)
+                body = frame_bytes(frame, **options)
+                encode_ms = (time.perf_counter() - started) * 1000
+                data, info = client.send_frame_raw(session["id"], body)
+                outputs.append(data)
+                sizes.append(len(body))
                 local_ms = local.step(frame)
                 if index >= warmup:
-                    times["round_trip"].append(elapsed)
-                    times["server"].append(float(response.headers["X-Server-Ms"]))
-                    times["inference"].append(float(response.headers["X-Inference-Ms"]))
+                    times["encode"].append(encode_ms)
+                    times["round_trip"].append(info.round_trip_ms)
+                    times["server"].append(info.server_ms)
+                    times["inference"].append(info.inference_ms)
                     times["local"].append(local_ms)
         finally:
-            client.delete(f"/sessions/{session['id']}")
-    return {"session": session, "times": times, "outputs": outputs, "bytes_out": len(outputs[-1])}
+            client.delete_session(session["id"])
+    return {"session": session, "times": times, "outputs": outputs, "bytes_in": sizes[-1],
+            "bytes_out": len(outputs[-1])}
 
 
 def main() -> None:
@@ -248,7 +291,6 @@ def main() -> None:
             checkpoint = save_checkpoint(work / "checkpoint.pt", method=build_method(args.method, scale=args.scale))
         label = load_method(checkpoint).label
         frames = dataset_frames(args.data, total) if args.data else synthetic_frames(total, args.size)
-        bodies = [encode_frame_exr(frame) for frame in frames]
 
         server = None
         if args.url:
@@ -256,13 +298,15 @@ def main() -> None:
                 raise SystemExit("--url needs --model: a model registered on that server")
             url, model = args.url.rstrip("/"), args.model
         else:
-            url, model, server = start_local_api(work, args, checkpoint)
+            env, model = register_checkpoint(work, args, checkpoint)
+            server = (ProcessApi if args.server == "process" else ThreadApi)(env)
+            url = server.url
         local = InProcess(checkpoint)
         try:
-            http = run(url, model, frames, bodies, local, args.warmup, args.api_key)
+            http = run(url, model, frames, local, args.warmup, args.api_key, args.compression)
         finally:
             if server is not None:
-                server.should_exit = True
+                server.stop()
 
     scale = http["session"]["model"]["scale"]
     height, width = frames[0].height, frames[0].width
@@ -270,16 +314,21 @@ def main() -> None:
                      for data, expected in zip(http["outputs"], local.outputs))
     median = statistics.median
     times = http["times"]
-    round_trip, local_ms = median(times["round_trip"]), median(times["local"])
+    round_trip, server_ms, step_ms, local_ms = (median(times[name])
+                                                for name in ("round_trip", "server", "inference", "local"))
+    where = f"server {url}" if args.url else f"API in {'its own process' if args.server == 'process' else 'a thread'}"
     print(f"{label} ({model}) {width}x{height} -> {width * scale}x{height * scale}, {args.frames} timed frames "
-          f"after {args.warmup}, {args.threads} torch thread(s), frame EXR {len(bodies[0]) / 1e6:.2f} MB in, "
-          f"{http['bytes_out'] / 1e6:.2f} MB out, {'server ' + url if args.url else 'API in this process'}")
-    print(f"  HTTP round trip     median {round_trip:8.2f} ms/frame")
-    print(f"    server (X-Server-Ms)     {median(times['server']):8.2f} ms   "
-          f"step in session (X-Inference-Ms) {median(times['inference']):8.2f} ms")
-    print(f"  in-process step     median {local_ms:8.2f} ms/frame")
+          f"after {args.warmup}, {args.threads} torch thread(s), frame EXR ({args.compression or 'client default'}) "
+          f"{http['bytes_in'] / 1e6:.2f} MB in, {http['bytes_out'] / 1e6:.2f} MB out, {where}")
+    print(f"  client encode            median {median(times['encode']):8.2f} ms/frame (not in the round trip)")
+    print(f"  HTTP round trip          median {round_trip:8.2f} ms/frame")
+    print(f"    server (X-Server-Ms)   median {server_ms:8.2f} ms   (client + transfer: {round_trip - server_ms:.2f})")
+    print(f"    step (X-Inference-Ms)  median {step_ms:8.2f} ms   (server outside the step: "
+          f"{server_ms - step_ms:.2f})")
+    print(f"  in-process step          median {local_ms:8.2f} ms/frame")
     print(f"  overhead ratio (round trip / in-process step) {round_trip / local_ms:.2f}x, "
           f"+{round_trip - local_ms:.2f} ms/frame")
+    print(f"    (round trip / step in session {round_trip / step_ms:.2f}x: the same step, timed in the server)")
     print(f"  max |session output - in-process output| over the stream: {difference:.3g}")
 
 

@@ -12,6 +12,13 @@ from service.errors import ApiError
 from service.settings import Settings, get_settings
 
 API_KEY_HEADER = "X-API-Key"
+# How the 401 is documented on every protected operation (OpenAPI).
+UNAUTHORIZED_RESPONSE = {
+    "description": f"the server requires an API key: {API_KEY_HEADER} is missing or does not match",
+    "headers": {"WWW-Authenticate": {"description": "APIKey", "schema": {"type": "string"}}},
+    "content": {"application/json": {"example": {"error": {
+        "code": "unauthorized", "message": f"missing {API_KEY_HEADER} header: this server requires an API key",
+        "details": None}}}}}
 _header = APIKeyHeader(name=API_KEY_HEADER, auto_error=False,
                        description="required when the server has DENOISER_API_KEY set")
 

@@ -13,7 +13,8 @@ import sys
 # Each module adds its subcommands with add_commands(subparsers); commands import their heavy
 # dependencies only when they run.
 COMMAND_MODULES = ("service.commands.data", "service.commands.evaluate", "service.commands.train",
-                   "service.commands.client", "service.commands.serve")
+                   "service.commands.client", "service.commands.serve", "service.commands.stability",
+                   "service.commands.benchmark", "service.commands.fit")
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1
@@ -55,6 +56,15 @@ def scales_option(text: str) -> tuple[int, ...]:
     if not values or any(v not in (1, 2, 4) for v in values):
         raise argparse.ArgumentTypeError(f"scales must be chosen from 1, 2, 4; got {text!r}")
     return values
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows defaults, except for options without one (None) and flags (False), where "(default: ...)" is noise."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if action.required or action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
 
 
 # ---------------------------------------------------------------------------------------------- main

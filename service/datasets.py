@@ -50,6 +50,7 @@ from model.dataset import (
     DatasetError,
     Sequence,
     frame_file_name,
+    write_json_atomically,
 )
 from model.exr import CHANNEL_SLOTS, read_frame, write_frame
 from model.frames import BUFFERS, FrameBundle, FrameError
@@ -535,22 +536,13 @@ def _add_to_dataset(storage: Storage, dataset_id: str, sequences: list[_Staged],
                 raise
             moved.append((sequence, retired))
             manifest["sequences"][sequence.name] = {"split": sequence.split, "scene": sequence.scene}
-        _write_json_atomically(target / MANIFEST, manifest)
+        write_json_atomically(target / MANIFEST, manifest)
     except BaseException:
         for sequence, retired in reversed(moved):
             os.rename(target / sequence.name, sequence.path)
             if retired is not None:
                 os.rename(retired, target / sequence.name)
         raise
-
-
-def _write_json_atomically(path: Path, content: dict) -> None:
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        temporary.write_text(json.dumps(content, indent=2) + "\n")
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
 
 
 def dataset_exists(storage: Storage, dataset_id: str) -> bool:
@@ -646,7 +638,7 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
             # The header must name the sequence (Sequence checks it): write the frame again with it filled in.
             write_frame(folder / file, dataclasses.replace(frame, sequence=sequence))
         state["frames"].append({"index": expected, "file": file, "camera_cut": bool(frame.camera_cut)})
-        _write_json_atomically(state_file, state)
+        write_json_atomically(state_file, state)
     return _staged_info(dataset_id, state)
 
 
@@ -692,7 +684,7 @@ def commit_staged_sequence(storage: Storage, dataset_id: str, sequence: str, *, 
         manifest = {"format": SEQUENCE_FORMAT, "sequence": sequence, "scene": state["scene"],
                     "width": state["width"], "height": state["height"], "scales": state["scales"],
                     "frames": frames, "metadata": {"uploaded": "frame by frame"}}
-        _write_json_atomically(folder / MANIFEST, manifest)
+        write_json_atomically(folder / MANIFEST, manifest)
         try:
             Sequence(folder)  # every listed frame file is there and the manifest is well-formed
         except DatasetError as error:

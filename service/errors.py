@@ -14,6 +14,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 log = logging.getLogger("denoiser.api")
 
@@ -51,6 +52,17 @@ def _status_code_name(status: int) -> str:
             422: "invalid_request", 429: "too_many_requests"}.get(status, f"http_{status}")
 
 
+def _allowed_methods(request: Request) -> str:
+    """Every method of every route whose path matches the request's. Starlette's 405 names only the methods of
+    the first route matching the path, while one path (e.g. /datasets/{id}) has a route per method."""
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        match, _ = route.matches(request.scope)
+        if match != Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return ", ".join(sorted(methods))
+
+
 def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> JSONResponse:
@@ -67,8 +79,11 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, error: StarletteHTTPException) -> JSONResponse:
         message = error.detail if isinstance(error.detail, str) else str(error.detail)
+        headers = getattr(error, "headers", None)
+        if error.status_code == 405:
+            headers = {**(headers or {}), "Allow": _allowed_methods(request)}
         return JSONResponse(error_body(_status_code_name(error.status_code), message), status_code=error.status_code,
-                            headers=getattr(error, "headers", None))
+                            headers=headers)
 
     from model.dataset import DatasetError
     from model.frames import FrameError

@@ -10,7 +10,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI
 
-from service.auth import require_api_key
+from service.auth import UNAUTHORIZED_RESPONSE, require_api_key
 from service.errors import install_error_handlers
 from service.routes import datasets, health, jobs, models, sessions
 
@@ -47,7 +47,7 @@ def create_app() -> FastAPI:
     app.include_router(health.router)
     protected = [Depends(require_api_key)]
     for module in (datasets, jobs, models, sessions):
-        app.include_router(module.router, dependencies=protected)
+        app.include_router(module.router, dependencies=protected, responses={401: UNAUTHORIZED_RESPONSE})
     return app
 
 

@@ -9,6 +9,9 @@ on local disk:
     models:/NAME@ALIAS      the version the alias points at
     models:/NAME            the latest (highest) version
 
+``choose_auto`` picks a version by those tags (the smallest that meets a PSNR floor, or the best PSNR within a time
+budget): what a session created with ``{"model": "auto", ...}`` runs.
+
 Checkpoints are downloaded once into ``storage.model(name, version)`` and reused: a registered version never
 changes its files. Errors: ``UnknownModelError`` (a KeyError) for a name, version or alias that does not exist,
 ValueError for a malformed reference, version or alias name, ``RegistryUnavailable`` when the tracking store
@@ -17,6 +20,7 @@ cannot be reached.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import shutil
@@ -335,3 +339,182 @@ def resolve_checkpoint(ref: str) -> Path:
     alias, RegistryUnavailable when the tracking store fails.
     """
     return get_registry().resolve(ref).checkpoint
+
+
+# =========================================================================================================
+# Automatic choice: sessions created with {"model": "auto", ...} (README, "Right-sizing")
+# =========================================================================================================
+
+AUTO_MODEL = "auto"  # the session model name that asks for an automatic choice
+_FAMILY = re.compile(r"^[A-Za-z0-9_]+$")
+
+
+class NoAutoCandidates(UnknownModelError):
+    """No registered version carries the measurements an automatic choice needs (answered 404)."""
+
+    def __init__(self, message: str, details: dict | None = None) -> None:
+        super().__init__(message)
+        self.details = details
+
+
+class ConstraintNotMet(ValueError):
+    """Versions could be compared, but none satisfies the constraint (answered 422); ``details`` names the closest."""
+
+    def __init__(self, message: str, details: dict | None = None) -> None:
+        super().__init__(message)
+        self.details = details
+
+
+@dataclass(frozen=True)
+class AutoChoice:
+    """The version an automatic choice picked, the constraint, and why, in words."""
+
+    info: ModelVersionInfo
+    constraint: dict
+    reason: str
+    candidates: int  # versions that had the measurements to be compared
+
+    def to_dict(self) -> dict:
+        info = self.info
+        return {"name": info.name, "version": info.version, "method": info.method, "preset": info.preset,
+                "scale": info.scale, "flops_per_pixel": info.flops_per_pixel,
+                "validation_psnr": info.metrics.get("validation_psnr"),
+                "ms_per_frame": info.metrics.get("ms_per_frame"),
+                "ms_per_frame_resolution": info.tags.get("ms_per_frame_resolution"),
+                "constraint": dict(self.constraint), "candidates": self.candidates, "reason": self.reason}
+
+
+def _size_key(info: ModelVersionInfo) -> tuple:
+    """Smallest first: FLOPs per pixel, parameters, ms per frame (unknown ones last), then name and version."""
+    def known(value):
+        return math.inf if value is None else value
+
+    return (known(info.flops_per_pixel), known(info.params), known(info.metrics.get("ms_per_frame")), info.name,
+            int(info.version))
+
+
+def _describe_version(info: ModelVersionInfo) -> str:
+    label = f"{info.method}:{info.preset}" if info.preset else str(info.method)
+    flops = "unknown" if info.flops_per_pixel is None else f"{info.flops_per_pixel:.4g}"
+    return f"{info.name} version {info.version} ({label} at scale {info.scale}, {flops} FLOPs/px)"
+
+
+def _timing_text(info: ModelVersionInfo) -> str:
+    resolution = info.tags.get("ms_per_frame_resolution")
+    at = f"at {resolution}" if resolution else "at an unrecorded resolution"
+    threads = info.tags.get("ms_per_frame_threads")
+    return f"{info.metrics['ms_per_frame']:.3g} ms per frame {at}" + (f", {threads} threads" if threads else "")
+
+
+def check_auto_constraint(max_ms_per_frame: float | None = None, min_psnr: float | None = None,
+                          family: str | None = None, scale: int | None = None) -> dict:
+    """The constraint as a dict, or ValueError for an empty or malformed one."""
+    if max_ms_per_frame is None and min_psnr is None:
+        raise ValueError("an automatic model choice needs max_ms_per_frame, min_psnr or both")
+    for name, value in (("max_ms_per_frame", max_ms_per_frame), ("min_psnr", min_psnr)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
+    if family is not None and not _FAMILY.match(family):
+        raise ValueError(f"family {family!r} is not a method family name (letters, digits, _)")
+    if scale is not None and scale not in (1, 2):
+        raise ValueError(f"scale must be 1 or 2, got {scale!r}")
+    return {key: value for key, value in (("max_ms_per_frame", max_ms_per_frame), ("min_psnr", min_psnr),
+                                          ("family", family), ("scale", scale)) if value is not None}
+
+
+def choose_version(versions: list[ModelVersionInfo], max_ms_per_frame: float | None = None,
+                   min_psnr: float | None = None, family: str | None = None, scale: int | None = None) -> AutoChoice:
+    """Pick among registered versions by their tags (method, scale, flops_per_pixel, validation_psnr,
+    ms_per_frame):
+
+    - ``min_psnr``: the smallest version (FLOPs per pixel, then parameters) with validation PSNR >= min_psnr;
+    - ``max_ms_per_frame``: the best validation PSNR among versions with ms_per_frame <= the budget (ties: the
+      smaller);
+    - both: the smallest version that satisfies both.
+
+    Candidates are versions with a ``method`` tag (of ``family``, at ``scale``, when given), a validation PSNR and,
+    for a time budget, an ms_per_frame. NoAutoCandidates when there are none, ConstraintNotMet when none passes.
+    """
+    constraint = check_auto_constraint(max_ms_per_frame, min_psnr, family, scale)
+    needed = ["validation_psnr"] + (["ms_per_frame"] if max_ms_per_frame is not None else [])
+    candidates = [v for v in versions
+                  if v.method and (family is None or v.method == family) and (scale is None or v.scale == scale)
+                  and all(name in v.metrics for name in needed)]
+    where = "".join([f" of family {family!r}" if family else "", f" at scale {scale}" if scale else ""])
+    if not candidates:
+        raise NoAutoCandidates(
+            f"no registered model version{where} has the tags an automatic choice compares ({', '.join(needed)}); "
+            f"'denoiser fit' (or a fit job) records them, or pick a model by name",
+            {"constraint": constraint, "needed_tags": needed})
+    passing = [v for v in candidates
+               if (min_psnr is None or v.metrics["validation_psnr"] >= min_psnr)
+               and (max_ms_per_frame is None or v.metrics["ms_per_frame"] <= max_ms_per_frame)]
+    if not passing:
+        raise ConstraintNotMet(_not_met_message(candidates, constraint, where), _closest(candidates, constraint))
+    count = f"{len(passing)} of {len(candidates)} candidate versions{where}"
+    if min_psnr is None:
+        best = max(v.metrics["validation_psnr"] for v in passing)
+        chosen = min((v for v in passing if v.metrics["validation_psnr"] == best), key=_size_key)
+        reason = (f"{_describe_version(chosen)}: the best validation PSNR ({best:.2f} dB) of the {count} within "
+                  f"{max_ms_per_frame:g} ms per frame ({_timing_text(chosen)})")
+    else:
+        chosen = min(passing, key=_size_key)
+        rule = f"validation PSNR >= {min_psnr:g} dB"
+        measured = f"{chosen.metrics['validation_psnr']:.2f} dB"
+        if max_ms_per_frame is not None:
+            rule += f" and <= {max_ms_per_frame:g} ms per frame"
+            measured += f", {_timing_text(chosen)}"
+        reason = f"{_describe_version(chosen)}: the smallest of the {count} with {rule} ({measured})"
+    return AutoChoice(info=chosen, constraint=constraint, reason=reason, candidates=len(candidates))
+
+
+def _not_met_message(candidates: list[ModelVersionInfo], constraint: dict, where: str) -> str:
+    parts = []
+    if "min_psnr" in constraint:
+        best = max(candidates, key=lambda v: v.metrics["validation_psnr"])
+        parts.append(f"the best validation PSNR is {best.metrics['validation_psnr']:.2f} dB "
+                     f"({best.name} version {best.version})")
+    if "max_ms_per_frame" in constraint:
+        fastest = min(candidates, key=lambda v: v.metrics["ms_per_frame"])
+        parts.append(f"the fastest takes {_timing_text(fastest)} ({fastest.name} version {fastest.version})")
+    wanted = " and ".join(f"{name} {value:g}" for name, value in constraint.items()
+                          if name in ("max_ms_per_frame", "min_psnr"))
+    return f"none of the {len(candidates)} candidate versions{where} satisfies {wanted}: {'; '.join(parts)}"
+
+
+def _closest(candidates: list[ModelVersionInfo], constraint: dict) -> dict:
+    details: dict = {"constraint": constraint, "candidates": len(candidates)}
+    best = max(candidates, key=lambda v: v.metrics["validation_psnr"])
+    fastest = min(candidates, key=lambda v: v.metrics.get("ms_per_frame", math.inf))
+    details["best_psnr"] = {"ref": f"models:/{best.name}/{best.version}",
+                            "validation_psnr": best.metrics["validation_psnr"]}
+    if "max_ms_per_frame" in constraint:
+        details["fastest"] = {"ref": f"models:/{fastest.name}/{fastest.version}",
+                              "ms_per_frame": fastest.metrics["ms_per_frame"]}
+    return details
+
+
+def all_versions(registry: Registry, family: str | None = None) -> list[ModelVersionInfo]:
+    """Every registered version (of ``family``, by its method tag, when given), with its model's aliases."""
+    if family is not None and not _FAMILY.match(family):
+        raise ValueError(f"family {family!r} is not a method family name (letters, digits, _)")
+    query = None if family is None else f"tags.method = '{family}'"
+    entities, token = [], None
+    while True:
+        page = registry._call("model versions", registry.client.search_model_versions, query, max_results=_PAGE,
+                              page_token=token)
+        entities.extend(page)
+        token = page.token
+        if not token:
+            break
+    return [Registry._version_info(entity, {}) for entity in entities]
+
+
+def choose_auto(max_ms_per_frame: float | None = None, min_psnr: float | None = None, family: str | None = None,
+                scale: int | None = None, registry: Registry | None = None) -> AutoChoice:
+    """The registered version an automatic choice picks (``choose_version``) from the configured registry (or
+    ``registry``). Raises ValueError for a malformed constraint, NoAutoCandidates (404) or ConstraintNotMet (422)."""
+    check_auto_constraint(max_ms_per_frame, min_psnr, family, scale)
+    registry = registry or get_registry()
+    return choose_version(all_versions(registry, family), max_ms_per_frame=max_ms_per_frame, min_psnr=min_psnr,
+                          family=family, scale=scale)

@@ -280,19 +280,74 @@ class AliasOut(BaseModel):
 OnGap = Literal["reset", "reject"]
 
 
+from pydantic import model_validator as _session_validator  # noqa: E402  (this section's own import)
+
+
 class SessionIn(BaseModel):
-    """POST /sessions: which registered model to run (a version, an alias, or neither for the latest)."""
+    """POST /sessions: which registered model to run (a version, an alias, or neither for the latest), or
+    ``"model": "auto"`` with a constraint: the server chooses among registered versions by their tags."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={
         "examples": [{"model": "jnds-xs-x2", "alias": "champion", "on_gap": "reset"},
-                     {"model": "jnds-xs-x2", "version": "3", "on_gap": "reject"}]
+                     {"model": "jnds-xs-x2", "version": "3", "on_gap": "reject"},
+                     {"model": "auto", "max_ms_per_frame": 20, "family": "wskpn"},
+                     {"model": "auto", "min_psnr": 30}]
     })
 
-    model: str = Field(min_length=1, description="registered model name (GET /models)", examples=["jnds-xs-x2"])
+    model: str = Field(min_length=1, description="registered model name (GET /models), or 'auto': choose by "
+                                                 "max_ms_per_frame / min_psnr", examples=["jnds-xs-x2"])
     version: str | None = Field(None, pattern=r"^[1-9][0-9]*$", description="version number; not with alias")
     alias: str | None = Field(None, min_length=1, description="alias, e.g. champion; not with version")
     on_gap: OnGap = Field("reset", description="a frame_index past the next expected one: 'reset' restarts the "
                                                "history (X-History: reset-gap), 'reject' answers 409 frame_gap")
+    # model "auto" only (README, "Right-sizing"):
+    max_ms_per_frame: float | None = Field(None, gt=0, allow_inf_nan=False,
+                                           description="auto: the version's recorded ms_per_frame must be at most "
+                                                       "this; alone, the best validation PSNR within it wins")
+    min_psnr: float | None = Field(None, gt=0, allow_inf_nan=False,
+                                   description="auto: validation PSNR (dB) at least this; the smallest such "
+                                               "version wins (FLOPs per pixel)")
+    family: str | None = Field(None, pattern=r"^[A-Za-z0-9_]+$", description="auto: only versions of this method")
+    scale: Literal[1, 2] | None = Field(None, description="auto: only versions at this output scale")
+
+    @_session_validator(mode="after")
+    def _auto_fields(self) -> SessionIn:
+        auto_fields = [name for name in ("max_ms_per_frame", "min_psnr", "family", "scale")
+                       if getattr(self, name) is not None]
+        if self.model == "auto":
+            if self.version is not None or self.alias is not None:
+                raise ValueError("model 'auto' chooses a version itself: give no version or alias")
+            if self.max_ms_per_frame is None and self.min_psnr is None:
+                raise ValueError("model 'auto' needs max_ms_per_frame, min_psnr or both")
+        elif auto_fields:
+            raise ValueError(f"{', '.join(auto_fields)} only go with model 'auto'")
+        return self
+
+
+class AutoChoiceOut(BaseModel):
+    """How a session created with model 'auto' got its version: the constraint, the version's tags, and why."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "name": "wskpn-fit-x1", "version": "2", "method": "wskpn", "preset": "s", "scale": 1,
+        "flops_per_pixel": 36260.0, "validation_psnr": 31.2, "ms_per_frame": 14.1,
+        "ms_per_frame_resolution": "256x256", "constraint": {"max_ms_per_frame": 20, "family": "wskpn"},
+        "candidates": 4,
+        "reason": "wskpn-fit-x1 version 2 (wskpn:s at scale 1, 3.626e+04 FLOPs/px): the best validation PSNR "
+                  "(31.20 dB) of the 2 of 4 candidate versions of family 'wskpn' within 20 ms per frame (14.1 ms "
+                  "per frame at 256x256, 2 threads)"}]})
+
+    name: str
+    version: str
+    method: str | None
+    preset: str | None
+    scale: int | None
+    flops_per_pixel: float | None
+    validation_psnr: float | None
+    ms_per_frame: float | None
+    ms_per_frame_resolution: str | None = Field(description="render resolution the ms_per_frame was timed at")
+    constraint: dict[str, float | int | str] = Field(description="what the request asked for")
+    candidates: int = Field(description="versions that had the tags to be compared")
+    reason: str
 
 
 class SessionModelOut(BaseModel):
@@ -336,6 +391,7 @@ class SessionOut(BaseModel):
     on_gap: OnGap
     resolution: list[int] | None = Field(description="[width, height] every frame must have until a reset "
                                                       "(set by the first frame); null before it")
+    choice: AutoChoiceOut | None = Field(None, description="model 'auto' only: the version chosen and why")
 
 
 # =========================================================================================================
@@ -348,13 +404,16 @@ from typing import Annotated as _Annotated  # noqa: E402
 from typing import Any as _Any  # noqa: E402
 from typing import Union as _Union  # noqa: E402
 
+from pydantic import create_model  # noqa: E402
 from pydantic import field_validator as _field_validator  # noqa: E402
 from pydantic import model_validator as _model_validator  # noqa: E402
 
-JobKind = Literal["generate", "train", "evaluate", "benchmark", "infer"]
+JobKind = Literal["generate", "train", "evaluate", "benchmark", "infer", "fit"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 JobDevice = Literal["cpu", "gpu"]
 JobSplit = Literal["train", "validation", "test"]
+# Job bodies are validated strictly (strict=True on every model below): a value must have its documented JSON
+# type, so `"steps": "100"` or `"overwrite": 0` is a 422 naming the field rather than silently coerced.
 # A stored id (dataset, registered model name): one safe path component, as service.storage.checked_id.
 _ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
 
@@ -362,7 +421,7 @@ _ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
 class GenerateParams(BaseModel):
     """Render scene recipes with Mitsuba 3 into a stored dataset (created when it does not exist)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "scenes": ["diffuse_room", "metals"], "frames": 16, "size": [128, 128],
         "ref_spp": 1024, "scales": [1, 2], "seed": 0, "split": "train"}]})
 
@@ -397,7 +456,7 @@ class GenerateParams(BaseModel):
 class TrainParams(BaseModel):
     """Train a learned method on a stored dataset; checkpoints under the job folder, MLflow run, registered model."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "method": "wskpn:s", "scale": 1, "steps": 2000, "crop": 64, "batch": 4,
         "frames_per_sample": 4, "lr": 0.001, "world_size": 2, "register_as": "wskpn-s-rooms", "seed": 0,
         "validate_every": 500, "checkpoint_every": 250}]})
@@ -429,7 +488,7 @@ class TrainParams(BaseModel):
 class EvaluateParams(BaseModel):
     """The benchmark protocol (model.evaluate) for the given methods on one split of a stored dataset."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "split": "test", "scale": 1,
         "methods": ["identity", "oidn:high", "models:/wskpn-s-rooms@champion"], "frames": 32}]})
 
@@ -448,7 +507,7 @@ class EvaluateParams(BaseModel):
 class BenchmarkParams(EvaluateParams):
     """``evaluate`` over a method list that defaults to the baselines and OIDN's presets; adds a chart."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "split": "test", "scale": 1, "frames": 32}]})
 
     methods: list[str] | None = Field(None, min_length=1, max_length=64,  # type: ignore[assignment]
@@ -459,7 +518,7 @@ class BenchmarkParams(EvaluateParams):
 class InferParams(BaseModel):
     """Run a model over stored sequences with its history carried frame to frame; EXR outputs per frame."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "model": "models:/wskpn-s-rooms@champion", "split": "test"}]})
 
     dataset: str = Field(pattern=_ID_PATTERN)
@@ -475,66 +534,91 @@ class InferParams(BaseModel):
         return self
 
 
-def _device_field():
-    return Field("cpu", description="cpu: queue 'cpu'; gpu: queue 'gpu' (the job runs on CUDA)")
+def _job_create(kind: str, params: type[BaseModel], device: str = "cpu") -> type[BaseModel]:
+    """The POST /jobs body of one kind: ``{"kind": KIND, "params": PARAMS, "device": ...}`` as a model named
+    ``<Kind>JobCreate`` (its OpenAPI schema name), with an example built from ``params``' first example."""
+    example = {"kind": kind, "params": params.model_config["json_schema_extra"]["examples"][0], "device": device}
+    return create_model(
+        f"{kind.capitalize()}JobCreate",
+        __config__=ConfigDict(extra="forbid", strict=True, json_schema_extra={"examples": [example]}),
+        __module__=__name__,
+        kind=(Literal[kind], ...),
+        params=(params, ...),
+        device=(JobDevice, Field("cpu", description="cpu: queue 'cpu'; gpu: queue 'gpu' (the job runs on CUDA)")),
+    )
 
 
-class GenerateJobCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
-        "kind": "generate", "params": GenerateParams.model_config["json_schema_extra"]["examples"][0],
-        "device": "cpu"}]})
-
-    kind: Literal["generate"]
-    params: GenerateParams
-    device: JobDevice = _device_field()
+GenerateJobCreate = _job_create("generate", GenerateParams)
+TrainJobCreate = _job_create("train", TrainParams, device="gpu")
+EvaluateJobCreate = _job_create("evaluate", EvaluateParams)
+BenchmarkJobCreate = _job_create("benchmark", BenchmarkParams)
+InferJobCreate = _job_create("infer", InferParams)
 
 
-class TrainJobCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
-        "kind": "train", "params": TrainParams.model_config["json_schema_extra"]["examples"][0], "device": "gpu"}]})
+# --- fit jobs (right-sizing, model.fit): the smallest preset of a family that meets a target -----------------
 
-    kind: Literal["train"]
-    params: TrainParams
-    device: JobDevice = _device_field()
+class FitParams(BaseModel):
+    """Train (or reuse) a ladder of a learned family's presets, measure each on the validation split and in ms per
+    frame, and register the smallest that meets the target with an alias (see README, Right-sizing)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [
+        {"dataset": "rooms", "method": "wskpn", "presets": ["xs", "s", "m", "l"], "target": "psnr=30",
+         "steps": 2000, "register_as": "wskpn-rooms-fit", "alias": "fitted"},
+        {"dataset": "rooms", "method": "wskpn", "target": "ms=20@128x128", "steps": 2000, "threads": 2}]})
+
+    dataset: str = Field(pattern=_ID_PATTERN)
+    method: str = Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_]+$",
+                        description="learned registry method family (no preset), e.g. wskpn")
+    presets: list[str] | None = Field(None, min_length=1, max_length=32,
+                                      description="presets on the ladder (none: the family's presets without a "
+                                                  "variant suffix, e.g. xs, s, m, l)")
+    target: str = Field(min_length=1, max_length=100,
+                        description="psnr=DB (validation PSNR >= DB), flip=E (validation FLIP <= E), "
+                                    "ms=MS[@WxH] (ms per frame <= MS at render size WxH, then the best PSNR), "
+                                    "within=DB (PSNR >= the largest preset's - DB)")
+    scale: Literal[1, 2] = Field(1, description="output / render resolution")
+    steps: int = Field(1000, ge=1, le=10_000_000, description="training steps per preset")
+    crop: int = Field(64, ge=1, le=4096, description="crop size in render pixels")
+    batch: int = Field(4, ge=1, le=4096, description="batch size")
+    frames_per_sample: int = Field(4, ge=1, le=256, description="consecutive frames unrolled per sample")
+    lr: float = Field(1e-3, gt=0, le=10, description="Adam learning rate")
+    warmup_steps: int = Field(50, ge=0, le=10_000_000)
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    train_split: JobSplit = "train"
+    validation_split: JobSplit = Field("validation", description="where quality is measured (must not be empty)")
+    validation_frames: int | None = Field(None, ge=1, le=100_000, description="frames per validation sequence "
+                                                                              "measured (none: all)")
+    time_at: list[int] = Field([256, 256], min_length=2, max_length=2,
+                               description="[width, height] of the render frames timed when the target is not ms")
+    timing_frames: int = Field(10, ge=1, le=10_000, description="frames timed per preset (after 3 warm-up frames)")
+    threads: int | None = Field(None, ge=1, le=1024, description="torch threads for training, measuring, timing")
+    register_as: str | None = Field(None, pattern=_ID_PATTERN,
+                                    description="registered model name (none: FAMILY-fit-xSCALE)")
+    alias: str = Field("fitted", pattern=r"^[A-Za-z_][A-Za-z0-9_-]{0,63}$",
+                       description="alias set on the chosen version")
+    experiment: str = Field("denoiser", min_length=1, max_length=200, description="MLflow experiment")
+    track: bool = Field(True, description="log to MLflow, register versions and set the alias (false: only the "
+                                          "ladder files in the job folder)")
+
+    @_field_validator("time_at")
+    @classmethod
+    def _positive_size(cls, value: list[int]) -> list[int]:
+        if not all(1 <= v <= 8192 for v in value):
+            raise ValueError("time_at must be [width, height], each between 1 and 8192")
+        return value
 
 
-class EvaluateJobCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
-        "kind": "evaluate", "params": EvaluateParams.model_config["json_schema_extra"]["examples"][0],
-        "device": "cpu"}]})
-
-    kind: Literal["evaluate"]
-    params: EvaluateParams
-    device: JobDevice = _device_field()
-
-
-class BenchmarkJobCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
-        "kind": "benchmark", "params": BenchmarkParams.model_config["json_schema_extra"]["examples"][0],
-        "device": "cpu"}]})
-
-    kind: Literal["benchmark"]
-    params: BenchmarkParams
-    device: JobDevice = _device_field()
-
-
-class InferJobCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
-        "kind": "infer", "params": InferParams.model_config["json_schema_extra"]["examples"][0], "device": "cpu"}]})
-
-    kind: Literal["infer"]
-    params: InferParams
-    device: JobDevice = _device_field()
+FitJobCreate = _job_create("fit", FitParams)
 
 
 # POST /jobs body: the kind picks the parameter schema.
 JobCreate = _Annotated[
-    _Union[GenerateJobCreate, TrainJobCreate, EvaluateJobCreate, BenchmarkJobCreate, InferJobCreate],
+    _Union[GenerateJobCreate, TrainJobCreate, EvaluateJobCreate, BenchmarkJobCreate, InferJobCreate, FitJobCreate],
     Field(discriminator="kind"),
 ]
 JOB_PARAMS: dict[str, type[BaseModel]] = {"generate": GenerateParams, "train": TrainParams,
                                          "evaluate": EvaluateParams, "benchmark": BenchmarkParams,
-                                         "infer": InferParams}
+                                         "infer": InferParams, "fit": FitParams}
 
 
 class JobProgress(BaseModel):

@@ -14,17 +14,31 @@ session has the render resolution of the first frame since the last reset ("reso
 Where sessions live. In memory (the loaded method, its state tensors on ``settings.session_device``) and in
 Redis, one hash per session at ``denoiser:session:<id>`` with two fields: ``meta`` (JSON: model, counters,
 timestamps, a ``revision`` bumped by every change) and ``state`` (the state tensors, ``torch.save`` bytes, empty
-for no history). Both are written together after every frame, with the key's TTL set to the session TTL, so:
+for no history). Both are written together, in one transaction, with the key's TTL set to the session TTL, so
+Redis always holds a matching pair (a history and the frame index it continues at), never one without the other:
 
-- a restarted API process finds each live session in Redis and continues it from its last frame;
+- a restarted API process finds each live session in Redis and continues it from its last mirrored frame;
 - Redis is the record of which sessions exist: a key that expired or was deleted ends the session;
 - a memory copy older than Redis (another API process served the session) is reloaded before use.
+
+When the mirror is written. Creating and resetting a session write Redis before they answer (a reset lost in a
+crash could let the old history meet the new stream). A frame's mirror is written off the request's critical path:
+each session has a background writer (tasks of a small thread pool, one write at a time per session, always the
+newest revision handed to it) that serializes the state and writes it; the API starts it once the frame's
+response is sent. The session's next frame, reset or delete first waits for that write, so Redis is at most one
+frame behind memory: the frame in flight. Closing the store (the API's shutdown) waits for every pending write, so
+a clean restart loses nothing. If the process dies between answering frame N and its mirror landing, the
+restarted process holds the session as it was after frame N - 1 and expects frame N: the client's next frame,
+N + 1, is a gap under the frame-order rules (history restarted with ``on_gap="reset"``, 409 "frame_gap" with
+``on_gap="reject"``), and resending frame N continues exactly. A restored history is never paired with a frame
+it does not precede. For the same reason the frames of one session belong on one API process: another process
+reading Redis in that window sees the same one-frame lag.
 
 Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
 Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
 ``for_inference`` form under ``torch.no_grad``. Frames of one session are serialized by a per-session lock;
 different sessions run concurrently. If Redis is unreachable, sessions keep working from memory (a warning is
-logged) but cannot survive a restart meanwhile.
+logged, by the background writer for frames) but cannot survive a restart meanwhile.
 """
 
 from __future__ import annotations
@@ -36,6 +50,7 @@ import re
 import threading
 import time
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -58,6 +73,7 @@ KEY_PREFIX = "denoiser:session:"
 ON_GAP_POLICIES = ("reset", "reject")
 SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
 REDIS_PAUSE_SECONDS = 5.0  # after a Redis failure, serve from memory this long before trying Redis again
+MIRROR_WRITERS = 4  # threads writing frames' mirrors to Redis (each session's writes stay in order, one at a time)
 
 # X-History values: what happened to the history before this frame.
 STARTED, CONTINUED, RESET_GAP, RESET_CAMERA_CUT = "started", "continued", "reset-gap", "reset-camera-cut"
@@ -106,6 +122,8 @@ class SessionModel:
     preset: str
     scale: int
     params: int
+    # Sessions created with model "auto": the choice (service.registry.AutoChoice.to_dict) that picked this version.
+    choice: dict[str, Any] | None = field(default=None, compare=False)
 
 
 @dataclass
@@ -148,7 +166,7 @@ class Session:
 
 @dataclass(frozen=True)
 class FrameResult:
-    output: np.ndarray  # (H * scale, W * scale, 3) float32
+    output: np.ndarray  # (H * scale, W * scale, 3) float32, a view of (3, H * scale, W * scale) planes of its own
     frame_index: int
     history: str  # STARTED, CONTINUED, RESET_GAP or RESET_CAMERA_CUT
     inference_ms: float  # method.step alone
@@ -156,18 +174,95 @@ class FrameResult:
 
 
 def serialize_state(state: State | None) -> bytes:
-    """State tensors -> bytes (empty for no history). Cloned to CPU so a view saves only its own elements."""
+    """State tensors -> bytes (empty for no history). A view is copied first so it saves only its own elements
+    (``torch.save`` writes a tensor's whole storage); a tensor that is its whole storage is saved as it is."""
     if state is None:
         return b""
     buffer = io.BytesIO()
-    torch.save({name: tensor.detach().to("cpu").clone() for name, tensor in state.items()}, buffer)
+    torch.save({name: _own_storage(tensor) for name, tensor in state.items()}, buffer)
     return buffer.getvalue()
+
+
+def _own_storage(tensor: torch.Tensor) -> torch.Tensor:
+    tensor = tensor.detach().to("cpu")
+    whole = (tensor.storage_offset() == 0 and tensor.is_contiguous()
+             and tensor.untyped_storage().nbytes() == tensor.numel() * tensor.element_size())
+    return tensor if whole else tensor.clone()
 
 
 def deserialize_state(data: bytes | None, device: torch.device | str = "cpu") -> State | None:
     if not data:
         return None
     return torch.load(io.BytesIO(data), map_location=device, weights_only=True)
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    """One revision of a session as Redis is to hold it: metadata taken when handed over, the state tensors by
+    reference (nothing changes them until the write is done: the session's next use waits for it)."""
+
+    session: Session
+    revision: int
+    meta: str
+    state: State | None
+
+
+class _MirrorWriter:
+    """One session's background writer: writes the newest snapshot handed to it, one write at a time.
+
+    A snapshot handed over with ``start=False`` waits for ``start()`` (the API starts it once the response is
+    sent, so the write does not compete with the response for the CPU) or for anyone waiting on the writer.
+    """
+
+    def __init__(self, write: Callable[[_Snapshot], None], executor: ThreadPoolExecutor) -> None:
+        self._write = write
+        self._executor = executor
+        self._condition = threading.Condition()
+        self._pending: _Snapshot | None = None
+        self._running = False
+
+    def submit(self, snapshot: _Snapshot, start: bool = True) -> None:
+        with self._condition:
+            self._pending = snapshot  # an older one not started yet is superseded: Redis wants the newest
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        """Write the pending snapshot in the background, unless there is none or a write is running (which then
+        writes it next)."""
+        with self._condition:
+            if self._running or self._pending is None:
+                return
+            self._running = True
+        try:
+            self._executor.submit(self._drain)
+        except RuntimeError:  # the pool is shut down (the store is closing): write here
+            self._drain()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Until nothing is pending or being written (a held snapshot is started); False on ``timeout``."""
+        self.start()
+        with self._condition:
+            return self._condition.wait_for(lambda: not self._running and self._pending is None, timeout)
+
+    def discard(self) -> None:
+        """Drop a pending write and wait for one in progress (the session is being deleted)."""
+        with self._condition:
+            self._pending = None
+            self._condition.wait_for(lambda: not self._running)
+
+    def _drain(self) -> None:
+        while True:
+            with self._condition:
+                snapshot, self._pending = self._pending, None
+                if snapshot is None:
+                    self._running = False
+                    self._condition.notify_all()
+                    return
+            try:
+                self._write(snapshot)
+            except Exception:  # never leave the writer marked running: the session would wait forever
+                log.exception("session %s: writing its mirror failed", snapshot.session.id)
 
 
 class SessionStore:
@@ -193,15 +288,18 @@ class SessionStore:
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, threading.Lock] = {}
         self._methods: dict[tuple[str, str], Method] = {}
-        self._lock = threading.RLock()  # guards the three dicts
+        self._writers: dict[str, _MirrorWriter] = {}
+        self._lock = threading.RLock()  # guards the four dicts
+        self._mirror_pool = ThreadPoolExecutor(MIRROR_WRITERS, thread_name_prefix="session-mirror")
         self._methods_lock = threading.Lock()  # one method load at a time, so each version loads once
         self._create_lock = threading.Lock()  # the capacity check and the insert are one step
 
     # ------------------------------------------------------------------------------------ public
 
     def create(self, model: str, version: str | None = None, alias: str | None = None,
-               on_gap: str = "reset") -> Session:
-        """A new session of registered model ``model`` at ``version``, ``alias`` or (neither) its latest version.
+               on_gap: str = "reset", choice: dict[str, Any] | None = None) -> Session:
+        """A new session of registered model ``model`` at ``version``, ``alias`` or (neither) its latest version;
+        ``choice`` (model "auto": how the version was chosen) is kept with the session's model.
 
         Raises UnknownModelError (KeyError) / ValueError from the registry, SessionLimitReached past the cap.
         """
@@ -216,11 +314,12 @@ class SessionStore:
             session = Session(
                 id=uuid.uuid4().hex,
                 model=SessionModel(name=info.name, version=info.version, alias=alias, method=method.name,
-                                   preset=method.preset, scale=method.scale, params=method.parameter_count()),
+                                   preset=method.preset, scale=method.scale, params=method.parameter_count(),
+                                   choice=choice),
                 on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method)
             with self._lock:
                 self._sessions[session.id] = session
-            self._mirror(session)
+            self._mirror(session, wait=True)
         log.info("session %s created: %s version %s", session.id, info.name, info.version)
         return session
 
@@ -240,18 +339,23 @@ class SessionStore:
     def reset(self, session_id: str) -> Session:
         """Drop the session's history (and its established resolution); the next frame starts a new one."""
         with self._lock_for(session_id):
+            self._wait_for_mirror(session_id)
             session = self._current(session_id, activate=False)
             session.state, session.next_frame_index, session.resolution = None, None, None
             session.last_used_at = self.clock()
             session.revision += 1
             with self._lock:
                 self._sessions[session.id] = session  # complete now even if it was only in Redis: no history
-            self._mirror(session)
+            # Written before answering: a reset lost in a crash could let the old history meet the new stream.
+            self._mirror(session, wait=True)
             return session
 
     def delete(self, session_id: str) -> None:
         with self._lock_for(session_id):
             self._current(session_id, activate=False)  # SessionNotFound for an unknown or expired id
+            writer = self._writer_of(session_id)
+            if writer is not None:
+                writer.discard()  # a write landing after the delete would bring the session back
             self._forget(session_id)
             try:
                 self._redis(lambda client: client.delete(self._key(session_id)))
@@ -259,10 +363,28 @@ class SessionStore:
                 log.warning("session %s: could not delete its Redis copy: %s", session_id, error)
         log.info("session %s deleted", session_id)
 
-    def process_frame(self, session_id: str, frame: FrameBundle) -> FrameResult:
-        """Run one frame through the session's method; raises SessionNotFound or FrameRejected."""
+    def exists(self, session_id: str) -> bool:
+        """Whether the session is live in this process's memory (no Redis access, so cheap enough to call from an
+        event loop); False does not mean it does not exist: ``get`` answers that."""
+        with self._lock:
+            session = self._sessions.get(session_id)
+        return session is not None and not session.expired(self.clock())
+
+    def start_mirror(self, session_id: str) -> None:
+        """Start writing a mirror that ``process_frame(..., start_mirror=False)`` left pending (never blocks)."""
+        writer = self._writer_of(session_id)
+        if writer is not None:
+            writer.start()
+
+    def process_frame(self, session_id: str, frame: FrameBundle, *, start_mirror: bool = True) -> FrameResult:
+        """Run one frame through the session's method; raises SessionNotFound or FrameRejected.
+
+        The new revision's Redis mirror is written in the background, starting now or, with ``start_mirror=False``,
+        at ``start_mirror(session_id)`` (or the session's next use, or ``flush``), whichever comes first.
+        """
         self._purge_expired()
         with self._lock_for(session_id):
+            self._wait_for_mirror(session_id)  # the previous frame's mirror first: Redis lags by one frame at most
             session = self._current(session_id, activate=True)
             if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
                 session.method = self._method(session.model.name, session.model.version)
@@ -281,26 +403,43 @@ class SessionStore:
                 if output.device.type == "cuda":
                     torch.cuda.synchronize(output.device)
                 inference_ms = (time.perf_counter() - start) * 1000
-            # A copy in HWC order: the response is encoded after the lock is released, while the next frame
-            # of this session may already run.
-            image = output[0].permute(1, 2, 0).to("cpu", torch.float32).contiguous().numpy()
+            # A copy (the response is encoded after the lock is released, while the next frame of this session
+            # may already run), kept as contiguous R, G, B planes, which the EXR encoder takes without copying.
+            planes = output[0].detach().to("cpu", torch.float32, copy=True)
+            image = planes.permute(1, 2, 0).numpy()
             session.state = state
             session.next_frame_index = frame.frame_index + 1
             session.frames_processed += 1
             session.resolution = resolution
             session.last_used_at = self.clock()
             session.revision += 1
-            self._mirror(session)
+            self._mirror(session, wait=False, start=start_mirror)
             return FrameResult(output=image, frame_index=frame.frame_index, history=history,
                                inference_ms=inference_ms, session=session)
 
+    def flush(self, timeout: float | None = None) -> bool:
+        """Wait until every mirror handed to the background writers is written (or failed); False on timeout."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            writers = list(self._writers.values())
+        for writer in writers:
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not writer.wait(left):
+                return False
+        return True
+
     def close(self) -> None:
-        """Drop every in-memory session and loaded method (Redis keeps the sessions for the next process)."""
+        """Write pending mirrors, then drop every in-memory session and loaded method (Redis keeps the sessions
+        for the next process)."""
         global _store
+        if not self.flush(timeout=2 * 5 + 1):  # a write on a hung Redis gives up after its socket timeouts
+            log.warning("session store closed with mirror writes still pending")
+        self._mirror_pool.shutdown(wait=False)
         with self._lock:
             self._sessions.clear()
             self._locks.clear()
             self._methods.clear()
+            self._writers.clear()
         try:
             self.redis.close()
         except redis.RedisError:
@@ -340,10 +479,20 @@ class SessionStore:
         with self._lock:
             return self._locks.setdefault(session_id, threading.Lock())
 
+    def _writer_of(self, session_id: str) -> _MirrorWriter | None:
+        with self._lock:
+            return self._writers.get(session_id)
+
+    def _wait_for_mirror(self, session_id: str) -> None:
+        writer = self._writer_of(session_id)
+        if writer is not None:
+            writer.wait()
+
     def _forget(self, session_id: str) -> None:
         with self._lock:
             self._sessions.pop(session_id, None)
             self._locks.pop(session_id, None)
+            self._writers.pop(session_id, None)
             # Weights no session in memory uses any more are released; a session restored later reloads them.
             used = {(s.model.name, s.model.version) for s in self._sessions.values()}
             for key in [key for key in self._methods if key not in used]:
@@ -405,10 +554,22 @@ class SessionStore:
             self._redis_paused_until = time.monotonic() + REDIS_PAUSE_SECONDS
             raise
 
-    def _mirror(self, session: Session) -> None:
-        """Write the session (metadata and state together) to Redis and restart its TTL."""
+    def _mirror(self, session: Session, wait: bool, start: bool = True) -> None:
+        """Hand the session's current revision to its background writer (see the module notes); with ``wait``,
+        return only once it is written (or failed)."""
+        with self._lock:
+            writer = self._writers.get(session.id)
+            if writer is None:
+                writer = self._writers[session.id] = _MirrorWriter(self._write_mirror, self._mirror_pool)
+        writer.submit(_Snapshot(session, session.revision, json.dumps(session.metadata()), session.state), start)
+        if wait:
+            writer.wait()
+
+    def _write_mirror(self, snapshot: _Snapshot) -> None:
+        """Write one snapshot (metadata and state together) to Redis and restart the key's TTL."""
+        session = snapshot.session
         key = self._key(session.id)
-        mapping = {"meta": json.dumps(session.metadata()), "state": serialize_state(session.state)}
+        mapping = {"meta": snapshot.meta, "state": serialize_state(snapshot.state)}
 
         def write(client: redis.Redis) -> None:
             pipeline = client.pipeline(transaction=True)
@@ -418,7 +579,7 @@ class SessionStore:
 
         try:
             self._redis(write)
-            session.mirrored_revision = session.revision
+            session.mirrored_revision = max(session.mirrored_revision, snapshot.revision)
         except redis.RedisError as error:
             log.warning("session %s: could not mirror to Redis (a restart would lose it): %s", session.id, error)
 

@@ -20,7 +20,7 @@ _ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
 def checked_id(value: str, what: str) -> str:
     """An id safe to use as one path component (no separators, no '..'), else ValueError naming it."""
-    if not _ID.match(value) or ".." in value:
+    if not _ID.fullmatch(value) or ".." in value:  # fullmatch: "$" alone would let a trailing newline through
         raise ValueError(f"{what} {value!r} is not a valid id: use letters, digits, '.', '_' and '-' "
                          f"(at most 128, not starting with a punctuation mark)")
     return value

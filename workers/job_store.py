@@ -33,7 +33,7 @@ import redis
 DEFAULT_PREFIX = "denoiser:"
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINISHED_STATES = frozenset({"succeeded", "failed", "cancelled"})
-KINDS = ("generate", "train", "evaluate", "benchmark", "infer")
+KINDS = ("generate", "train", "evaluate", "benchmark", "infer", "fit")
 LEASE_TTL_SECONDS = 30  # a killed worker's job counts as orphaned this long after its last heartbeat
 EMPTY_PROGRESS = {"current": 0, "total": 0, "message": "", "eta_seconds": None}
 FIELDS = ("id", "kind", "state", "params", "device", "queue", "created_at", "started_at", "finished_at",

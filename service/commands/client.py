@@ -18,7 +18,7 @@ from pathlib import Path
 from service.cli import EXIT_FAILURE, UsageError, positive_int
 
 DEFAULT_URL = "http://127.0.0.1:8000"  # as service.client.DEFAULT_URL; repeated so --help stays import-light
-JOB_KINDS = ("generate", "train", "evaluate", "benchmark", "infer")
+JOB_KINDS = ("generate", "train", "evaluate", "benchmark", "infer", "fit")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 SPLITS = ("train", "validation", "test")
 

@@ -7,20 +7,12 @@ import re
 import sys
 from pathlib import Path
 
-from service.cli import EXIT_FAILURE, positive_int
+from service.cli import HelpFormatter, EXIT_FAILURE, positive_int
 
 # As model.train.SCHEDULES and model.dataset.SPLITS; repeated so --help stays import-light.
 SCHEDULES = ("cosine", "step", "constant")
 SPLITS = ("train", "validation", "test")
 
-
-class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows defaults, except for options without one (None) and flags (False), where "(default: ...)" is noise."""
-
-    def _get_help_string(self, action: argparse.Action) -> str:
-        if action.required or action.default is None or action.default is False:
-            return action.help
-        return super()._get_help_string(action)
 
 
 def add_commands(commands) -> None:
@@ -32,7 +24,7 @@ def add_commands(commands) -> None:
                     "whole sequences of the validation split (PSNR, SMAPE, temporal error), writes OUT/last.pt "
                     "and OUT/best.pt, resumes exactly from OUT/last.pt, logs to MLflow and registers the final "
                     "model. With --world-size N > 1, N DistributedDataParallel ranks share the global batch.",
-        formatter_class=_HelpFormatter)
+        formatter_class=HelpFormatter)
     parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset folder")
     parser.add_argument("--method", required=True, metavar="NAME[:PRESET]",
                         help="learned method from the registry (see 'denoiser methods')")

@@ -24,8 +24,13 @@ router = APIRouter(prefix="/datasets", tags=["datasets"])
 
 StorageDep = Annotated[Storage, Depends(get_storage)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-DatasetId = Annotated[str, Path(description="dataset id", examples=["kitchens"])]
-SequenceName = Annotated[str, Path(description="sequence name (its folder name)", examples=["kitchen_7"])]
+# What service.storage.checked_id accepts (letters, digits, '.', '_', '-', no leading punctuation, no '..', at most
+# 128), written without look-arounds so API testers can generate from it. Documentation only: the routes answer
+# anything else with their own 400 invalid_name, which names the problem.
+ID_SCHEMA = {"pattern": r"^[A-Za-z0-9](?:[A-Za-z0-9_-]|\.[A-Za-z0-9_-])*\.?$", "maxLength": 128}
+DatasetId = Annotated[str, Path(description="dataset id", examples=["kitchens"], json_schema_extra=ID_SCHEMA)]
+SequenceName = Annotated[str, Path(description="sequence name (its folder name)", examples=["kitchen_7"],
+                                   json_schema_extra=ID_SCHEMA)]
 
 # Any of these may carry an archive; the bytes decide which kind it is.
 ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application/x-tar", "application/gzip",
@@ -45,6 +50,9 @@ def _error_response(description: str, code: str, message: str) -> dict:
 _BAD_UPLOAD = _error_response("not a valid archive or dataset (the message names the member or file)",
                               "missing_manifest", "sequence folder kitchen_7 has no manifest.json")
 _NOT_FOUND = _error_response("no such dataset", "not_found", "dataset 'kitchens' does not exist")
+_BAD_NAME = _error_response("the dataset id or sequence name is not a valid id", "invalid_name",
+                            "dataset id '.hidden' is not a valid id: use letters, digits, '.', '_' and '-' (at most "
+                            "128, not starting with a punctuation mark)")
 _TOO_LARGE = _error_response("upload larger than the configured limit", "payload_too_large",
                              "the upload is at least 2147483649 bytes; the limit is 2147483648 bytes")
 _UNSUPPORTED = _error_response("Content-Type not accepted", "unsupported_media_type",
@@ -105,7 +113,7 @@ async def upload_dataset(
     storage: StorageDep,
     settings: SettingsDep,
     name: Annotated[str | None, Query(description="dataset id to use (must be free); default: a generated id",
-                                      examples=["kitchens"])] = None,
+                                      examples=["kitchens"], json_schema_extra=ID_SCHEMA)] = None,
     split: Annotated[Split, Query(description="split for sequences the archive gives none (sequence folders)")]
     = "train",
 ) -> DatasetDetail:
@@ -128,14 +136,15 @@ def list_datasets(storage: StorageDep) -> list[DatasetSummary]:
 
 
 @router.get("/{dataset_id}", response_model=DatasetDetail, summary="Inspect a dataset",
-            responses={404: _NOT_FOUND})
+            responses={400: _BAD_NAME, 404: _NOT_FOUND})
 def get_dataset(dataset_id: DatasetId, storage: StorageDep) -> DatasetDetail:
     """Scenes, splits and every sequence with its split, frame count, buffers, resolution and scales."""
     with _api_errors():
         return store.describe_dataset(storage, dataset_id)
 
 
-@router.delete("/{dataset_id}", status_code=204, summary="Delete a dataset", responses={404: _NOT_FOUND})
+@router.delete("/{dataset_id}", status_code=204, summary="Delete a dataset",
+               responses={400: _BAD_NAME, 404: _NOT_FOUND})
 def delete_dataset(dataset_id: DatasetId, storage: StorageDep) -> Response:
     with _api_errors():
         store.delete_dataset(storage, dataset_id)
@@ -217,7 +226,8 @@ def _parse_scales(values: list[str] | None) -> list[int] | None:
     scales = []
     for item in ",".join(values).split(","):
         item = item.strip()
-        if not item.isdigit() or int(item) < 1:
+        # ASCII digits only: str.isdigit() is also true for e.g. '²', which int() refuses (that was a 500).
+        if not (item.isascii() and item.isdigit()) or int(item) < 1:
             raise store.InvalidUpload("invalid_scales", f"scales: {item!r} is not a positive integer")
         scales.append(int(item))
     return scales
@@ -225,7 +235,7 @@ def _parse_scales(values: list[str] | None) -> list[int] | None:
 
 @router.get("/{dataset_id}/sequences/{sequence}/frames", response_model=StagedSequence,
             summary="State of a sequence being uploaded frame by frame",
-            responses={404: _error_response("nothing staged", "not_found",
+            responses={400: _BAD_NAME, 404: _error_response("nothing staged", "not_found",
                                             "no frames of sequence 'kitchen_7' are staged for dataset 'kitchens'")})
 def get_staged_sequence(dataset_id: DatasetId, sequence: SequenceName, storage: StorageDep) -> StagedSequence:
     """How many frames arrived and which frame_index comes next (to resume an interrupted upload)."""
@@ -234,7 +244,8 @@ def get_staged_sequence(dataset_id: DatasetId, sequence: SequenceName, storage: 
 
 
 @router.delete("/{dataset_id}/sequences/{sequence}/frames", status_code=204,
-               summary="Discard a sequence being uploaded frame by frame", responses={404: _NOT_FOUND})
+               summary="Discard a sequence being uploaded frame by frame",
+               responses={400: _BAD_NAME, 404: _NOT_FOUND})
 def discard_staged_sequence(dataset_id: DatasetId, sequence: SequenceName, storage: StorageDep) -> Response:
     with _api_errors():
         store.discard_staged_sequence(storage, dataset_id, sequence)
@@ -246,7 +257,7 @@ def discard_staged_sequence(dataset_id: DatasetId, sequence: SequenceName, stora
     status_code=201,
     response_model=DatasetDetail,
     summary="Move a sequence uploaded frame by frame into the dataset",
-    responses={404: _error_response("nothing staged", "not_found",
+    responses={400: _BAD_NAME, 404: _error_response("nothing staged", "not_found",
                                     "no frames of sequence 'kitchen_7' are staged for dataset 'kitchens'"),
                409: _error_response("the sequence name is taken", "sequence_exists",
                                     "dataset 'kitchens' already has sequence(s) kitchen_7; pass replace=true")},

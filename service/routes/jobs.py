@@ -29,6 +29,7 @@ from workers.job_store import JobFinished, JobNotFound, JobStore, store_for
 from workers.tasks.checks import invalid
 from workers.ddp import LOG_FILE as DDP_LOG_FILE
 from workers.tasks.context import LOG_FILE, tail_lines
+from workers.tasks.evaluate import CHART as QUALITY_SPEED_CHART
 from workers.tasks.jobs import CeleryDispatcher, get_dispatcher
 from workers.tasks.train import CHECKPOINT_FOLDER
 
@@ -59,7 +60,7 @@ JobId = Annotated[str, Path(description="job id", examples=["5f0c3a9e2b6d4f1a8c7
 
 QUEUE_FOR_DEVICE = {"cpu": "cpu", "gpu": "gpu"}
 ARTIFACT_TYPES = {"report.json": "application/json", "report.md": "text/markdown; charset=utf-8",
-                  "quality_speed.png": "image/png"}
+                  QUALITY_SPEED_CHART: "image/png"}
 EXR_TYPE = "image/x-exr"
 _FRAME = re.compile(r"^(?:frame_)?(\d{1,9})(?:\.exr)?$")
 
@@ -188,6 +189,23 @@ def job_artifact(job_id: JobId, store: StoreDep, storage: StorageDep,
         raise ApiError(404, "not_found", f"job {job_id!r} has no artifact {name!r} (artifacts: "
                        f"{', '.join(ARTIFACT_TYPES)}, written by evaluate and benchmark jobs when they succeed)")
     return FileResponse(path, media_type=ARTIFACT_TYPES[name], filename=name)
+
+
+@router.get("/{job_id}/chart.png", summary="The quality-vs-speed chart of a benchmark job (PNG)",
+            response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}}}, 404: _error(
+                "no such job, or the job has no chart (yet)", "no_chart",
+                "job '5f0c3a9e...' has no quality-vs-speed chart: benchmark jobs draw one when they succeed")})
+def job_chart(job_id: JobId, store: StoreDep, storage: StorageDep) -> FileResponse:
+    """PSNR and FLIP against ms per frame (log scale), the Pareto front drawn and every method labelled: the
+    chart `denoiser benchmark` draws (`model/benchmark.py`), for the benchmark job's one scale. Also under
+    `/jobs/{id}/artifacts/quality_speed.png`."""
+    record = _require(store, job_id)
+    path = storage.job(job_id) / QUALITY_SPEED_CHART
+    if not path.is_file():
+        raise ApiError(404, "no_chart", f"job {job_id!r} has no quality-vs-speed chart: benchmark jobs draw one "
+                       f"when they succeed (this is a {record['kind']} job, {record['state']})")
+    return FileResponse(path, media_type="image/png", filename=f"job-{job_id}-{QUALITY_SPEED_CHART}")
 
 
 # ----------------------------------------------------------------------------------------- results

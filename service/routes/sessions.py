@@ -3,7 +3,8 @@
 HTTP only: service.sessions.SessionStore holds the sessions (memory + Redis mirror) and runs the frames. Here:
 the request body is read with the frame size limit, parsed as a frame bundle EXR, and the output is answered as a
 one-part float32 RGB EXR with timing headers. Parsing, inference and encoding run in the thread pool so the event
-loop keeps serving other sessions meanwhile.
+loop keeps serving other sessions meanwhile; the frame's Redis mirror is started once the response is sent (see
+service.sessions).
 """
 
 from __future__ import annotations
@@ -15,11 +16,13 @@ from datetime import datetime, timezone
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Request, Response
+from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
 from model.exr import encode_image_exr, read_frame_bytes
 from model.frames import FrameBundle, FrameError
 from service.errors import ApiError
+from service.registry import AUTO_MODEL
 from service.routes.models import registry_errors
 from service.schemas import SessionIn, SessionModelOut, SessionOut
 from service.sessions import (
@@ -80,7 +83,9 @@ def _time(seconds: float) -> datetime:
 
 
 def session_out(session: Session) -> SessionOut:
-    return SessionOut(id=session.id, model=SessionModelOut(**session.model.__dict__),
+    model = dict(session.model.__dict__)
+    choice = model.pop("choice", None)
+    return SessionOut(id=session.id, model=SessionModelOut(**model), choice=choice,
                       created_at=_time(session.created_at), last_used_at=_time(session.last_used_at),
                       expires_at=_time(session.expires_at), frames_processed=session.frames_processed,
                       next_frame_index=session.next_frame_index, on_gap=session.on_gap,
@@ -104,9 +109,12 @@ _SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
                               "links": _SESSION_LINKS},
                         400: _error_response("the body is not JSON", "bad_request",
                                              "There was an error parsing the body"),
-                        404: _error_response("unknown model, version or alias", "not_found",
+                        404: _error_response("unknown model, version or alias (model 'auto': no version has the "
+                                             "tags to compare, code no_candidate_model)", "not_found",
                                              "model 'jnds-xs-x2' has no alias 'champion' (aliases: none)"),
-                        422: _error_response("malformed request, or the version's checkpoint cannot be loaded",
+                        422: _error_response("malformed request, or the version's checkpoint cannot be loaded "
+                                             "(model 'auto': no version meets the constraint, code "
+                                             "constraint_not_met)",
                                              "invalid_request", "give a version or an alias of model "
                                                                 "'jnds-xs-x2', not both"),
                         429: _error_response("the server's session limit is reached", "too_many_sessions",
@@ -115,11 +123,38 @@ _SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
                         503: _UNAVAILABLE})
 def create_session(body: SessionIn, response: Response, store: StoreDep) -> SessionOut:
     """The model is `version` of `model`, else the version `alias` points at now, else its latest version; it is
-    loaded (shared with other sessions of the same version) before the session is answered."""
+    loaded (shared with other sessions of the same version) before the session is answered.
+
+    `"model": "auto"` chooses among registered versions by their tags (README, "Right-sizing"): with `min_psnr`
+    the smallest (FLOPs per pixel) whose validation PSNR is at least that, with `max_ms_per_frame` alone the best
+    validation PSNR among those whose recorded ms per frame is within it, with both the smallest that meets both;
+    `family` and `scale` narrow the candidates. The response's `choice` names the version and why. 404
+    `no_candidate_model` when no version has the tags to compare, 422 `constraint_not_met` when none passes."""
+    choice = None
+    if body.model == AUTO_MODEL:
+        choice = _choose(store, body)
     with session_errors():
-        session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap)
+        if choice is None:
+            session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap)
+        else:
+            session = store.create(choice.info.name, version=choice.info.version, on_gap=body.on_gap,
+                                   choice=choice.to_dict())
     response.headers["Location"] = f"/sessions/{session.id}"
     return session_out(session)
+
+
+def _choose(store: SessionStore, body: SessionIn):
+    """The version a model 'auto' session runs (service.registry.choose_auto), or the API error saying why none."""
+    from service.registry import ConstraintNotMet, NoAutoCandidates, choose_auto
+
+    with registry_errors():
+        try:
+            return choose_auto(max_ms_per_frame=body.max_ms_per_frame, min_psnr=body.min_psnr, family=body.family,
+                               scale=body.scale, registry=store.registry)
+        except NoAutoCandidates as error:
+            raise ApiError(404, "no_candidate_model", str(error), error.details) from None
+        except ConstraintNotMet as error:
+            raise ApiError(422, "constraint_not_met", str(error), error.details) from None
 
 
 @router.get("", response_model=list[SessionOut], summary="List live sessions", responses={503: _UNAVAILABLE})
@@ -198,23 +233,35 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
     resolution_mismatch)."""
     started = time.perf_counter()
     _check_content_type(request)
-    with session_errors():
-        await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
+    if not store.exists(session_id):  # one in memory is checked against Redis when its frame runs
+        with session_errors():
+            await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
     body = await _read_body(request, settings.max_frame_bytes)
     with session_errors():
         result, data = await run_in_threadpool(_run_frame, store, session_id, body)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
                "X-Inference-Ms": f"{result.inference_ms:.3f}",
                "X-Server-Ms": f"{(time.perf_counter() - started) * 1000:.3f}"}
-    return Response(content=data, media_type=EXR_MEDIA_TYPE, headers=headers)
+    # The session's Redis mirror is written once the response is out (see service.sessions: at most the frame
+    # in flight is missing from Redis, and the session's next request waits for the write).
+    return Response(content=data, media_type=EXR_MEDIA_TYPE, headers=headers,
+                    background=BackgroundTask(_start_mirror, store, session_id))
 
 
 def _run_frame(store: SessionStore, session_id: str, body: bytes):
     frame = _parse_frame(body)
-    result = store.process_frame(session_id, frame)
-    data = encode_image_exr(result.output, {"frame_index": result.frame_index, "sequence": frame.sequence,
-                                            "scale": result.session.model.scale})
+    result = store.process_frame(session_id, frame, start_mirror=False)
+    try:
+        data = encode_image_exr(result.output, {"frame_index": result.frame_index, "sequence": frame.sequence,
+                                                "scale": result.session.model.scale})
+    except BaseException:
+        store.start_mirror(session_id)  # no response will start it
+        raise
     return result, data
+
+
+async def _start_mirror(store: SessionStore, session_id: str) -> None:
+    store.start_mirror(session_id)  # never blocks: hands the write to the store's writer threads
 
 
 def _parse_frame(body: bytes) -> FrameBundle:

@@ -6,7 +6,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from model.exr import FrameFormatError, read_frame, write_frame
+from model.exr import FrameFormatError, encode_frame_exr, read_frame, read_frame_bytes, write_frame
 from model.frames import BUFFERS, TARGET_FIELDS, FrameBundle, FrameValidationError
 
 from .test_frames import make_frame
@@ -151,6 +151,32 @@ def test_single_part_file_from_another_renderer(tmp_path):
     assert read.reference_albedos == {} and read.reference_specular_albedos == {}
     np.testing.assert_array_equal(read.reference(1), frame.reference(1))
     np.testing.assert_allclose(read.color, frame.color, rtol=1e-3)
+
+
+@pytest.mark.parametrize("compression", ["NO", "RLE", "ZIPS", "ZIP", "PIZ"])
+def test_frame_bytes_round_trip_exactly_with_every_lossless_compression(compression):
+    frame = make_frame(seed=2, scales=(1, 2))
+    data = encode_frame_exr(frame, compression=getattr(OpenEXR, f"{compression}_COMPRESSION"))
+    assert_same_frame(read_frame_bytes(data, "body"), frame, rtol=0, atol=0)
+
+
+def test_a_buffer_with_float_and_half_channels_reads(tmp_path):
+    # The bindings read R, G, B channels of one prefix as one array, but refuse to when their types differ.
+    frame = make_frame()
+    channels = raw_channels(frame)
+    channels["color.G"] = channels["color.G"].astype(np.float16)
+    write_raw_exr(tmp_path / "f.exr", channels, {"jitter": (0.0, 0.0)})
+    read = read_frame(tmp_path / "f.exr")
+    np.testing.assert_array_equal(read.color[..., 0], frame.color[..., 0])
+    np.testing.assert_allclose(read.color[..., 1], frame.color[..., 1], rtol=1e-3)
+
+
+def test_an_alpha_channel_next_to_a_buffer_is_unknown(tmp_path):
+    channels = raw_channels(make_frame())
+    channels["color.A"] = np.ones((4, 6), np.float32)
+    write_raw_exr(tmp_path / "f.exr", channels, {"jitter": (0.0, 0.0)})
+    with pytest.raises(FrameFormatError, match=r"f.exr: unknown channels in part '.*': color.A$"):
+        read_frame(tmp_path / "f.exr")
 
 
 def test_single_part_file_with_a_scale_one_reference_albedo(tmp_path):

@@ -9,6 +9,8 @@
 - ``redis_db``: a client on db 15, flushed before and after; skips the test when Redis is not running.
 - ``tiny_frames`` / ``tiny_sequence`` / ``make_archive``: 8x8 frame bundles, sequence folders written with
   SequenceWriter, and zip / tar / tar.gz archives of folders.
+- ``registry_settings`` / ``make_store``: the shared MLflow store with registered test models, and session stores
+  on Redis db 15 (tests/service/session_fixtures.py, where the models and frames of the session tests live).
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ from service.errors import install_error_handlers
 from service.settings import Settings, get_settings
 from service.storage import Storage, get_storage
 from tests.model.test_frames import make_frame
+from tests.service.session_fixtures import make_store, registry_settings
+
+__all__ = ["make_store", "registry_settings"]  # fixtures of every test below tests/service
 
 TEST_REDIS_URL = "redis://127.0.0.1:6379/15"
 

@@ -139,13 +139,16 @@ def registry_settings(settings, monkeypatch):
 @pytest.fixture
 def make_store(registry_settings, redis_db):
     """``make_store(**setting_changes, clock=...)``: a SessionStore on Redis db 15 under this test's own key prefix;
-    every store of one test shares the prefix, so a second store plays the restarted API."""
+    every store of one test shares the prefix, so a second store plays the restarted API. It is built once the
+    earlier stores' background mirror writes have landed, as after a clean shutdown."""
     from service.sessions import SessionStore
 
     prefix = f"denoiser:session:test-{uuid.uuid4().hex[:8]}:"
     stores = []
 
     def build(clock=None, **changes):
+        for earlier in stores:
+            assert earlier.flush(timeout=30)
         active = registry_settings.model_copy(update=changes) if changes else registry_settings
         store = SessionStore(active, prefix=prefix, **({"clock": clock} if clock else {}))
         stores.append(store)

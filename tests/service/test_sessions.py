@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 
 import numpy as np
@@ -29,14 +30,9 @@ from tests.service.session_fixtures import (
     FakeClock,
     assert_same_image,
     in_process_outputs,
-    make_store,
-    registry_settings,
     shared_registry,
     stream_frames,
 )
-
-__all__ = ["make_store", "registry_settings"]  # fixtures used by name
-
 
 def test_a_stream_gives_what_the_method_gives_in_process(make_store):
     store = make_store()
@@ -151,12 +147,66 @@ def test_a_restarted_store_continues_each_session_from_redis(make_store, redis_d
     fourth = restarted.process_frame(session.id, frames[3])
     assert fourth.history == CONTINUED
     assert_same_image(fourth.output, expected[3])
+    assert restarted.flush(timeout=30)  # frame 3's mirror is written in the background; wait until it lands
 
     # The first process's memory copy is now older than Redis: it reloads before continuing, not forking.
     fifth = first.process_frame(session.id, frames[4])
     assert fifth.history == CONTINUED
     assert_same_image(fifth.output, expected[4])
     assert [s.id for s in restarted.list()] == [session.id]
+
+
+def redis_meta(redis_db, store: SessionStore, session_id: str) -> dict | None:
+    raw = redis_db.hget(f"{store.prefix}{session_id}", "meta")
+    return None if raw is None else json.loads(raw)
+
+
+def test_a_frames_mirror_is_written_in_the_background_before_the_sessions_next_use(make_store, redis_db):
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    frames = stream_frames(3)
+    store.process_frame(session.id, frames[0], start_mirror=False)  # as the API does: started after the response
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] is None  # not written yet
+    store.start_mirror(session.id)
+    assert store.flush(timeout=30)
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 1
+    store.process_frame(session.id, frames[1], start_mirror=False)
+    store.process_frame(session.id, frames[2], start_mirror=False)  # waits for (and starts) frame 1's write first
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 2  # at most the frame in flight is missing
+    store.close()  # a clean shutdown writes what is pending
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 3
+
+
+def test_a_frame_whose_mirror_never_landed_is_a_gap_after_a_restart(make_store, monkeypatch):
+    frames = stream_frames(4)
+    expected = in_process_outputs(shared_registry().checkpoints["1"], frames)
+    first = make_store()
+    session = first.create(MODEL_NAME, version="1", on_gap="reject")
+    for frame in frames[:2]:
+        first.process_frame(session.id, frame)
+    assert first.flush(timeout=30)
+    # Frame 2 is answered but its mirror never lands (Redis gone for this process, as if it died first).
+    monkeypatch.setattr(first, "redis", redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2,
+                                                    retry=Retry(NoBackoff(), 0)))
+    assert first.process_frame(session.id, frames[2]).history == CONTINUED
+
+    restarted = make_store()
+    with pytest.raises(FrameRejected) as caught:  # the client goes on with frame 3: a gap, not a misaligned history
+        restarted.process_frame(session.id, frames[3])
+    assert caught.value.code == "frame_gap" and caught.value.details == {"expected": 2, "received": 3}
+    for index in (2, 3):  # resending the lost frame continues exactly
+        result = restarted.process_frame(session.id, frames[index])
+        assert result.history == CONTINUED
+        assert_same_image(result.output, expected[index])
+
+
+def test_deleting_a_session_drops_its_pending_mirror(make_store, redis_db):
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    store.process_frame(session.id, stream_frames(1)[0], start_mirror=False)
+    store.delete(session.id)
+    assert store.flush(timeout=30)
+    assert not redis_db.exists(f"{store.prefix}{session.id}")  # no late write brought it back
 
 
 def test_idle_sessions_expire(make_store, redis_db):

@@ -2,7 +2,9 @@
 
 Both write ``report.json`` (the full report) and ``report.md`` (its table) into the job folder and summarize the
 methods in the job result; ``benchmark`` defaults its method list to the non-learned baselines and OIDN's three
-presets and also draws ``quality_speed.png`` (PSNR against time per frame, log scale, Pareto front). With
+presets, refuses learned registry presets (untrained weights: learned methods come only as model references or
+checkpoints), and also draws ``quality_speed.png`` with ``model.benchmark`` (PSNR and FLIP against time per
+frame, log scale, Pareto front; the chart ``denoiser benchmark`` draws, served at GET /jobs/{id}/chart.png). With
 ``track`` the run goes to MLflow (experiment ``denoiser-evaluation``): parameters, one metric per method and
 measure, the files as artifacts; and a registered model version that was evaluated gets its measurements as
 version tags (``ms_per_frame``, ``metric.<name>``), which GET /models shows.
@@ -15,11 +17,12 @@ import re
 from pathlib import Path
 from typing import Any
 
+from service.errors import ApiError
 from service.schemas import BenchmarkParams, EvaluateParams
 from service.storage import Storage
 from workers.tasks.checks import open_dataset, split_sequences
 from workers.tasks.context import JobContext
-from workers.tasks.methods import check_method, is_model_ref, runnable
+from workers.tasks.methods import check_method, is_model_ref, looks_like_path, runnable
 
 DEFAULT_BENCHMARK_METHODS = ("identity", "accumulation", "svgf", "oidn:fast", "oidn:balanced", "oidn:high")
 EXPERIMENT = "denoiser-evaluation"
@@ -43,7 +46,21 @@ def check(params: EvaluateParams, storage: Storage) -> dict[str, Any]:
     methods = params.methods if params.methods is not None else default_methods(params.scale)
     for method in methods:
         check_method(method, params.scale, storage)
+        if isinstance(params, BenchmarkParams):
+            _refuse_untrained(method)
     return {**params.model_dump(), "methods": list(methods)}
+
+
+def _refuse_untrained(text: str) -> None:
+    """A benchmark runs learned methods only from trained weights: a registry name of one would be untrained."""
+    from model.methods.registry import method_spec, parse_method_name
+
+    if is_model_ref(text) or looks_like_path(text):
+        return
+    name = parse_method_name(text)[0]
+    if method_spec(name).learned:
+        raise ApiError(422, "untrained_method", f"method {text!r} is learned and a registry preset has no trained "
+                       f"weights; benchmark a model reference (models:/NAME@ALIAS) or a checkpoint instead")
 
 
 def run(context: JobContext) -> dict[str, Any]:
@@ -116,42 +133,13 @@ def _write_files(folder: Path, report: dict, table: str, chart: bool) -> dict[st
     return files
 
 
-def pareto_front(points: list[tuple[float, float]]) -> list[int]:
-    """Indices of the points no other point beats on both time (lower) and quality (higher), by time."""
-    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
-    front, best = [], float("-inf")
-    for index in order:
-        if points[index][1] > best:
-            front.append(index)
-            best = points[index][1]
-    return front
-
-
 def quality_speed_chart(report: dict, path: Path) -> Path | None:
-    """PSNR (y) against ms per frame (x, log scale), one point per method, the Pareto front drawn."""
-    from matplotlib.figure import Figure
+    """PSNR and FLIP against ms per frame (log scale), Pareto front, every point labelled (model.benchmark);
+    None when no method was both timed and scored."""
+    from model.benchmark import benchmark_rows, write_quality_speed_chart
 
-    entries = [e for e in report["methods"] if e["ms_per_frame"] and e["metrics"].get("psnr") is not None]
-    if not entries:
-        return None
-    points = [(e["ms_per_frame"], e["metrics"]["psnr"]) for e in entries]
-    figure = Figure(figsize=(7, 4.5))
-    axis = figure.subplots()
-    axis.scatter([p[0] for p in points], [p[1] for p in points], zorder=3)
-    for entry, (x, y) in zip(entries, points):
-        axis.annotate(entry["label"], (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
-    front = pareto_front(points)
-    axis.plot([points[i][0] for i in front], [points[i][1] for i in front], linestyle="--", color="gray",
-              zorder=2, label="Pareto front")
-    axis.set_xscale("log")
-    axis.set_xlabel(f"ms per frame (median, {report['threads']} threads, {report['device']})")
-    axis.set_ylabel("PSNR dB (display-encoded)")
-    axis.set_title(f"{report['dataset']} / {report['split']}, scale {report['scale']}", fontsize=10)
-    axis.grid(True, which="both", alpha=0.3)
-    axis.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    return path
+    title = f"{report['dataset']} / {report['split']}, scale {report['scale']}"
+    return write_quality_speed_chart(benchmark_rows([report]), path, title)
 
 
 # ---------------------------------------------------------------------------------------------- MLflow

@@ -22,6 +22,7 @@ KIND_MODULES = {
     "evaluate": "workers.tasks.evaluate",
     "benchmark": "workers.tasks.evaluate",
     "infer": "workers.tasks.infer",
+    "fit": "workers.tasks.fit",
 }
 
 
@@ -33,6 +34,6 @@ def module_for(kind: str) -> ModuleType:
 
 def check(kind: str, params: BaseModel, storage: Storage, settings: Settings) -> dict[str, Any]:
     module = module_for(kind)
-    if kind == "train":
+    if kind in ("train", "fit"):
         return module.check(params, storage, settings)
     return module.check(params, storage)

@@ -286,3 +286,30 @@ def test_redis_down_answers_503(settings, storage):
     with TestClient(app) as client:
         error = error_of(client.get("/jobs/abc"), 503)
         assert error["code"] == "redis_unavailable" and "ConnectionError" in error["message"]
+
+
+# --------------------------------------------------------------------------------------- benchmark chart
+
+def test_chart_png_serves_a_benchmark_jobs_chart_or_404(client, storage):
+    job_id = client.post("/jobs", json={"kind": "benchmark", "params": {"dataset": "tiny"}}).json()["id"]
+    error = error_of(client.get(f"/jobs/{job_id}/chart.png"), 404)
+    assert error["code"] == "no_chart" and "benchmark job, queued" in error["message"]
+    storage.job(job_id).mkdir(parents=True)
+    png = b"\x89PNG\r\n\x1a\n" + b"chart"
+    (storage.job(job_id) / "quality_speed.png").write_bytes(png)
+    response = client.get(f"/jobs/{job_id}/chart.png")
+    assert response.status_code == 200 and response.content == png
+    assert response.headers["content-type"] == "image/png"
+    assert client.get(f"/jobs/{job_id}/artifacts/quality_speed.png").content == png  # still there too
+    evaluation = client.post("/jobs", json=evaluate_body()).json()["id"]
+    assert "evaluate job" in error_of(client.get(f"/jobs/{evaluation}/chart.png"), 404)["message"]
+    assert error_of(client.get("/jobs/unknown/chart.png"), 404)["code"] == "not_found"
+    assert "/jobs/{job_id}/chart.png" in client.get("/openapi.json").json()["paths"]
+
+
+def test_a_benchmark_refuses_untrained_learned_presets(client, dispatcher):
+    body = {"kind": "benchmark", "params": {"dataset": "tiny", "methods": ["identity", TINY_METHOD]}}
+    error = error_of(client.post("/jobs", json=body), 422)
+    assert error["code"] == "untrained_method" and TINY_METHOD in error["message"]
+    assert dispatcher.sent == []
+    assert client.post("/jobs", json=evaluate_body(methods=[TINY_METHOD])).status_code == 202  # evaluate may

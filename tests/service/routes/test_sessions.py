@@ -19,14 +19,9 @@ from tests.service.session_fixtures import (
     assert_same_image,
     frame_bytes,
     in_process_outputs,
-    make_store,
-    registry_settings,
     shared_registry,
     stream_frames,
 )
-
-__all__ = ["make_store", "registry_settings"]  # fixtures used by name
-
 
 @pytest.fixture
 def api(make_app, make_store):

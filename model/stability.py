@@ -1,0 +1,629 @@
+"""The stability suite: every method on named hard scenarios and corrupted inputs, and where each fails worst.
+
+Scenarios come from a dataset folder (sequences matched by their manifest's ``scene``), optionally rendered
+first with the Mitsuba generator (``generate_scenarios``):
+
+- scene scenarios, one sequence of each generator recipe: ``moving_object`` (disocclusion), ``moving_light``,
+  ``camera_cut``, ``fast_camera``, ``metals`` (glossy and mirror-like), ``glass``, ``dark_fireflies``;
+- derived scenarios, made in memory from one clean base sequence (``diffuse_room`` when present): ``clean`` (the
+  base itself), ``first_frames`` (its frames 0-2: before history exists), ``exposure_bright`` / ``exposure_dark``
+  (radiance and references x16 and x1/16; albedo, normals and the rest unchanged), ``nan_inf_color`` (NaN and
+  +-Inf pixels in color, diffuse and specular), ``nan_inf_guides`` (NaN / Inf in albedo, normal, depth, motion,
+  roughness, specular albedo and jitter), ``zero_motion``, ``garbage_motion`` (uniformly random vectors up to
+  half the image size), ``missing_buffers`` (diffuse, specular, specular_albedo and roughness removed).
+
+Every method is run as in evaluation (``model.evaluate.run_sequence``: inputs through ``model.sanitize``,
+history carried, cuts honoured) and scored per scenario: PSNR, SSIM, FLIP, SMAPE, the temporal error,
+optionally FovVideoVDP's JOD, and the PSNR of every frame (the curves). A method that raises or returns a
+non-finite output in a scenario is recorded as failing there; the suite itself never stops on it.
+
+"Fails worst" (``fails_worst``): a method's *gain* in a scenario is its PSNR minus the noisy input's PSNR on the
+same frames (the 1spp color, sanitized, bicubic-upscaled at scale 2): that removes how hard the scene is. Its
+*drop* there is its median gain over the scenarios it completed minus that gain. The scenario where it fails
+worst is the one with the largest drop; a scenario where it failed outright (error or non-finite output) comes
+before any drop.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import statistics
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from model.dataset import Dataset, Sequence
+from model.evaluate import EvaluationSequence, _prepare, _torch_threads, run_sequence
+from model.methods.base import FrameBatch, Method
+from model.metrics import VDP_DISPLAY, FovVideoVdp
+
+__all__ = [
+    "SCENE_SCENARIOS", "DERIVED_SCENARIOS", "SCENARIOS", "BASE_SCENES", "Scenario", "scale_exposure",
+    "inject_non_finite", "zero_motion", "garbage_motion", "drop_optional_buffers", "derive_scenarios",
+    "build_scenarios", "generate_scenarios", "run_suite", "fails_worst", "format_markdown", "write_report",
+]
+
+SCENE_SCENARIOS: dict[str, str] = {
+    "moving_object": "disocclusion: a box slides across a textured wall under a static camera",
+    "moving_light": "a small light circles the objects: shadows move, history is wrong everywhere",
+    "camera_cut": "a hard camera cut half-way: history must be dropped",
+    "fast_camera": "a camera sweep of 4-7 degrees per frame: motion of tens of pixels",
+    "metals": "smooth (mirror-like), glossy and rough metal",
+    "glass": "smooth and frosted glass",
+    "dark_fireflies": "a dark room lit by one tiny, very bright light: fireflies",
+}
+EXPOSURE_BRIGHT = 16.0
+EXPOSURE_DARK = 1.0 / 16.0
+FIRST_FRAMES = 3
+NON_FINITE_FRACTION = 0.01  # of the pixels of each corrupted buffer, per frame
+DERIVED_SCENARIOS: dict[str, str] = {
+    "clean": "the clean base sequence the scenarios below are made from",
+    "first_frames": f"frames 0-{FIRST_FRAMES - 1} of the base: before any history exists",
+    "exposure_bright": f"radiance and references x{EXPOSURE_BRIGHT:g} (albedo, normals, depth unchanged)",
+    "exposure_dark": f"radiance and references x1/{1 / EXPOSURE_DARK:g} (albedo, normals, depth unchanged)",
+    "nan_inf_color": f"NaN, +Inf and -Inf in {NON_FINITE_FRACTION:.0%} of the pixels of color, diffuse and specular "
+                     "(other pixels in each)",
+    "nan_inf_guides": f"NaN / Inf in {NON_FINITE_FRACTION:.0%} of the pixels of albedo, normal, depth, motion, "
+                      "roughness, specular albedo; NaN jitter on odd frames",
+    "zero_motion": "motion vectors all 0",
+    "garbage_motion": "motion vectors uniformly random, up to half the image size",
+    "missing_buffers": "diffuse, specular, specular_albedo and roughness removed",
+}
+SCENARIOS: tuple[str, ...] = tuple(SCENE_SCENARIOS) + tuple(DERIVED_SCENARIOS)
+BASE_SCENES = ("diffuse_room", "textured_detail", "swinging_light")  # preferred clean bases, in order
+SPLIT_PREFERENCE = ("test", "validation", "train")
+MIN_DROP_DB = 0.05  # a largest drop below this names no worst scenario (the method is as good everywhere)
+DEFINITION = (
+    "gain = the method's PSNR minus the noisy input's PSNR on the same frames (the 1spp color, sanitized, "
+    "bicubic-upscaled at scale 2), which removes how hard the scene is; drop = the method's median gain over the "
+    "scenarios it completed minus its gain in the scenario. A method fails worst in the scenario with the largest "
+    "drop (none when every drop is under {min:g} dB); a scenario where it raised an error or returned a non-finite "
+    "output is a failure and comes before any drop.").format(min=MIN_DROP_DB)
+FRAME_METRICS = ("psnr", "ssim", "flip", "smape")
+SEQUENCE_METRICS = ("temporal_error", "fvvdp_jod")
+INPUT_LABEL = "input (1spp)"
+
+Progress = Callable[[str], None]
+
+
+@dataclass
+class Scenario:
+    """One scenario: its frames in memory (references at the suite's scale), where they come from."""
+
+    name: str
+    description: str
+    sequence: EvaluationSequence
+    source: str  # the dataset sequence the frames come from
+    derived: bool = False  # made from the clean base (comparable with the 'clean' scenario)
+
+    @property
+    def frames(self) -> list[FrameBatch]:
+        return self.sequence.frames
+
+
+# -------------------------------------------------------------------------------------------- transforms
+
+RADIANCE = ("color", "diffuse", "specular")
+
+
+def scale_exposure(frames: list[FrameBatch], factor: float) -> list[FrameBatch]:
+    """Radiance (color, diffuse, specular) and the reference times ``factor``; every other buffer unchanged."""
+    return [replace(f, **{name: getattr(f, name) * factor for name in RADIANCE + ("reference",)
+                          if getattr(f, name) is not None}) for f in frames]
+
+
+def inject_non_finite(frames: list[FrameBatch], buffers: tuple[str, ...], fraction: float = NON_FINITE_FRACTION,
+                      seed: int = 0) -> list[FrameBatch]:
+    """In each buffer present, ``fraction`` of the pixels (at least 3; all channels; seeded positions, new ones
+    per frame and buffer) set to NaN, +Inf and -Inf, a third each. Missing buffers are skipped; the references
+    are never touched."""
+    corrupted = []
+    for index, frame in enumerate(frames):
+        generator = torch.Generator().manual_seed(seed * 100_003 + index)
+        changes = {}
+        for name in buffers:
+            tensor = getattr(frame, name)
+            if tensor is None:
+                continue
+            pixels = tensor.shape[2] * tensor.shape[3]
+            count = min(pixels, max(3, round(fraction * pixels)))
+            chosen = torch.randperm(pixels, generator=generator)[:count]
+            values = torch.full((count,), -math.inf)
+            values[: count // 3] = math.nan
+            values[count // 3: 2 * count // 3] = math.inf
+            flat = tensor.clone().flatten(2)  # (N, C, H*W)
+            flat[:, :, chosen.to(tensor.device)] = values.to(tensor)
+            changes[name] = flat.view_as(tensor)
+        corrupted.append(replace(frame, **changes))
+    return corrupted
+
+
+def zero_motion(frames: list[FrameBatch]) -> list[FrameBatch]:
+    return [replace(f, motion=torch.zeros_like(f.motion)) for f in frames]
+
+
+def garbage_motion(frames: list[FrameBatch], seed: int = 0) -> list[FrameBatch]:
+    """Motion vectors drawn uniformly in [-W/2, W/2] x [-H/2, H/2] pixels, seeded per frame."""
+    result = []
+    for index, frame in enumerate(frames):
+        generator = torch.Generator().manual_seed(seed * 100_003 + index)
+        noise = torch.rand(frame.motion.shape, generator=generator) * 2 - 1
+        half = torch.tensor([frame.width / 2, frame.height / 2]).view(1, 2, 1, 1)
+        result.append(replace(frame, motion=(noise * half).to(frame.motion)))
+    return result
+
+
+def drop_optional_buffers(frames: list[FrameBatch]) -> list[FrameBatch]:
+    return [replace(f, diffuse=None, specular=None, specular_albedo=None, roughness=None) for f in frames]
+
+
+def _nan_jitter_on_odd_frames(frames: list[FrameBatch]) -> list[FrameBatch]:
+    return [replace(f, jitter=torch.full_like(f.jitter, math.nan)) if i % 2 else f for i, f in enumerate(frames)]
+
+
+def derive_scenarios(clean: EvaluationSequence, names: tuple[str, ...] = tuple(DERIVED_SCENARIOS),
+                     seed: int = 0) -> list[Scenario]:
+    """The derived scenarios among ``names``, made from the clean sequence ``clean`` (never modified)."""
+    unknown = [n for n in names if n not in DERIVED_SCENARIOS]
+    if unknown:
+        raise ValueError(f"unknown derived scenario {', '.join(map(repr, unknown))}; derived scenarios: "
+                         f"{', '.join(DERIVED_SCENARIOS)}")
+    frames, cuts = clean.frames, clean.camera_cuts
+    guides = ("albedo", "normal", "depth", "motion", "roughness", "specular_albedo")
+    makers: dict[str, Callable[[], tuple[list[FrameBatch], list[bool]]]] = {
+        "clean": lambda: (list(frames), list(cuts)),
+        "first_frames": lambda: (frames[:FIRST_FRAMES], cuts[:FIRST_FRAMES]),
+        "exposure_bright": lambda: (scale_exposure(frames, EXPOSURE_BRIGHT), list(cuts)),
+        "exposure_dark": lambda: (scale_exposure(frames, EXPOSURE_DARK), list(cuts)),
+        "nan_inf_color": lambda: (inject_non_finite(frames, RADIANCE, seed=seed), list(cuts)),
+        "nan_inf_guides": lambda: (_nan_jitter_on_odd_frames(inject_non_finite(frames, guides, seed=seed + 1)),
+                                   list(cuts)),
+        "zero_motion": lambda: (zero_motion(frames), list(cuts)),
+        "garbage_motion": lambda: (garbage_motion(frames, seed=seed), list(cuts)),
+        "missing_buffers": lambda: (drop_optional_buffers(frames), list(cuts)),
+    }
+    scenarios = []
+    for name in DERIVED_SCENARIOS:
+        if name in names:
+            made, made_cuts = makers[name]()
+            scenarios.append(Scenario(name, DERIVED_SCENARIOS[name],
+                                      EvaluationSequence(name, made, made_cuts, clean.scale), clean.name,
+                                      derived=True))
+    return scenarios
+
+
+# ------------------------------------------------------------------------------------------ from a dataset
+
+def _ordered_sequences(dataset: Dataset) -> list[Sequence]:
+    """Every sequence, test split first, then validation, then train (dataset order within a split)."""
+    return [sequence for split in SPLIT_PREFERENCE for sequence in dataset.sequences(split)]
+
+
+def _pick_base(sequences: list[Sequence], base: str | None) -> Sequence:
+    if base is not None:
+        for sequence in sequences:
+            if sequence.name == base:
+                return sequence
+        raise ValueError(f"no sequence {base!r} in the dataset; it has: "
+                         f"{', '.join(s.name for s in sequences) or 'none'}")
+    for scene in BASE_SCENES:
+        for sequence in sequences:
+            if sequence.scene == scene:
+                return sequence
+    others = [s for s in sequences if s.scene not in SCENE_SCENARIOS]
+    return (others or sequences)[0]
+
+
+def build_scenarios(dataset_dir: str | os.PathLike, scale: int = 1, *, names: tuple[str, ...] = SCENARIOS,
+                    base: str | None = None, frame_limit: int | None = None,
+                    seed: int = 0) -> tuple[list[Scenario], list[dict]]:
+    """The scenarios ``names`` from a dataset: (scenarios, missing), missing = [{"name", "reason"}] for scene
+    scenarios the dataset has no usable sequence for. Derived scenarios are made from ``base`` (a sequence
+    name), by default the first of BASE_SCENES present, else the first sequence that is no scene scenario."""
+    unknown = [n for n in names if n not in SCENARIOS]
+    if unknown:
+        raise ValueError(f"unknown scenario {', '.join(map(repr, unknown))}; scenarios: {', '.join(SCENARIOS)}")
+    if frame_limit is not None and frame_limit < 1:
+        raise ValueError(f"frame limit must be positive, got {frame_limit}")
+    dataset = Dataset(dataset_dir)
+    sequences = _ordered_sequences(dataset)
+    if not sequences:
+        raise ValueError(f"dataset {dataset.root} has no sequences")
+    scenarios: list[Scenario] = []
+    missing: list[dict] = []
+    for name in SCENE_SCENARIOS:
+        if name not in names:
+            continue
+        matches = [s for s in sequences if s.scene == name]
+        usable = [s for s in matches if scale in s.scales]
+        if not usable:
+            reason = (f"no sequence of scene '{name}' in the dataset" if not matches else
+                      f"sequence '{matches[0].name}' has no references at scale {scale}")
+            missing.append({"name": name, "reason": reason})
+            continue
+        sequence = EvaluationSequence.from_sequence(usable[0], scale, frame_limit)
+        scenarios.append(Scenario(name, SCENE_SCENARIOS[name], replace(sequence, name=name), usable[0].name))
+    derived = tuple(n for n in names if n in DERIVED_SCENARIOS)
+    if derived:
+        chosen = _pick_base(sequences, base)
+        clean = EvaluationSequence.from_sequence(chosen, scale, frame_limit)  # raises on a missing scale
+        scenarios += derive_scenarios(clean, derived, seed=seed)
+    return scenarios, missing
+
+
+def generate_scenarios(root: str | os.PathLike, *, size: tuple[int, int] = (64, 64), frames: int = 8,
+                       ref_spp: int = 64, scale: int = 1, seed: int = 0, names: tuple[str, ...] = SCENARIOS,
+                       variant: str | None = None, progress: Progress | None = None) -> Path:
+    """Render the scene scenarios among ``names`` (and ``diffuse_room``, the clean base, when a derived scenario
+    is asked for) with the Mitsuba generator into the dataset ``root`` (test split); returns ``root``.
+
+    A sequence already there with the same size, frame count and the needed reference scale is reused.
+    """
+    from model.data.generate import default_sequence_name, generate_sequence
+    from model.data.render import RenderSettings
+
+    scenes = [n for n in SCENE_SCENARIOS if n in names]
+    if any(n in DERIVED_SCENARIOS for n in names):
+        scenes.append(BASE_SCENES[0])
+    settings = RenderSettings(width=size[0], height=size[1], ref_spp=ref_spp,
+                              ref_scales=(1,) if scale == 1 else (1, scale), variant=variant)
+    root = Path(root)
+    say = progress or (lambda message: None)
+    existing = Dataset(root) if (root / "manifest.json").exists() else None
+    for scene in scenes:
+        name = default_sequence_name(scene, seed)
+        if existing is not None and name in existing.names():
+            sequence = existing.sequence(name)
+            same_size = (sequence.width, sequence.height) == tuple(size)
+            if same_size and len(sequence) == frames and scale in sequence.scales:
+                say(f"reusing {root / name}")
+                continue
+        say(f"rendering {scene}: {frames} frames at {size[0]}x{size[1]}, references {ref_spp} spp")
+        generate_sequence(scene, root, frames=frames, settings=settings, seed=seed, split="test", name=name,
+                          overwrite=True, progress=False,
+                          on_frame=lambda done, total, message: say(message))
+    return root
+
+
+# ----------------------------------------------------------------------------------------------- running
+
+def _run(method: Method, scenario: Scenario, metric: FovVideoVdp | None, device: torch.device) -> dict:
+    """One method on one scenario; any exception is the method failing there (recorded, not raised)."""
+    try:
+        run = run_sequence(method, scenario.sequence, vdp=metric, warmup_frames=0, device=device)
+    except Exception as error:  # noqa: BLE001 - the suite's job is to record how methods fail
+        return {"status": "failed", "error": f"{type(error).__name__}: {error}"}
+    result = {"status": "ok", "error": None, **run["metrics"], "per_frame_psnr": run["per_frame"]["psnr"],
+              "sanitized": run["sanitized"]}
+    if "fvvdp_error" in run:
+        result["fvvdp_error"] = run["fvvdp_error"]
+    return result
+
+
+def run_suite(scenarios: list[Scenario], methods: list[Method | str], scale: int = 1, *, vdp: bool = False,
+              device: torch.device | str = "cpu", threads: int | None = None, progress: Progress | None = None,
+              missing: list[dict] | None = None, data: str | None = None) -> dict:
+    """Every method on every scenario; returns the JSON-serializable report (scores and worst scenarios).
+
+    ``methods`` are ``NAME[:PRESET]`` texts, checkpoint files or Method objects; a bad one raises before any run.
+    The noisy input (the ``identity`` method) always runs too: it is what the gains are measured against.
+    """
+    if not methods:
+        raise ValueError("no methods to run")
+    if not scenarios:
+        raise ValueError("no scenarios to run")
+    say = progress or (lambda message: None)
+    device = torch.device(device)
+    entrants = [_prepare(m, scale) for m in methods]
+    baseline, _ = _prepare("identity", scale)
+    with _torch_threads(threads):
+        metric = FovVideoVdp(device) if vdp else None
+        usable = metric if metric is not None and metric.available else None
+        inputs = {}
+        for scenario in scenarios:
+            inputs[scenario.name] = _run(baseline.to(device), scenario, None, device)
+        entries = []
+        for method, source in entrants:
+            method.to(device)
+            runs = {}
+            for scenario in scenarios:
+                say(f"{method.label}: {scenario.name} ({len(scenario.frames)} frames)")
+                runs[scenario.name] = _run(method, scenario, usable, device)
+                if runs[scenario.name]["status"] == "failed":
+                    say(f"{method.label}: {scenario.name} FAILED: {runs[scenario.name]['error']}")
+            entries.append({"label": method.label, "source": source, "scenarios": runs})
+        threads_used = torch.get_num_threads()
+    first = scenarios[0].sequence
+    report = {
+        "suite": "stability",
+        "data": data,
+        "scale": scale,
+        "device": str(device),
+        "threads": threads_used,
+        "torch_version": torch.__version__,
+        "input_resolution": first.input_resolution,
+        "output_resolution": first.output_resolution,
+        "definition": DEFINITION,
+        "scenarios": [{"name": s.name, "description": s.description, "source": s.source, "derived": s.derived,
+                       "frames": len(s.frames), "camera_cuts": [i for i, c in enumerate(s.sequence.camera_cuts) if c],
+                       "sanitized": inputs[s.name].get("sanitized")} for s in scenarios],
+        "missing_scenarios": list(missing or []),
+        "fvvdp": {"enabled": metric is not None, "available": usable is not None,
+                  "reason": None if metric is None else metric.unavailable_reason, "display": VDP_DISPLAY},
+        "input": {name: {"label": INPUT_LABEL if scale == 1 else f"input (1spp, bicubic x{scale})",
+                         "status": run["status"], "error": run["error"], "psnr": run.get("psnr"),
+                         "per_frame_psnr": run.get("per_frame_psnr")} for name, run in inputs.items()},
+        "methods": entries,
+    }
+    score(report)
+    return report
+
+
+# ------------------------------------------------------------------------------------------------ scoring
+
+def fails_worst(psnr: dict[str, float | None], input_psnr: dict[str, float | None],
+                failures: dict[str, str] | None = None, order: list[str] | None = None) -> dict:
+    """Where a method fails worst (see DEFINITION): its per-scenario PSNR (None for a failure), the input's PSNR
+    on the same scenarios, and the failures' reasons. Returns {"scenario", "failed", "reason", "drop_db",
+    "gain_db", "median_gain_db", "gains": {scenario: gain}, "drops": {scenario: drop}}."""
+    failures = dict(failures or {})
+    order = order or list(psnr)
+    for name in order:
+        if psnr.get(name) is None and name not in failures:
+            failures[name] = "no result"
+    gains = {name: psnr[name] - input_psnr[name] for name in order
+             if psnr.get(name) is not None and input_psnr.get(name) is not None}
+    median = statistics.median(gains.values()) if gains else None
+    drops = {name: median - gain for name, gain in gains.items()} if median is not None else {}
+    result = {"scenario": None, "failed": False, "reason": None, "drop_db": None, "gain_db": None,
+              "median_gain_db": median, "gains": gains, "drops": drops}
+    failed = [name for name in order if name in failures]
+    if failed:
+        name = failed[0]
+        return {**result, "scenario": name, "failed": True, "reason": failures[name]}
+    if drops:
+        name = max(drops, key=lambda n: (drops[n], -order.index(n)))
+        if drops[name] >= MIN_DROP_DB:
+            return {**result, "scenario": name, "drop_db": drops[name], "gain_db": gains[name]}
+    return result
+
+
+def score(report: dict) -> None:
+    """Fill gains, drops, differences to the clean scenario and the worst scenario into every method entry."""
+    order = [s["name"] for s in report["scenarios"]]
+    derived = {s["name"] for s in report["scenarios"] if s["derived"]}
+    input_psnr = {name: report["input"][name]["psnr"] for name in order}
+    for entry in report["methods"]:
+        runs = entry["scenarios"]
+        psnr = {name: runs[name].get("psnr") for name in order}
+        failures = {name: runs[name]["error"] for name in order if runs[name]["status"] == "failed"}
+        worst = fails_worst(psnr, input_psnr, failures, order)
+        clean = psnr.get("clean")
+        for name in order:
+            run = runs[name]
+            run["gain_db"] = worst["gains"].get(name)
+            run["drop_db"] = worst["drops"].get(name)
+            run["vs_clean_db"] = (run["psnr"] - clean if name in derived and name != "clean" and clean is not None
+                                  and run.get("psnr") is not None else None)
+        entry["median_gain_db"] = worst["median_gain_db"]
+        entry["failures"] = [{"scenario": name, "error": reason} for name, reason in failures.items()]
+        entry["worst"] = {key: worst[key] for key in ("scenario", "failed", "reason", "drop_db", "gain_db")}
+        if worst["scenario"] is not None and not worst["failed"]:
+            entry["worst"]["psnr"] = psnr[worst["scenario"]]
+
+
+# ------------------------------------------------------------------------------------------------ report
+
+def _text(message: str) -> str:
+    """One line of text safe inside a Markdown table cell."""
+    return " ".join(str(message).split()).replace("|", "\\|")
+
+
+def _number(value: float | None, fmt: str = "{:.2f}") -> str:
+    return "-" if value is None or not math.isfinite(value) else fmt.format(value)
+
+
+def _worst_text(entry: dict) -> tuple[str, str]:
+    worst = entry["worst"]
+    if worst["scenario"] is None:
+        return "none", f"every drop < {MIN_DROP_DB:g} dB"
+    if worst["failed"]:
+        return worst["scenario"], f"FAILED: {_text(worst['reason'])}"
+    return worst["scenario"], (f"{worst['drop_db']:.2f} dB below its median gain (gain {worst['gain_db']:+.2f} dB, "
+                               f"median {entry['median_gain_db']:+.2f} dB; PSNR {worst['psnr']:.2f} dB)")
+
+
+def _cell(run: dict, key: str, fmt: str) -> str:
+    return "FAIL" if run["status"] == "failed" else _number(run.get(key), fmt)
+
+
+def format_markdown(report: dict, charts: dict[str, str] | None = None) -> str:
+    """The report as Markdown: the worst scenario per method, PSNR and drop per scenario, every metric, the
+    sanitized input counts, and links to the charts (``charts``: name -> path relative to the report)."""
+    charts = charts or {}
+    scenarios = report["scenarios"]
+    methods = report["methods"]
+    vdp = report["fvvdp"]
+    conditions = (f"{len(scenarios)} scenarios, input {report['input_resolution']} -> output "
+                  f"{report['output_resolution']} (scale {report['scale']}), {report['device']}, "
+                  f"torch threads: {report['threads']}" + (f", data {report['data']}" if report.get("data") else "")
+                  + ("; FovVideoVDP skipped (--vdp runs it)" if not vdp["enabled"] else
+                     "" if vdp["available"] else f"; FovVideoVDP unavailable: {vdp['reason']}"))
+    lines = ["# Stability suite", "", conditions, "", "## Where each method fails worst", "",
+             f"Definition: {report['definition']}", "",
+             "| method | worst scenario | by how much | failures |", "|---|---|---|---|"]
+    for entry in methods:
+        scenario, how = _worst_text(entry)
+        failures = ", ".join(f["scenario"] for f in entry["failures"]) or "none"
+        lines.append(f"| {entry['label']} | {scenario} | {how} | {failures} |")
+
+    labels = [report["input"][scenarios[0]["name"]]["label"]] + [e["label"] for e in methods]
+    header = "| scenario | " + " | ".join(labels) + " |"
+    alignment = "|---|" + "---:|" * len(labels)
+    lines += ["", "## PSNR per scenario (dB, display-encoded; FAIL: error or non-finite output)", "", header,
+              alignment]
+    for scenario in scenarios:
+        name = scenario["name"]
+        cells = [_cell(report["input"][name], "psnr", "{:.2f}")] + [_cell(e["scenarios"][name], "psnr", "{:.2f}")
+                                                                   for e in methods]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", "## Drop per scenario (dB: median gain minus gain; higher is worse, negative is better than usual)",
+              "", "| scenario | " + " | ".join(e["label"] for e in methods) + " |", "|---|" + "---:|" * len(methods)]
+    for scenario in scenarios:
+        name = scenario["name"]
+        lines.append(f"| {name} | " + " | ".join(_cell(e["scenarios"][name], "drop_db", "{:+.2f}")
+                                                for e in methods) + " |")
+
+    lines += ["", "## Every metric per scenario", "",
+              "vs clean: PSNR minus the method's PSNR on `clean` (derived scenarios only; exposure and first frames "
+              "compare other references or fewer frames, so read them with the gain)."]
+    for scenario in scenarios:
+        name = scenario["name"]
+        cuts = f", cut before frame {', '.join(map(str, scenario['camera_cuts']))}" if scenario["camera_cuts"] else ""
+        lines += ["", f"### {name}", "",
+                  f"{scenario['description']} (from `{scenario['source']}`, {scenario['frames']} frames{cuts})", "",
+                  "| method | PSNR ↑ | SSIM ↑ | FLIP ↓ | SMAPE ↓ | temporal ↓ | JOD ↑ | gain dB | vs clean dB |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for entry in methods:
+            run = entry["scenarios"][name]
+            if run["status"] == "failed":
+                lines.append(f"| {entry['label']} | FAILED: {_text(run['error'])} |" + " |" * 8)
+                continue
+            cells = [_number(run["psnr"]), _number(run["ssim"], "{:.4f}"), _number(run["flip"], "{:.4f}"),
+                     _number(run["smape"], "{:.4f}"), _number(run["temporal_error"], "{:.5f}"),
+                     _number(run.get("fvvdp_jod")), _number(run["gain_db"], "{:+.2f}"),
+                     _number(run["vs_clean_db"], "{:+.2f}")]
+            lines.append(f"| {entry['label']} | " + " | ".join(cells) + " |")
+
+    lines += ["", "## Sanitized inputs", "",
+              "Pixels repaired by `model.sanitize.sanitize_frame` before any method saw them (summed over frames; "
+              "the same for every method).", "", "| scenario | repaired pixels | per buffer |", "|---|---:|---|"]
+    for scenario in scenarios:
+        counts = scenario["sanitized"] or {"total": 0, "non_finite": {}, "out_of_range": {}}
+        parts = [f"{b}: {n} non-finite" for b, n in counts["non_finite"].items()]
+        parts += [f"{b}: {n} out of range" for b, n in counts["out_of_range"].items()]
+        lines.append(f"| {scenario['name']} | {counts['total']} | {'; '.join(parts) or '-'} |")
+
+    if charts:
+        lines += ["", "## Charts", ""]
+        if "psnr_curves" in charts:
+            lines += ["PSNR of every frame, one line per method, the noisy input dashed (dotted lines: camera cuts):",
+                      "", f"![per-frame PSNR]({charts['psnr_curves']})", ""]
+        if "psnr_drop" in charts:
+            lines += ["Drop per method and scenario (red: worse than the method's median):", "",
+                      f"![drop per scenario]({charts['psnr_drop']})", ""]
+        per_scenario = [f"[{s['name']}]({charts['curve:' + s['name']]})" for s in scenarios
+                        if "curve:" + s["name"] in charts]
+        if per_scenario:
+            lines.append("One chart per scenario: " + ", ".join(per_scenario) + ".")
+    if report["missing_scenarios"]:
+        lines += ["", "## Not run", ""] + [f"- {m['name']}: {m['reason']}" for m in report["missing_scenarios"]]
+    return "\n".join(lines) + "\n"
+
+
+def _plot_curves(axis, report: dict, scenario: dict) -> None:
+    from matplotlib.ticker import MaxNLocator
+
+    name = scenario["name"]
+    source = report["input"][name]
+    if source.get("per_frame_psnr"):
+        values = source["per_frame_psnr"]
+        axis.plot(range(len(values)), values, linestyle="--", color="gray", label=source["label"])
+    for entry in report["methods"]:
+        run = entry["scenarios"][name]
+        if run["status"] == "ok":
+            values = run["per_frame_psnr"]
+            axis.plot(range(len(values)), values, marker="o", markersize=2.5, linewidth=1.2, label=entry["label"])
+        else:
+            axis.plot([], [], linestyle="none", label=f"{entry['label']} (failed)")
+    for cut in scenario["camera_cuts"]:
+        axis.axvline(cut - 0.5, color="black", linestyle=":", linewidth=0.8)
+    axis.set_title(name, fontsize=9)
+    axis.xaxis.set_major_locator(MaxNLocator(integer=True))
+    axis.set_xlabel("frame", fontsize=8)
+    axis.set_ylabel("PSNR dB", fontsize=8)
+    axis.tick_params(labelsize=7)
+    axis.grid(True, alpha=0.3)
+
+
+def curves_chart(report: dict, path: Path, scenario: str | None = None) -> Path:
+    """Per-frame PSNR: one panel per scenario (or only ``scenario``), one line per method (matplotlib Figure)."""
+    from matplotlib.figure import Figure
+
+    scenarios = [s for s in report["scenarios"] if scenario is None or s["name"] == scenario]
+    columns = min(4, len(scenarios))
+    rows = math.ceil(len(scenarios) / columns)
+    legend_inches = 0.45
+    figure = Figure(figsize=(3.6 * columns, 2.7 * rows + legend_inches))
+    axes = figure.subplots(rows, columns, squeeze=False)
+    for index, entry in enumerate(scenarios):
+        _plot_curves(axes[index // columns][index % columns], report, entry)
+    for index in range(len(scenarios), rows * columns):
+        axes[index // columns][index % columns].set_axis_off()
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), fontsize=8, frameon=False)
+    figure.tight_layout(rect=(0, legend_inches / (2.7 * rows + legend_inches), 1, 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=100)
+    return path
+
+
+def drop_chart(report: dict, path: Path) -> Path:
+    """Heat map of the drop (dB) per method (rows) and scenario (columns); failures marked."""
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    names = [s["name"] for s in report["scenarios"]]
+    methods = report["methods"]
+    values = np.full((len(methods), len(names)), np.nan)
+    for row, entry in enumerate(methods):
+        for column, name in enumerate(names):
+            drop = entry["scenarios"][name].get("drop_db")
+            values[row, column] = np.nan if drop is None else drop
+    limit = max(1.0, float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 1.0)
+    figure = Figure(figsize=(1.0 + 0.75 * len(names), 1.2 + 0.45 * len(methods)))
+    axis = figure.subplots()
+    image = axis.imshow(np.nan_to_num(values, nan=0.0), cmap="RdBu_r", vmin=-limit, vmax=limit, aspect="auto")
+    for row, entry in enumerate(methods):
+        for column, name in enumerate(names):
+            failed = entry["scenarios"][name]["status"] == "failed"
+            value = values[row, column]
+            text = "FAIL" if failed else ("-" if np.isnan(value) else f"{value + 0.0:+.1f}")
+            strong = not np.isnan(value) and abs(value) > 0.6 * limit
+            axis.text(column, row, text, ha="center", va="center", fontsize=7,
+                      color="darkred" if failed else ("white" if strong else "black"),
+                      fontweight="bold" if failed else "normal")
+    axis.set_xticks(range(len(names)), names, rotation=45, ha="right", fontsize=8)
+    axis.set_yticks(range(len(methods)), [e["label"] for e in methods], fontsize=8)
+    axis.set_title("drop = median gain - gain (dB); higher is worse", fontsize=9)
+    figure.colorbar(image, ax=axis, fraction=0.03)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=100)
+    return path
+
+
+REPORT_JSON = "stability.json"
+REPORT_MARKDOWN = "stability.md"
+
+
+def write_report(report: dict, out: str | os.PathLike, per_scenario_charts: bool = True) -> dict[str, Path]:
+    """Write ``stability.json``, the charts (``psnr_curves.png``, ``psnr_drop.png``, ``curves/NAME.png``) and
+    ``stability.md`` into the folder ``out``; returns name -> path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"json": out / REPORT_JSON, "markdown": out / REPORT_MARKDOWN,
+             "psnr_curves": curves_chart(report, out / "psnr_curves.png"),
+             "psnr_drop": drop_chart(report, out / "psnr_drop.png")}
+    if per_scenario_charts:
+        for scenario in report["scenarios"]:
+            files["curve:" + scenario["name"]] = curves_chart(report, out / "curves" / f"{scenario['name']}.png",
+                                                             scenario["name"])
+    files["json"].write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
+    relative = {name: path.relative_to(out).as_posix() for name, path in files.items() if path.suffix == ".png"}
+    files["markdown"].write_text(format_markdown(report, relative))
+    return files
