@@ -37,7 +37,7 @@ from pathlib import Path
 import torch
 
 from model.dataset import Dataset, Sequence
-from model.evaluate import EvaluationSequence, _prepare, _torch_threads, run_sequence
+from model.evaluate import EvaluationSequence, _prepare, torch_threads, run_sequence
 from model.methods.base import FrameBatch, Method
 from model.metrics import VDP_DISPLAY, FovVideoVdp
 
@@ -320,7 +320,7 @@ def run_suite(scenarios: list[Scenario], methods: list[Method | str], scale: int
     device = torch.device(device)
     entrants = [_prepare(m, scale) for m in methods]
     baseline, _ = _prepare("identity", scale)
-    with _torch_threads(threads):
+    with torch_threads(threads):
         metric = FovVideoVdp(device) if vdp else None
         usable = metric if metric is not None and metric.available else None
         inputs = {}
