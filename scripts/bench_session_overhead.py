@@ -22,13 +22,16 @@ is service.client.DenoiserClient. Timed per frame, after ``--warmup`` frames, me
 - server: the X-Server-Ms header (body read, EXR decode, step, EXR encode; the Redis mirror is written in the
   background);
 - step: the X-Inference-Ms header (method.step in the session);
-- in process: method.step on the same frames, here, with the same torch thread count, history carried;
-  interleaved with the HTTP stream (frame i over HTTP, then frame i here), so load from other processes on a
-  shared machine hits both alike.
+- in process: method.step on the same frames, here, with the same torch thread count, history carried.
+
+The two run in alternating blocks, ``--rounds`` times (HTTP stream, in-process stream, HTTP stream, ...; a new
+session and a new history each round), and each median is over every timed frame of its blocks: blocks, not
+frame-by-frame interleaving, because the server's work after answering a frame (its Redis mirror write) would
+otherwise run beside the in-process step on a 2-core machine and slow it, while a client stepping nothing at that
+moment does not feel it. Alternating still spreads slow drifts of other load over both sides.
 
 The overhead ratio is round trip / in-process step; client encode is reported beside it, not in it. Round trip /
-step in session is printed too: on a busy machine the two steps drift apart (different processes; the server's
-background Redis write of frame i overlaps the in-process step of frame i), so read both.
+step in session is printed too (the same step, timed inside the server).
 """
 
 from __future__ import annotations
@@ -80,6 +83,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--size", type=int, default=128, help="render resolution of synthetic frames (square)")
     parser.add_argument("--frames", type=int, default=30, help="timed frames (default 30)")
     parser.add_argument("--warmup", type=int, default=5, help="untimed frames first (default 5)")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="alternating HTTP / in-process blocks of the whole stream (default 3)")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
     return parser.parse_args()
 
@@ -230,51 +235,61 @@ def session_body(model: str) -> dict:
 
 
 class InProcess:
-    """The same method stepping through the same frames here, with its own history."""
+    """The same method stepping through the same frames here, a new history per stream."""
 
     def __init__(self, checkpoint: Path) -> None:
         self.method = load_method(checkpoint).for_inference()
-        self.state = None
-        self.outputs: list[np.ndarray] = []
 
-    def step(self, frame: FrameBundle) -> float:
-        batch = FrameBatch.from_bundles([frame], scale=None)
-        with torch.no_grad():
-            started = time.perf_counter()
-            output, self.state = self.method.step(batch, self.state)
-            elapsed = (time.perf_counter() - started) * 1000
-        self.outputs.append(output[0].permute(1, 2, 0).numpy().copy())
-        return elapsed
+    def stream(self, frames: list[FrameBundle]) -> tuple[list[np.ndarray], list[float]]:
+        state, outputs, times = None, [], []
+        for frame in frames:
+            batch = FrameBatch.from_bundles([frame], scale=None)
+            with torch.no_grad():
+                started = time.perf_counter()
+                output, state = self.method.step(batch, state)
+                times.append((time.perf_counter() - started) * 1000)
+            outputs.append(output[0].permute(1, 2, 0).numpy().copy())
+        return outputs, times
 
 
-def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, warmup: int, api_key: str | None,
-        compression: str | None) -> dict:
-    """Each frame encoded and sent over HTTP, then the same frame in process: interleaved, so load from other
-    processes on a shared machine hits both alike."""
-    times: dict[str, list[float]] = {"encode": [], "round_trip": [], "server": [], "inference": [], "local": []}
+def http_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], compression: str | None) -> dict:
+    """Each frame encoded and sent over HTTP in a new session: outputs and per-frame times."""
+    times: dict[str, list[float]] = {"encode": [], "round_trip": [], "server": [], "inference": []}
     outputs, sizes = [], []
     options = {} if compression is None else {"compression": compression}
-    with DenoiserClient(url, api_key=api_key, timeout=120) as client:
-        session = client.create_session(**session_body(model), on_gap="reject")
-        try:
-            for index, frame in enumerate(frames):
-                started = time.perf_counter()
-                body = frame_bytes(frame, **options)
-                encode_ms = (time.perf_counter() - started) * 1000
-                data, info = client.send_frame_raw(session["id"], body)
-                outputs.append(data)
-                sizes.append(len(body))
-                local_ms = local.step(frame)
-                if index >= warmup:
-                    times["encode"].append(encode_ms)
-                    times["round_trip"].append(info.round_trip_ms)
-                    times["server"].append(info.server_ms)
-                    times["inference"].append(info.inference_ms)
-                    times["local"].append(local_ms)
-        finally:
-            client.delete_session(session["id"])
+    session = client.create_session(**session_body(model), on_gap="reject")
+    try:
+        for frame in frames:
+            started = time.perf_counter()
+            body = frame_bytes(frame, **options)
+            times["encode"].append((time.perf_counter() - started) * 1000)
+            data, info = client.send_frame_raw(session["id"], body)
+            outputs.append(data)
+            sizes.append(len(body))
+            times["round_trip"].append(info.round_trip_ms)
+            times["server"].append(info.server_ms)
+            times["inference"].append(info.inference_ms)
+    finally:
+        client.delete_session(session["id"])
     return {"session": session, "times": times, "outputs": outputs, "bytes_in": sizes[-1],
             "bytes_out": len(outputs[-1])}
+
+
+def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, warmup: int, rounds: int,
+        api_key: str | None, compression: str | None) -> dict:
+    """``rounds`` x (the stream over HTTP, then in process); times of frames after ``warmup`` in each stream."""
+    times: dict[str, list[float]] = {"encode": [], "round_trip": [], "server": [], "inference": [], "local": []}
+    difference = 0.0
+    with DenoiserClient(url, api_key=api_key, timeout=120) as client:
+        for _ in range(rounds):
+            http = http_stream(client, model, frames, compression)
+            expected, local_times = local.stream(frames)
+            for name, values in http["times"].items():
+                times[name] += values[warmup:]
+            times["local"] += local_times[warmup:]
+            difference = max([difference] + [float(np.abs(decode_image_exr(data) - image).max())
+                                             for data, image in zip(http["outputs"], expected)])
+    return {**http, "times": times, "difference": difference}
 
 
 def main() -> None:
@@ -303,22 +318,21 @@ def main() -> None:
             url = server.url
         local = InProcess(checkpoint)
         try:
-            http = run(url, model, frames, local, args.warmup, args.api_key, args.compression)
+            http = run(url, model, frames, local, args.warmup, args.rounds, args.api_key, args.compression)
         finally:
             if server is not None:
                 server.stop()
 
     scale = http["session"]["model"]["scale"]
     height, width = frames[0].height, frames[0].width
-    difference = max(float(np.abs(decode_image_exr(data) - expected).max())
-                     for data, expected in zip(http["outputs"], local.outputs))
+    difference = http["difference"]
     median = statistics.median
     times = http["times"]
     round_trip, server_ms, step_ms, local_ms = (median(times[name])
                                                 for name in ("round_trip", "server", "inference", "local"))
     where = f"server {url}" if args.url else f"API in {'its own process' if args.server == 'process' else 'a thread'}"
-    print(f"{label} ({model}) {width}x{height} -> {width * scale}x{height * scale}, {args.frames} timed frames "
-          f"after {args.warmup}, {args.threads} torch thread(s), frame EXR ({args.compression or 'client default'}) "
+    print(f"{label} ({model}) {width}x{height} -> {width * scale}x{height * scale}, {args.rounds} x {args.frames} timed "
+          f"frames after {args.warmup}, {args.threads} torch thread(s), frame EXR ({args.compression or 'client default'}) "
           f"{http['bytes_in'] / 1e6:.2f} MB in, {http['bytes_out'] / 1e6:.2f} MB out, {where}")
     print(f"  client encode            median {median(times['encode']):8.2f} ms/frame (not in the round trip)")
     print(f"  HTTP round trip          median {round_trip:8.2f} ms/frame")

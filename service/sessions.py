@@ -37,7 +37,9 @@ reading Redis in that window sees the same one-frame lag.
 Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
 Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
 ``for_inference`` form under ``torch.no_grad``. Frames of one session are serialized by a per-session lock;
-different sessions run concurrently. If Redis is unreachable, sessions keep working from memory (a warning is
+different sessions run concurrently, except that every tensor operation (steps, loading weights, (de)serializing
+histories) runs on the store's one torch thread (``service.torch_thread``: one OpenMP team, not one per request
+thread); on a CPU each step uses every core, so running two at once would gain nothing. If Redis is unreachable, sessions keep working from memory (a warning is
 logged, by the background writer for frames) but cannot survive a restart meanwhile.
 """
 
@@ -66,6 +68,7 @@ from model.frames import FrameBundle
 from model.methods.base import FrameBatch, Method, State
 from service.registry import Registry, UnknownModelError, registry_for
 from service.settings import Settings
+from service.torch_thread import TorchThread
 
 log = logging.getLogger("denoiser.sessions")
 
@@ -282,9 +285,10 @@ class SessionStore:
         self.redis = redis_client if redis_client is not None else redis.Redis.from_url(
             settings.redis_url, socket_timeout=5, socket_connect_timeout=1, retry=Retry(NoBackoff(), 1))
         self._redis_paused_until = 0.0
-        if settings.session_threads:
-            # Process-wide in torch: the API process runs only session inference, so set once here.
-            torch.set_num_threads(settings.session_threads)
+        # Every tensor operation of the sessions (steps, state (de)serialization, loading weights) runs on this
+        # one thread: torch's OpenMP threads then form one team instead of one per request thread (see
+        # service.torch_thread for the measured cost).
+        self._torch = TorchThread(settings.session_threads, name="session-torch")
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, threading.Lock] = {}
         self._methods: dict[tuple[str, str], Method] = {}
@@ -396,17 +400,7 @@ class SessionStore:
                     code="resolution_mismatch",
                     details={"expected": list(session.resolution), "received": list(resolution)})
             history, state = self._history_for(session, frame)
-            batch = FrameBatch.from_bundles([frame], scale=None, device=self.device)
-            with torch.no_grad():
-                start = time.perf_counter()
-                output, state = session.method.step(batch, state)
-                if output.device.type == "cuda":
-                    torch.cuda.synchronize(output.device)
-                inference_ms = (time.perf_counter() - start) * 1000
-            # A copy (the response is encoded after the lock is released, while the next frame of this session
-            # may already run), kept as contiguous R, G, B planes, which the EXR encoder takes without copying.
-            planes = output[0].detach().to("cpu", torch.float32, copy=True)
-            image = planes.permute(1, 2, 0).numpy()
+            image, state, inference_ms = self._torch.run(self._step, session.method, frame, state)
             session.state = state
             session.next_frame_index = frame.frame_index + 1
             session.frames_processed += 1
@@ -416,6 +410,20 @@ class SessionStore:
             self._mirror(session, wait=False, start=start_mirror)
             return FrameResult(output=image, frame_index=frame.frame_index, history=history,
                                inference_ms=inference_ms, session=session)
+
+    def _step(self, method: Method, frame: FrameBundle, state: State | None) -> tuple[np.ndarray, State, float]:
+        """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms."""
+        batch = FrameBatch.from_bundles([frame], scale=None, device=self.device)
+        with torch.no_grad():
+            start = time.perf_counter()
+            output, state = method.step(batch, state)
+            if output.device.type == "cuda":
+                torch.cuda.synchronize(output.device)
+            inference_ms = (time.perf_counter() - start) * 1000
+        # A copy (the response is encoded after the lock is released, while the next frame of this session may
+        # already run), kept as contiguous R, G, B planes, which the EXR encoder takes without copying.
+        planes = output[0].detach().to("cpu", torch.float32, copy=True)
+        return planes.permute(1, 2, 0).numpy(), state, inference_ms
 
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until every mirror handed to the background writers is written (or failed); False on timeout."""
@@ -435,6 +443,7 @@ class SessionStore:
         if not self.flush(timeout=2 * 5 + 1):  # a write on a hung Redis gives up after its socket timeouts
             log.warning("session store closed with mirror writes still pending")
         self._mirror_pool.shutdown(wait=False)
+        self._torch.shutdown()
         with self._lock:
             self._sessions.clear()
             self._locks.clear()
@@ -533,7 +542,7 @@ class SessionStore:
             return fresh
         try:
             data = self._redis(lambda client: client.hget(self._key(session_id), "state"))
-            fresh.state = deserialize_state(data, self.device)
+            fresh.state = self._torch.run(deserialize_state, data, self.device)
         except redis.RedisError as error:
             raise SessionStoreUnavailable(f"session {session_id!r}: cannot read its history from Redis: {error}") \
                 from None
@@ -569,7 +578,7 @@ class SessionStore:
         """Write one snapshot (metadata and state together) to Redis and restart the key's TTL."""
         session = snapshot.session
         key = self._key(session.id)
-        mapping = {"meta": snapshot.meta, "state": serialize_state(snapshot.state)}
+        mapping = {"meta": snapshot.meta, "state": self._torch.run(serialize_state, snapshot.state)}
 
         def write(client: redis.Redis) -> None:
             pipeline = client.pipeline(transaction=True)
@@ -621,17 +630,21 @@ class SessionStore:
             if method is None:
                 checkpoint = self.registry.checkpoint(name, version)
                 try:
-                    method = load_method(checkpoint, self.device).for_inference()
+                    method = self._torch.run(self._load, checkpoint)
                 except (KeyError, ValueError) as error:  # build_method / load_checkpoint name the problem
                     message = error.args[0] if isinstance(error, KeyError) and error.args else error
                     raise ModelNotLoadable(f"version {version} of model {name!r} cannot be loaded: {message}",
                                            details={"model": name, "version": version}) from None
-                for parameter in method.parameters():
-                    parameter.requires_grad_(False)
                 with self._lock:
                     self._methods[key] = method
                 log.info("loaded %s version %s (%s) for sessions", name, version, method.label)
             return method
+
+    def _load(self, checkpoint: Path) -> Method:
+        method = load_method(checkpoint, self.device).for_inference()
+        for parameter in method.parameters():
+            parameter.requires_grad_(False)
+        return method
 
 
 _store: SessionStore | None = None

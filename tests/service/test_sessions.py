@@ -276,3 +276,34 @@ def test_sessions_keep_working_in_memory_when_redis_is_down(registry_settings, c
         assert "could not mirror to Redis" in caplog.text
     finally:
         store.close()
+
+
+def test_every_step_runs_on_the_store_torch_thread(make_store):
+    # One OpenMP team for the process (service.torch_thread): steps asked for from different request threads all
+    # run on one thread, never on the caller's.
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    method = session.method
+    steps: list[int] = []
+    callers: list[int] = []
+    original = method.step
+
+    def recording_step(batch, state):
+        steps.append(threading.get_ident())
+        return original(batch, state)
+
+    def call(frame):
+        callers.append(threading.get_ident())
+        store.process_frame(session.id, frame)
+
+    method.step = recording_step
+    try:
+        for frame in stream_frames(4):
+            caller = threading.Thread(target=call, args=(frame,))
+            caller.start()
+            caller.join()
+    finally:
+        del method.step
+    assert len(steps) == 4 and len(set(steps)) == 1
+    assert all(step != caller for step, caller in zip(steps, callers))
+    assert session.next_frame_index == 4
