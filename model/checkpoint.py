@@ -99,7 +99,10 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     try:
         content = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch raises several types for a damaged or foreign file
-        raise ValueError(f"{path}: not a readable checkpoint ({error})") from None
+        # torch's own message is a page of advice about weights_only that does not fit this case: left out.
+        raise ValueError(f"{path}: not a readable checkpoint: torch.load cannot read it as saved weights "
+                         f"({type(error).__name__}); give a file written by denoiser train "
+                         f"(model.checkpoint.save_checkpoint)") from None
     if not isinstance(content, dict) or content.get("format") != CHECKPOINT_FORMAT:
         found = content.get("format") if isinstance(content, dict) else type(content).__name__
         raise ValueError(f"{path}: format is {found!r}, expected {CHECKPOINT_FORMAT!r}")

@@ -1,7 +1,7 @@
 """Right-sizing: the smallest preset of a method family that meets a target, chosen from a ladder of trained sizes.
 
-A *ladder* is the family's presets ordered by FLOPs per output pixel (``model.methods.registry.flops_per_pixel``,
-smallest first; ties by parameter count). Each preset on it is obtained (trained, or reused, see below), measured
+A *ladder* is the family's presets ordered by FLOPs per output pixel of their inference form
+(``model.methods.registry.inference_cost``, smallest first; ties by parameter count). Each preset on it is obtained (trained, or reused, see below), measured
 on the validation split (PSNR, SSIM, FLIP through ``model.evaluate``, the method in its inference form, driven
 frame by frame with its history) and timed (ms per frame, below), and the target picks one:
 
@@ -611,7 +611,7 @@ def plan_fit(config: FitConfig) -> FitPlan:
     """Check the fit (family, presets, target, data, training settings) and cost its presets, or raise
     ValueError / KeyError naming the problem. Reads manifests and one frame per training sequence."""
     from model.dataset import Dataset
-    from model.methods.registry import build_method, flops_per_pixel, method_spec, parse_method_name
+    from model.methods.registry import build_method, inference_cost, method_spec, parse_method_name
     from model.train import prepare, resolve_device
 
     name, preset = parse_method_name(config.family)
@@ -646,8 +646,8 @@ def plan_fit(config: FitConfig) -> FitPlan:
     prepare(config.train_config(presets[0], Path(config.out) / "_check", register=False))
     candidates = []
     for preset in presets:
-        method = build_method(f"{name}:{preset}", config.scale).eval()
-        candidates.append(Candidate(preset, float(flops_per_pixel(method)), method.parameter_count()))
+        params_count, flops = inference_cost(build_method(f"{name}:{preset}", config.scale))
+        candidates.append(Candidate(preset, flops, params_count))
     fingerprint = dataset_fingerprint(config.data, (config.train_split, config.validation_split))
     key = training_key(config.train_config(presets[0], "", register=False).to_dict(), name, fingerprint)
     return FitPlan(config=config, target=target, candidates=candidates, key=key, device=device)
@@ -740,11 +740,12 @@ class _Fit:
 
     def _train_tags(self, preset: str, checkpoint: Path) -> dict[str, str]:
         from model.checkpoint import load_checkpoint, load_method
-        from model.methods.registry import flops_per_pixel
+        from model.methods.registry import inference_cost
 
         method = load_method(checkpoint)
+        params_count, flops = inference_cost(method)
         return {"method": method.name, "preset": method.preset, "scale": str(method.scale),
-                "params": str(method.parameter_count()), "flops_per_pixel": f"{flops_per_pixel(method):.6g}",
+                "params": str(params_count), "flops_per_pixel": f"{flops:.6g}",
                 "steps": str(load_checkpoint(checkpoint)["step"]), "fit_key": self.plan.key}
 
     # -- measuring

@@ -29,7 +29,6 @@ Tracking goes through a ``Tracker`` (the protocol below); this module never impo
 
 from __future__ import annotations
 
-import copy
 import math
 import random
 import time
@@ -49,7 +48,7 @@ from model.data.crops import FrameCache, SequenceCrops, collate_crops
 from model.dataset import Dataset
 from model.losses import TONEMAPS, SequenceLoss
 from model.methods.base import FrameBatch, Method
-from model.methods.registry import build_method, flops_per_pixel
+from model.methods.registry import build_method, inference_cost
 from model.ops.tonemap import display_encode
 
 SCHEDULES = ("cosine", "step", "constant")
@@ -362,7 +361,8 @@ class _Training:
         self.out = Path(config.out)
 
         self.crops, self.validation, self.method = prepare(config)
-        self.flops_per_pixel = self._count_flops() if self.master_process else 0.0
+        # Size as the model runs (its inference form): what the registry tags and every report give.
+        self.inference_params, self.flops_per_pixel = inference_cost(self.method) if self.master_process else (0, 0.0)
         self.method.to(device).train()
         unroll = SequenceUnroll(self.method)
         # device_ids=None: the module lives on one device and batches are moved there before forward. Every
@@ -381,10 +381,6 @@ class _Training:
         self.resumed_run_id: str | None = None
         self.last_validation: dict[str, float] | None = None
         self.last_losses: dict[str, float] = {}
-
-    def _count_flops(self) -> float:
-        # On a CPU copy in eval mode: the count needs no device and must not draw from the training RNG.
-        return flops_per_pixel(copy.deepcopy(self.method).cpu().eval())
 
     # ------------------------------------------------------------------------------------------ run
 
@@ -512,15 +508,16 @@ class _Training:
 
     def _params(self) -> dict[str, Any]:
         return {**self.config.to_dict(), "method_name": self.method.name, "preset": self.method.preset,
-                "parameters": self.method.parameter_count(), "flops_per_pixel": self.flops_per_pixel,
-                "total_steps": self.total_steps, "train_samples": len(self.crops),
+                "parameters": self.inference_params, "trainable_parameters": self.method.parameter_count(),
+                "flops_per_pixel": self.flops_per_pixel, "total_steps": self.total_steps,
+                "train_samples": len(self.crops),
                 "validation_sequences": len(self.validation), "device": str(self.device)}
 
     def _finish(self) -> dict[str, Any] | None:
         if not self.master_process:
             return None
         tags = {"method": self.method.name, "preset": self.method.preset, "scale": str(self.method.scale),
-                "params": str(self.method.parameter_count()), "flops_per_pixel": f"{self.flops_per_pixel:.6g}",
+                "params": str(self.inference_params), "flops_per_pixel": f"{self.flops_per_pixel:.6g}",
                 "steps": str(self.step)}
         if self.last_validation is not None:
             tags["validation_psnr"] = f"{self.last_validation['psnr']:.4f}"
@@ -534,8 +531,8 @@ class _Training:
                 "checkpoint": str(self.out / LAST_CHECKPOINT),
                 "best_checkpoint": str(best) if best.is_file() else None,
                 "run_id": self.tracker.run_id, "registered_model": registered,
-                "parameters": self.method.parameter_count(), "flops_per_pixel": self.flops_per_pixel,
-                "seconds": seconds}
+                "parameters": self.inference_params, "trainable_parameters": self.method.parameter_count(),
+                "flops_per_pixel": self.flops_per_pixel, "seconds": seconds}
 
 
 @torch.no_grad()

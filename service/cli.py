@@ -34,6 +34,33 @@ def positive_int(text: str) -> int:
     return value
 
 
+def registered_name(text: str) -> str:
+    """A name to register a model as: anything MLflow takes but 'auto', which sessions read as "choose for me"."""
+    if text == "auto":
+        raise argparse.ArgumentTypeError("'auto' is reserved: sessions read model 'auto' as 'choose a version for "
+                                         "me', so a model of that name could never be opened; choose another name")
+    return text
+
+
+def device_option(text: str) -> str:
+    """A torch device the methods can run on here: cpu, cuda or cuda:N (checked when the options are parsed, so a
+    typo or a missing GPU exits 2 before any data is read)."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}") from None
+    if device.type not in ("cpu", "cuda"):
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise argparse.ArgumentTypeError(f"{text}: no CUDA device is available")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise argparse.ArgumentTypeError(f"{text}: only {torch.cuda.device_count()} CUDA device(s) here")
+    return text
+
+
 def size_option(text: str) -> tuple[int, int]:
     """'128' -> (128, 128); '160x96' -> (160, 96) as width x height."""
     parts = text.lower().split("x")

@@ -613,7 +613,9 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
         message = str(error).replace(str(upload), label)
         raise InvalidUpload("invalid_frame", message, {"buffer": error.buffer, "problem": error.problem}) from None
     if frame.sequence not in ("", sequence):
-        raise InvalidUpload("invalid_frame", f"{label}: the frame belongs to sequence {frame.sequence!r}")
+        raise InvalidUpload("invalid_frame", f"{label}: the frame's 'sequence' header says {frame.sequence!r}, not "
+                            f"{sequence!r}; upload it to sequence {frame.sequence!r} or write it with sequence "
+                            f"{sequence!r} (or none)")
     if scales is not None and list(frame.scales) != sorted(set(scales)):
         raise InvalidUpload("invalid_frame", f"{label}: reference scales {list(frame.scales)} are not the "
                                              f"requested {sorted(set(scales))}")

@@ -46,6 +46,38 @@ def error_body(code: str, message: str, details: Any = None) -> dict:
     return {"error": {"code": code, "message": message, "details": details}}
 
 
+INVALID_JSON = "invalid_json"
+FASTAPI_BODY_PARSE_ERROR = "There was an error parsing the body"
+_NOT_AN_OBJECT = {"model_attributes_type", "dict_type", "model_type"}
+
+
+def _body_problem(request: Request, errors: list[dict]) -> tuple[int, str, str, Any] | None:
+    """A JSON body that is not JSON, or not sent as JSON, as (status, code, message, details); None otherwise.
+
+    FastAPI reports both as validation errors of the body (422 "JSON decode error", "Input should be a valid
+    dictionary"), which do not tell the caller what to change.
+    """
+    for problem in errors:
+        location = tuple(problem.get("loc", ()))
+        if not location or location[0] != "body":
+            continue
+        if problem.get("type") == "json_invalid":
+            position = location[1] if len(location) > 1 else None
+            reason = (problem.get("ctx") or {}).get("error")
+            where = f" at character {position}" if isinstance(position, int) else ""
+            return (400, INVALID_JSON, f"the body is not valid JSON{where}" + (f": {reason}" if reason else ""),
+                    {"position": position})
+        if location == ("body",) and problem.get("type") in _NOT_AN_OBJECT:
+            declared = request.headers.get("content-type")
+            media_type = declared.split(";")[0].strip().lower() if declared else None
+            if media_type != "application/json":
+                sent = f"Content-Type {media_type} is not accepted here" if media_type else "no Content-Type"
+                return (415, "unsupported_media_type",
+                        f"{sent}; send the body as JSON with Content-Type application/json",
+                        {"received": media_type, "accepted": ["application/json"]})
+    return None
+
+
 def _status_code_name(status: int) -> str:
     return {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found",
             405: "method_not_allowed", 409: "conflict", 413: "payload_too_large", 415: "unsupported_media_type",
@@ -56,11 +88,24 @@ def _allowed_methods(request: Request) -> str:
     """Every method of every route whose path matches the request's. Starlette's 405 names only the methods of
     the first route matching the path, while one path (e.g. /datasets/{id}) has a route per method."""
     methods: set[str] = set()
-    for route in request.app.router.routes:
+    for route in _endpoint_routes(request.app.router.routes):
         match, _ = route.matches(request.scope)
         if match != Match.NONE:
             methods |= getattr(route, "methods", None) or set()
     return ", ".join(sorted(methods))
+
+
+def _endpoint_routes(routes: list) -> list:
+    """The routes that answer requests, with included routers opened: FastAPI 0.16x keeps an included router as
+    one wrapper route (its ``original_router`` holds the routes, with their full paths) that has no methods."""
+    found = []
+    for route in routes:
+        inner = getattr(route, "original_router", None)
+        if inner is not None:
+            found += _endpoint_routes(inner.routes)
+        else:
+            found.append(route)
+    return found
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -71,8 +116,12 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, error: RequestValidationError) -> JSONResponse:
+        errors = error.errors()
+        body_problem = _body_problem(request, errors)
+        if body_problem is not None:
+            return JSONResponse(error_body(*body_problem[1:]), status_code=body_problem[0])
         problems = [{"location": ".".join(str(part) for part in e.get("loc", ())), "message": e.get("msg", ""),
-                     "type": e.get("type", "")} for e in error.errors()]
+                     "type": e.get("type", "")} for e in errors]
         summary = "; ".join(f"{p['location']}: {p['message']}" for p in problems[:5])
         return JSONResponse(error_body("invalid_request", f"invalid request: {summary}", problems), status_code=422)
 
@@ -80,8 +129,13 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _http_error(request: Request, error: StarletteHTTPException) -> JSONResponse:
         message = error.detail if isinstance(error.detail, str) else str(error.detail)
         headers = getattr(error, "headers", None)
+        if error.status_code == 400 and message == FASTAPI_BODY_PARSE_ERROR:  # e.g. a body that is not UTF-8
+            return JSONResponse(error_body(INVALID_JSON, "the body could not be read as JSON text (is it UTF-8?)"),
+                                status_code=400)
         if error.status_code == 405:
-            headers = {**(headers or {}), "Allow": _allowed_methods(request)}
+            allowed = _allowed_methods(request)
+            headers = {**(headers or {}), "Allow": allowed}
+            message = f"{request.method} is not allowed on {request.url.path}; allowed: {allowed or 'none'}"
         return JSONResponse(error_body(_status_code_name(error.status_code), message), status_code=error.status_code,
                             headers=headers)
 

@@ -20,10 +20,12 @@ DESCRIPTION = """
 Trains and serves real-time neural denoisers (and 2x upscalers) for path-traced frames.
 
 * **/datasets**: upload EXR frame sequences (a zip or tar of sequence folders, or frame by frame), inspect, delete.
-* **/jobs**: `generate`, `train`, `evaluate`, `benchmark` and `infer` jobs run by Celery workers; progress, logs,
-  MLflow run, cancel; `infer` results downloadable as EXR.
+* **/jobs**: `generate`, `train`, `evaluate`, `benchmark`, `infer` and `fit` (right-sizing) jobs run by Celery
+  workers; progress, logs, MLflow run, cancel; `infer` results downloadable as EXR, reports, charts and fit ladders
+  as artifacts.
 * **/models**: models registered in MLflow, their versions, metrics and aliases.
-* **/sessions**: stream frame bundles (EXR) through a model; the server keeps each session's temporal history.
+* **/sessions**: stream frame bundles (EXR) through a model (or `"model": "auto"`: the smallest registered version
+  that meets a quality or time constraint); the server keeps each session's temporal history.
 
 Errors: `{"error": {"code", "message", "details"}}` with a 4xx status for the caller's mistakes.
 Authentication: header `X-API-Key` when the server has `DENOISER_API_KEY` set.

@@ -416,6 +416,14 @@ JobSplit = Literal["train", "validation", "test"]
 # type, so `"steps": "100"` or `"overwrite": 0` is a 422 naming the field rather than silently coerced.
 # A stored id (dataset, registered model name): one safe path component, as service.storage.checked_id.
 _ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
+AUTO_MODEL = "auto"  # POST /sessions {"model": "auto"} chooses a version: no registered model may take the name
+
+
+def _registrable(name: str | None) -> str | None:
+    if name == AUTO_MODEL:
+        raise ValueError(f"register_as {AUTO_MODEL!r} is reserved: sessions read model 'auto' as 'choose a version "
+                         "for me', so a model of that name could never be opened; choose another name")
+    return name
 
 
 class GenerateParams(BaseModel):
@@ -474,6 +482,7 @@ class TrainParams(BaseModel):
     world_size: int = Field(1, ge=1, le=64, description="DDP ranks (processes); >1 runs them on this worker")
     register_as: str | None = Field(None, pattern=_ID_PATTERN,
                                     description="registered model name (none: METHOD-PRESET-xSCALE)")
+    _register_as_not_auto = _field_validator("register_as")(_registrable)
     seed: int = Field(0, ge=0, le=2**31 - 1)
     validate_every: int = Field(500, ge=0, le=10_000_000, description="steps (0: only at the end)")
     checkpoint_every: int = Field(500, ge=0, le=10_000_000, description="steps (0: only at the end)")
@@ -594,6 +603,7 @@ class FitParams(BaseModel):
     threads: int | None = Field(None, ge=1, le=1024, description="torch threads for training, measuring, timing")
     register_as: str | None = Field(None, pattern=_ID_PATTERN,
                                     description="registered model name (none: FAMILY-fit-xSCALE)")
+    _register_as_not_auto = _field_validator("register_as")(_registrable)
     alias: str = Field("fitted", pattern=r"^[A-Za-z_][A-Za-z0-9_-]{0,63}$",
                        description="alias set on the chosen version")
     experiment: str = Field("denoiser", min_length=1, max_length=200, description="MLflow experiment")

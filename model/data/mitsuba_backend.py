@@ -39,8 +39,11 @@ def choose_variant(requested: str | None = None) -> str:
     if requested is not None:
         if requested not in VARIANTS:
             raise ValueError(f"unknown Mitsuba variant {requested!r}; choose one of {', '.join(VARIANTS)}")
+        if requested == "cuda_ad_rgb" and not _cuda_available():
+            raise ValueError("variant 'cuda_ad_rgb' needs a CUDA GPU and none is available here; use llvm_ad_rgb "
+                             "(or scalar_rgb, slower)")
         if requested == "llvm_ad_rgb" and find_llvm() is None:
-            raise RuntimeError("variant 'llvm_ad_rgb' needs libLLVM-19 (Debian package libllvm19; "
+            raise ValueError("variant 'llvm_ad_rgb' needs libLLVM-19 (Debian package libllvm19; "
                                "scripts/setup.sh installs it) or DRJIT_LIBLLVM_PATH pointing at it")
         return requested
     if _cuda_available():

@@ -6,7 +6,9 @@ A method is named `NAME` or `NAME:PRESET` (for example `wskpn:s`). Each method m
 
 from __future__ import annotations
 
+import copy
 import importlib
+import warnings
 from dataclasses import dataclass
 from typing import Callable
 
@@ -101,6 +103,21 @@ def example_batch(height: int = 32, width: int = 32, batch: int = 1, seed: int =
                       camera_cut=torch.zeros(batch, dtype=torch.bool),
                       diffuse=rand(3), specular=rand(3), specular_albedo=rand(3) * 0.1,
                       roughness=rand(1)).to(device)
+
+
+def inference_cost(method: Method, height: int = 32, width: int = 32) -> tuple[int, float]:
+    """(parameters, FLOPs per output pixel) of the method as it runs: its ``for_inference()`` form (WSKPN's RepVGG
+    blocks fused, int8 JNDS counted by its float32 twin), taken on a CPU copy so ``method`` is not changed.
+
+    The one definition of a model's size: training tags, the fit ladder, ``denoiser methods``, evaluation reports
+    and sessions all report this, so the same version never shows two sizes.
+    """
+    if not method.learned:
+        return method.parameter_count(), float(flops_per_pixel(method, height, width))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # an untrained int8 preset warns it has no activation ranges to convert
+        runnable = copy.deepcopy(method).cpu().for_inference()
+    return runnable.parameter_count(), float(flops_per_pixel(runnable, height, width))
 
 
 def flops_per_pixel(method: Method, height: int = 32, width: int = 32) -> float:

@@ -7,7 +7,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from service.cli import UsageError, positive_int
+from service.cli import UsageError, device_option, positive_int
 
 SPLITS = ("train", "validation", "test")  # as model.dataset.SPLITS; repeated so --help stays import-light
 MODEL_REF_PREFIX = "models:/"
@@ -66,7 +66,8 @@ def add_commands(commands) -> None:
                         help="only the first N frames of each sequence (default: all)")
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
                         help="torch thread count for the runs (default: torch's own); stated in the table")
-    parser.add_argument("--device", default="cpu", help="torch device the methods run on: cpu (default), cuda")
+    parser.add_argument("--device", type=device_option, default="cpu",
+                        help="torch device the methods run on: cpu (default), cuda")
     parser.add_argument("--vdp", action="store_true",
                         help="also compute FovVideoVDP JOD (slow on a CPU; off by default, the column is then '-')")
     parser.add_argument("--no-oidn-timing", action="store_true",
@@ -183,11 +184,6 @@ def _run_benchmark(args) -> int:
     from model.benchmark import BENCHMARK_MARKDOWN, QUALITY_COST_CHART, QUALITY_SPEED_CHART, write_benchmark
     from model.evaluate import TIMING_REFERENCE, evaluate, load_split
 
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise UsageError(f"--device {args.device}: no CUDA device is available")
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder")
     scales = _scales(args.scale)

@@ -196,7 +196,7 @@ def collect_params(params_json: Path | None, pairs: list[tuple[str, object]]) ->
 
 def _add_submit(commands, common) -> None:
     parser = commands.add_parser(
-        "submit", parents=[common], help="queue a job (generate, train, evaluate, benchmark, infer)",
+        "submit", parents=[common], help="queue a job (generate, train, evaluate, benchmark, infer, fit)",
         description="POST /jobs. Parameters come from --params-json and then each --param KEY=VALUE; a VALUE is "
                     "read as JSON when it is valid JSON (8, 0.001, true, [\"a\",\"b\"], null) and as text "
                     "otherwise; a KEY given twice collects its values into a list "

@@ -49,7 +49,8 @@ def _add_generate(commands) -> None:
     parser.add_argument("--max-depth", type=positive_int, default=6,
                         help="longest path (1 = directly visible emitters only), as Mitsuba's path integrator")
     parser.add_argument("--variant", choices=("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb"), default=None,
-                        help="Mitsuba variant; default: cuda_ad_rgb on a GPU, else llvm_ad_rgb")
+                        help="Mitsuba variant; default: cuda_ad_rgb on a GPU, else llvm_ad_rgb, else (no LLVM 19) "
+                             "scalar_rgb")
     parser.add_argument("--half", action="store_true", help="store EXR channels as half floats")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing sequence of the same name")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -73,6 +74,9 @@ def _run_generate(args) -> int:
         target = args.out / (args.name or default_sequence_name(scene, args.seed))
         if target.exists() and not args.overwrite:
             raise UsageError(f"sequence {target} already exists; pass --overwrite to replace it")
+    from model.data.mitsuba_backend import choose_variant
+
+    choose_variant(args.variant)  # a variant this machine cannot run: exit 2 before the dataset folder is made
     width, height = args.size
     settings = RenderSettings(width=width, height=height, ref_spp=args.ref_spp, ref_scales=args.scales,
                               albedo_spp=args.albedo_spp, max_depth=args.max_depth, variant=args.variant)

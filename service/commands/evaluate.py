@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from service.cli import UsageError, positive_int
+from service.cli import UsageError, device_option, positive_int
 
 SPLITS = ("train", "validation", "test")  # as model.dataset.SPLITS; repeated so --help stays import-light
 
@@ -39,7 +39,8 @@ def _add_evaluate(commands) -> None:
                         help="evaluate only the first N frames of each sequence (default: all)")
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
                         help="torch thread count for the run (default: torch's own)")
-    parser.add_argument("--device", default="cpu", help="torch device the methods run on: cpu (default), cuda, cuda:1")
+    parser.add_argument("--device", type=device_option, default="cpu",
+                        help="torch device the methods run on: cpu (default), cuda, cuda:1")
     parser.add_argument("--no-vdp", action="store_true", help="skip FovVideoVDP (the slowest metric)")
     parser.add_argument("--no-oidn", action="store_true",
                         help="do not time OIDN-high as the speed reference (time ratios are then null)")
@@ -50,11 +51,6 @@ def _add_evaluate(commands) -> None:
 def _run_evaluate(args) -> int:
     from model.evaluate import TIMING_REFERENCE, evaluate, format_table
 
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise UsageError(f"--device {args.device}: no CUDA device is available")
     if args.out is not None and args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give a file name such as report.json")
     progress = None if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
@@ -89,7 +85,8 @@ def _add_compare(commands) -> None:
     parser.add_argument("--scale", type=int, choices=(1, 2), default=1, help="output / render resolution ratio")
     parser.add_argument("--zoom", type=_zoom_option, default=None, metavar="X,Y,SIZE",
                         help="also show the square at output pixel (X, Y) with side SIZE, enlarged")
-    parser.add_argument("--device", default="cpu", help="torch device the methods run on")
+    parser.add_argument("--device", type=device_option, default="cpu",
+                        help="torch device the methods run on")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE.png", help="picture to write")
     parser.set_defaults(run=_run_compare)
 
@@ -116,6 +113,9 @@ def _run_compare(args) -> int:
                          f"{', '.join(dataset.names()) or 'none'}")
     sequence = dataset.sequence(args.sequence)
     index = args.frame if args.frame >= 0 else len(sequence) + args.frame
+    if not 0 <= index < len(sequence):
+        raise UsageError(f"--frame {args.frame}: sequence {sequence.name!r} has {len(sequence)} frames (0 to "
+                         f"{len(sequence) - 1}, or -1 to -{len(sequence)} from the end)")
     methods, labels = [], []
     for text in args.method:
         method, _, label = text.partition("=")
@@ -149,11 +149,10 @@ def _method_rows() -> list[dict]:
     for spec in registry.all_methods():
         scale = 1 if 1 in spec.scales else spec.scales[0]
         for preset in spec.presets:
-            method = spec.factory(preset, scale)
+            params_count, flops = registry.inference_cost(spec.factory(preset, scale))
             rows.append({"method": spec.name, "preset": preset, "default": preset == spec.default_preset,
                          "scales": list(spec.scales), "learned": spec.learned,
-                         "params": method.parameter_count(),
-                         "flops_per_pixel": float(registry.flops_per_pixel(method)),
+                         "params": params_count, "flops_per_pixel": flops,
                          "description": spec.description})
     return rows
 

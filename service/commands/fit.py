@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from service.cli import HelpFormatter, EXIT_FAILURE, UsageError, positive_int
+from service.cli import HelpFormatter, EXIT_FAILURE, UsageError, positive_int, registered_name
 
 SPLITS = ("train", "validation", "test")  # as model.dataset.SPLITS; repeated so --help stays import-light
 
@@ -48,7 +48,8 @@ def add_commands(commands) -> None:
     parser.add_argument("--validation-frames", type=positive_int, default=None, metavar="N",
                         help="measure the first N frames of each validation sequence (default: all)")
     parser.add_argument("--time-at", default="256x256", metavar="WxH",
-                        help="render resolution timed when the target is not ms (an ms target names its own)")
+                        help="render resolution the presets are timed at (WxH or N for NxN); an ms target's own "
+                             "@WxH takes precedence")
     parser.add_argument("--timing-frames", type=positive_int, default=10, metavar="N",
                         help="frames timed per preset, after 3 warm-up frames")
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
@@ -57,7 +58,7 @@ def add_commands(commands) -> None:
                         help="where presets train, run and are timed")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="presets train into DIR/PRESET-KEY/ (default: runs/fit-FAMILY-xSCALE)")
-    parser.add_argument("--register-as", default=None, metavar="NAME",
+    parser.add_argument("--register-as", type=registered_name, default=None, metavar="NAME",
                         help="registered model of the ladder's versions (default: FAMILY-fit-xSCALE)")
     parser.add_argument("--alias", default="fitted", help="alias pointed at the chosen version")
     parser.add_argument("--tracking-uri", default=None, metavar="URI",

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from service.cli import UsageError, positive_int, size_option
+from service.cli import UsageError, device_option, positive_int, size_option
 
 # As model.stability.SCENARIOS; repeated so --help stays import-light (a test checks they agree).
 SCENARIOS = ("moving_object", "moving_light", "camera_cut", "fast_camera", "metals", "glass", "dark_fireflies",
@@ -49,7 +49,8 @@ def add_commands(commands) -> None:
     parser.add_argument("--seed", type=int, default=0, help="--generate: scene seed; also seeds the corruptions")
     parser.add_argument("--variant", choices=("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb"), default=None,
                         help="--generate: Mitsuba variant (default: the fastest available)")
-    parser.add_argument("--device", default="cpu", help="torch device the methods run on: cpu (default), cuda")
+    parser.add_argument("--device", type=device_option, default="cpu",
+                        help="torch device the methods run on: cpu (default), cuda")
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N", help="torch thread count")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.set_defaults(run=_run_stability)
@@ -60,11 +61,6 @@ def _run_stability(args) -> int:
 
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder for the report")
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise UsageError(f"--device {args.device}: no CUDA device is available")
     if not args.generate:
         for option, default, value in (("--size", (64, 64), args.size), ("--ref-spp", 64, args.ref_spp),
                                        ("--variant", None, args.variant)):

@@ -7,7 +7,7 @@ import re
 import sys
 from pathlib import Path
 
-from service.cli import HelpFormatter, EXIT_FAILURE, positive_int
+from service.cli import HelpFormatter, EXIT_FAILURE, positive_int, registered_name
 
 # As model.train.SCHEDULES and model.dataset.SPLITS; repeated so --help stays import-light.
 SCHEDULES = ("cosine", "step", "constant")
@@ -71,7 +71,7 @@ def add_commands(commands) -> None:
                         help="MLflow tracking URI; none given: $DENOISER_TRACKING_URI, "
                              "else sqlite:///./mlruns/mlflow.db")
     parser.add_argument("--experiment", default="denoiser", help="MLflow experiment name")
-    parser.add_argument("--register-as", default=None, metavar="NAME",
+    parser.add_argument("--register-as", type=registered_name, default=None, metavar="NAME",
                         help="registered model name; none given: METHOD-PRESET-xSCALE")
     parser.add_argument("--no-tracking", action="store_true", help="do not log to MLflow")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

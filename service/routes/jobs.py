@@ -21,6 +21,7 @@ from fastapi import APIRouter, Body, Depends, Path, Query, Response
 from fastapi.responses import FileResponse, StreamingResponse
 
 from model.dataset import frame_file_name
+from model.fit import LADDER_JSON, LADDER_MARKDOWN
 from service.errors import ApiError
 from service.schemas import Job, JobCreate, JobKind, JobLogs, JobResults, JobState
 from service.settings import Settings, get_settings
@@ -60,7 +61,8 @@ JobId = Annotated[str, Path(description="job id", examples=["5f0c3a9e2b6d4f1a8c7
 
 QUEUE_FOR_DEVICE = {"cpu": "cpu", "gpu": "gpu"}
 ARTIFACT_TYPES = {"report.json": "application/json", "report.md": "text/markdown; charset=utf-8",
-                  QUALITY_SPEED_CHART: "image/png"}
+                  QUALITY_SPEED_CHART: "image/png",
+                  LADDER_JSON: "application/json", LADDER_MARKDOWN: "text/markdown; charset=utf-8"}
 EXR_TYPE = "image/x-exr"
 _FRAME = re.compile(r"^(?:frame_)?(\d{1,9})(?:\.exr)?$")
 
@@ -88,12 +90,16 @@ def _require(store: JobStore, job_id: str) -> dict[str, Any]:
 
 @router.post(
     "", status_code=202, response_model=Job, summary="Submit a job",
-    responses={404: _error("a dataset, sequence, model or checkpoint named in the parameters does not exist",
+    responses={400: _error("the body is not JSON", "invalid_json", "the body is not valid JSON at character 10"),
+               404: _error("a dataset, sequence, model or checkpoint named in the parameters does not exist",
                            "dataset_not_found", "dataset 'rooms' does not exist"),
                409: _error("the job would overwrite something", "sequence_exists",
                            "dataset 'rooms' already has sequence(s) metals_s0; use another seed or set overwrite"),
                422: _error("invalid parameters (the message names the field or the problem)", "unknown_preset",
                            "method 'wskpn' has no preset 'xxl'; presets: xs, s, m, l"),
+               415: _error("the body was not sent as application/json", "unsupported_media_type",
+                           "Content-Type text/plain is not accepted here; send the body as JSON with Content-Type "
+                           "application/json"),
                503: _error("the queue (Redis) or the model registry is unreachable", "queue_unavailable",
                            "could not queue the job: Error 111 connecting to 127.0.0.1:6379")},
 )
@@ -177,17 +183,19 @@ def job_logs(job_id: JobId, store: StoreDep, storage: StorageDep,
     return JobLogs(lines=tail_lines(path, lines))
 
 
-@router.get("/{job_id}/artifacts/{name}", summary="A file an evaluate or benchmark job wrote",
+@router.get("/{job_id}/artifacts/{name}", summary="A file an evaluate, benchmark or fit job wrote",
             response_class=FileResponse,
             responses={200: {"content": {kind: {} for kind in ARTIFACT_TYPES.values()}}, 404: _NOT_FOUND})
 def job_artifact(job_id: JobId, store: StoreDep, storage: StorageDep,
-                 name: Annotated[str, Path(description="report.json, report.md or quality_speed.png")]
+                 name: Annotated[str, Path(description="report.json, report.md, quality_speed.png (evaluate, "
+                                                       "benchmark); ladder.json, ladder.md (fit)")]
                  ) -> FileResponse:
     _require(store, job_id)
     path = storage.job(job_id) / name
     if name not in ARTIFACT_TYPES or not path.is_file():
         raise ApiError(404, "not_found", f"job {job_id!r} has no artifact {name!r} (artifacts: "
-                       f"{', '.join(ARTIFACT_TYPES)}, written by evaluate and benchmark jobs when they succeed)")
+                       f"report.json, report.md and {QUALITY_SPEED_CHART} written by evaluate and benchmark jobs "
+                       f"when they succeed, {LADDER_JSON} and {LADDER_MARKDOWN} by fit jobs)")
     return FileResponse(path, media_type=ARTIFACT_TYPES[name], filename=name)
 
 

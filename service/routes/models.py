@@ -106,8 +106,11 @@ def get_version(name: ModelName, version: VersionNumber, registry: RegistryDep) 
 
 
 @router.put("/{name}/aliases/{alias}", response_model=AliasOut, summary="Point an alias at a version",
-            responses={400: _error_response("the body is not JSON", "bad_request",
-                                            "There was an error parsing the body"),
+            responses={400: _error_response("the body is not JSON", "invalid_json",
+                                            "the body is not valid JSON at character 10"),
+                       415: _error_response("the body was not sent as application/json", "unsupported_media_type",
+                                            "Content-Type text/plain is not accepted here; send the body as "
+                                            "JSON with Content-Type application/json"),
                        404: _NOT_FOUND, 422: _INVALID, 503: _UNAVAILABLE})
 def set_alias(name: ModelName, alias: AliasName, body: AliasIn, registry: RegistryDep) -> AliasOut:
     """Creates the alias or moves it. Sessions resolve an alias once, when they are created: moving it changes

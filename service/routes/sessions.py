@@ -107,8 +107,11 @@ _SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
 @router.post("", status_code=201, response_model=SessionOut, summary="Open a session on a registered model",
              responses={201: {"description": "the session; its URL is in the Location header",
                               "links": _SESSION_LINKS},
-                        400: _error_response("the body is not JSON", "bad_request",
-                                             "There was an error parsing the body"),
+                        400: _error_response("the body is not JSON", "invalid_json",
+                                             "the body is not valid JSON at character 10"),
+                        415: _error_response("the body was not sent as application/json", "unsupported_media_type",
+                                             "Content-Type text/plain is not accepted here; send the body as "
+                                             "JSON with Content-Type application/json"),
                         404: _error_response("unknown model, version or alias (model 'auto': no version has the "
                                              "tags to compare, code no_candidate_model)", "not_found",
                                              "model 'jnds-xs-x2' has no alias 'champion' (aliases: none)"),
@@ -301,4 +304,4 @@ async def _read_body(request: Request, limit: int) -> bytes:
 def _too_large(size: int, limit: int, at_least: bool = False) -> ApiError:
     return ApiError(413, "payload_too_large",
                     f"the frame is {'at least ' if at_least else ''}{size} bytes; the limit is {limit} bytes",
-                    {"limit": limit})
+                    {"limit_bytes": limit})

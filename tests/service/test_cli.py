@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from model.dataset import Dataset
 from model.exr import read_frame
@@ -52,6 +53,9 @@ def test_generate_writes_a_dataset_and_refuses_to_overwrite(tmp_path, capsys):
     (["generate", "--scene", "nope", "--out", "x"], "unknown scene 'nope'"),
     (["summary", "/nonexistent/dataset"], "/nonexistent/dataset"),
     (["preview", "/nonexistent/frame.exr", "--out", "x.png"], "/nonexistent/frame.exr"),
+    (["generate", "--scene", "glass", "--out", "/nonexistent/cuda-data", "--variant", "cuda_ad_rgb"]
+     if not torch.cuda.is_available() else ["generate", "--scene", "moon", "--out", "x"],
+     "needs a CUDA GPU" if not torch.cuda.is_available() else "unknown scene 'moon'"),
 ])
 def test_bad_input_exits_2_with_a_message_naming_it(argv, message, capsys):
     assert main(argv) == 2

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import pytest
+import torch
 
 from model.methods import registry
 from model.methods.registry import MethodSpec
@@ -74,7 +75,7 @@ def test_missing_dataset_and_missing_scale_exit_2(tmp_path, test_method, capsys)
 
 
 def test_invalid_option_values_are_usage_errors(dataset_dir, capsys):
-    for extra in (["--scale", "3"], ["--frames", "0"], ["--split", "holdout"]):
+    for extra in (["--scale", "3"], ["--frames", "0"], ["--split", "holdout"], ["--device", "bogus"]):
         with pytest.raises(SystemExit) as exit_info:
             main(["evaluate", "--data", str(dataset_dir), "--method", "identity"] + extra)
         assert exit_info.value.code == 2
@@ -126,3 +127,29 @@ def test_compare_writes_a_picture_and_names_bad_input(dataset_dir, tmp_path, cap
         main(["compare", "--data", str(dataset_dir), "--sequence", "a", "--method", "identity", "--zoom", "1,2",
               "--out", str(out)])
     assert exit_info.value.code == 2
+
+
+@pytest.mark.parametrize("command", ["evaluate", "compare"])
+def test_a_device_that_is_not_there_is_refused_before_anything_runs(dataset_dir, tmp_path, command, capsys):
+    argv = [command, "--data", str(dataset_dir), "--method", "identity", "--device", "cuda" if not
+            torch.cuda.is_available() else "cuda:99"]
+    argv += ["--sequence", "a", "--out", str(tmp_path / "c.png")] if command == "compare" else ["--no-oidn"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "--device" in capsys.readouterr().err and not (tmp_path / "c.png").exists()
+
+
+def test_compare_names_the_frame_asked_for(dataset_dir, tmp_path, capsys):
+    assert main(["compare", "--data", str(dataset_dir), "--sequence", "a", "--frame", "-9", "--method", "identity",
+                 "--out", str(tmp_path / "c.png")]) == 2
+    assert "--frame -9: sequence 'a' has" in capsys.readouterr().err
+
+
+def test_a_file_that_is_no_checkpoint_is_named_in_one_line(dataset_dir, tmp_path, capsys):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"\x89PNG not weights at all" * 20)
+    assert main(["evaluate", "--data", str(dataset_dir), "--method", str(junk), "--no-oidn", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{junk}: not a readable checkpoint: torch.load cannot read it as saved weights" in err
+    assert len(err.strip().splitlines()) == 1 and "weights_only" not in err

@@ -55,11 +55,17 @@ def test_bad_input_exits_2_with_a_message(data, tmp_path, capsys, extra, message
 
 
 @pytest.mark.parametrize("extra", [["--lr", "0"], ["--lr", "nan"], ["--warmup", "-1"], ["--epochs", "1"],
-                                   ["--device", "tpu"]])
+                                   ["--device", "tpu"], ["--register-as", "auto"]])
 def test_bad_options_are_refused_by_the_parser(data, tmp_path, extra):
     with pytest.raises(SystemExit) as exit_info:
         main(tiny_args(data, tmp_path / "bad", *extra))
     assert exit_info.value.code == 2
+
+
+def test_the_name_auto_is_refused_with_the_reason(data, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(tiny_args(data, tmp_path / "bad", "--register-as", "auto"))
+    assert "'auto' is reserved" in capsys.readouterr().err
 
 
 def test_help_lists_the_options(capsys):

@@ -239,12 +239,14 @@ def run(context: JobContext) -> dict[str, Any]:
     write_ladder(result, context.folder)
     context.logger.info("ladder:\n%s", format_ladder(result))
     if not result.met:
-        raise JobFailure("target_not_met", f"{result.reason} (ladder: {LADDER_JSON} and {LADDER_MARKDOWN} in the "
-                         f"job folder" + (f", MLflow run {recorder.run_id})" if recorder else ")"))
+        raise JobFailure("target_not_met", f"{result.reason} (ladder: GET /jobs/{context.job_id}/artifacts/"
+                         f"{LADDER_MARKDOWN} or {LADDER_JSON}" + (f", MLflow run {recorder.run_id})" if recorder else ")"))
     return summary(result, context)
 
 
 def summary(result, context: JobContext) -> dict[str, Any]:
+    from model.fit import LADDER_JSON, LADDER_MARKDOWN
+
     root = context.storage.root.resolve()
     ladder = []
     for rung in result.to_dict()["ladder"]:
@@ -256,4 +258,5 @@ def summary(result, context: JobContext) -> dict[str, Any]:
     return {"family": info["family"], "scale": info["scale"], "target": info["target"],
             "target_description": info["target_description"], "met": info["met"], "chosen": info["chosen"],
             "reason": info["reason"], "registered": info.get("registered"), "alias": info.get("alias"),
-            "timing": info.get("timing"), "fit_key": info.get("fit_key"), "ladder": ladder}
+            "timing": info.get("timing"), "fit_key": info.get("fit_key"), "ladder": ladder,
+            "artifacts": {name: f"/jobs/{context.job_id}/artifacts/{name}" for name in (LADDER_JSON, LADDER_MARKDOWN)}}

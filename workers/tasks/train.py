@@ -190,7 +190,7 @@ def _completed(context: JobContext, params: TrainParams, checkpoint: dict, last:
 def _register_once(context: JobContext, params: TrainParams, checkpoint: dict, last: Path,
                    run_id: str | None) -> dict[str, Any] | None:
     from model.checkpoint import load_method
-    from model.methods.registry import flops_per_pixel
+    from model.methods.registry import inference_cost
     from model.train import default_registered_name
     from workers.tracking import MLflowTracker
 
@@ -204,8 +204,9 @@ def _register_once(context: JobContext, params: TrainParams, checkpoint: dict, l
     method = load_method(last)
     tracker.start({"method": params.method}, resume_run_id=run_id)
     context.set_mlflow_run(tracker.run_id)
+    params_count, flops = inference_cost(method)
     tags = {"method": method.name, "preset": method.preset, "scale": str(method.scale),
-            "params": str(method.parameter_count()), "flops_per_pixel": f"{flops_per_pixel(method):.6g}",
+            "params": str(params_count), "flops_per_pixel": f"{flops:.6g}",
             "steps": str(checkpoint["step"])}
     registered = tracker.log_model(last, params.register_as or default_registered_name(method), tags)
     tracker.finish("FINISHED")

@@ -361,7 +361,7 @@ def test_invalid_frame_uploads_are_400(api, tmp_path, tiny_frames):
     assert_error(post_frame(api, b"definitely not an EXR"), 400, "invalid_frame",
                  "frame upload to live/cam_0: not an OpenEXR file")
     assert_error(post_frame(api, frame_bytes(tmp_path, tiny_frames(1, sequence="other")[0])), 400,
-                 "invalid_frame", "belongs to sequence 'other'")
+                 "invalid_frame", "the frame's 'sequence' header says 'other', not 'cam_0'")
     assert_error(post_frame(api, frame_bytes(tmp_path, tiny_frames(1)[0]), scales="1,2"), 400, "invalid_frame",
                  "reference scales [1] are not the requested [1, 2]")
     assert_error(post_frame(api, b"x", scales="two"), 400, "invalid_scales", "'two'")

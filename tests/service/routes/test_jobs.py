@@ -110,6 +110,9 @@ def test_submit_stores_the_job_queues_it_and_answers_202_with_location(client, s
     (train_body(crop=64), 422, "crop_too_large", "smaller than the 64x64 crop"),
     (train_body(frames_per_sample=9), 422, "sequences_too_short", "9 consecutive frames"),
     (train_body(dataset="../etc"), 422, "invalid_request", "dataset"),
+    (train_body(register_as="auto"), 422, "invalid_request", "register_as 'auto' is reserved"),
+    ({"kind": "fit", "params": {"dataset": "tiny", "method": "wskpn", "target": "psnr=30", "register_as": "auto"}},
+     422, "invalid_request", "register_as 'auto' is reserved"),
     ({"kind": "infer", "params": {"dataset": "tiny", "model": "accumulation", "sequences": ["zeta"]}}, 404,
      "sequence_not_found", "'zeta'"),
     ({"kind": "infer", "params": {"dataset": "tiny", "model": "accumulation", "split": "test",
@@ -229,6 +232,16 @@ def test_artifacts_of_an_evaluation(client, storage):
     response = client.get(f"/jobs/{job_id}/artifacts/report.json")
     assert response.json() == {"methods": []} and response.headers["content-type"] == "application/json"
     assert error_of(client.get(f"/jobs/{job_id}/artifacts/job.log"), 404)["code"] == "not_found"
+
+
+def test_a_fit_ladder_is_an_artifact(client, storage):
+    job_id = client.post("/jobs", json=evaluate_body()).json()["id"]  # any job: artifacts are files by name
+    missing = error_of(client.get(f"/jobs/{job_id}/artifacts/ladder.md"), 404)
+    assert "ladder.json and ladder.md by fit jobs" in missing["message"]
+    storage.job(job_id).mkdir(parents=True)
+    (storage.job(job_id) / "ladder.md").write_text("| preset |\n")
+    response = client.get(f"/jobs/{job_id}/artifacts/ladder.md")
+    assert response.text == "| preset |\n" and response.headers["content-type"].startswith("text/markdown")
 
 
 # ------------------------------------------------------------------------------------------- results

@@ -45,6 +45,7 @@ def test_a_fit_job_trains_what_the_target_needs_and_reports_the_ladder(store, st
     folder = storage.job(job_id)
     assert json.loads((folder / "ladder.json").read_text())["chosen"] == "default"
     assert "| **default** (chosen) |" in (folder / "ladder.md").read_text()
+    assert result["artifacts"] == {name: f"/jobs/{job_id}/artifacts/{name}" for name in ("ladder.json", "ladder.md")}
     assert reports[-1]["current"] == reports[-1]["total"] and record["progress"]["current"] == 2
 
 
@@ -55,6 +56,7 @@ def test_a_target_no_preset_meets_fails_the_job_with_the_closest(store, storage,
     assert record["state"] == "failed" and record["error"]["code"] == "target_not_met"
     assert record["error"]["message"].startswith("no preset runs within 1e-06 ms per frame at 16x16; the fastest")
     assert (storage.job(job_id) / "ladder.json").is_file()
+    assert f"(ladder: GET /jobs/{job_id}/artifacts/ladder.md or ladder.json" in record["error"]["message"]
 
 
 @pytest.mark.parametrize("changes, status, code, words", [

@@ -1,0 +1,49 @@
+"""service.errors on the real app: 405 names the allowed methods, JSON bodies that are not JSON or not sent as
+JSON get 400 / 415 with messages saying what to change, never a bare validation error."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.mark.parametrize(("method", "path", "allowed"), [
+    ("PATCH", "/datasets/demo", "DELETE, GET"),
+    ("PUT", "/datasets", "GET, POST"),
+    ("POST", "/health", "GET"),
+    ("GET", "/sessions/0123456789abcdef0123456789abcdef/frames", "POST"),
+])
+def test_a_wrong_method_is_405_with_the_allowed_ones(client, method, path, allowed):
+    response = client.request(method, path)
+    assert response.status_code == 405
+    assert response.headers["allow"] == allowed
+    error = response.json()["error"]
+    assert error["code"] == "method_not_allowed"
+    assert error["message"] == f"{method} is not allowed on {path}; allowed: {allowed}"
+
+
+@pytest.mark.parametrize("path", ["/sessions", "/jobs"])
+def test_a_json_body_sent_as_another_type_is_415_naming_it(client, path):
+    response = client.post(path, content=b'{"model": "x"}', headers={"content-type": "text/plain"})
+    assert response.status_code == 415
+    error = response.json()["error"]
+    assert error["code"] == "unsupported_media_type"
+    assert error["message"].startswith("Content-Type text/plain is not accepted here")
+    assert "application/json" in error["message"]
+    missing = client.post(path, content=b'{"model": "x"}')
+    assert missing.status_code == 415 and missing.json()["error"]["message"].startswith("no Content-Type")
+
+
+def test_a_body_that_is_not_json_is_400_with_the_position(client):
+    response = client.post("/sessions", content=b'{"model": ', headers={"content-type": "application/json"})
+    assert response.status_code == 400
+    error = response.json()["error"]
+    assert error["code"] == "invalid_json" and error["details"] == {"position": 10}
+    assert error["message"].startswith("the body is not valid JSON at character 10")
+    binary = client.put("/models/m/aliases/a", content=b"\xff\xfe\x00", headers={"content-type": "application/json"})
+    assert binary.status_code == 400 and binary.json()["error"]["code"] == "invalid_json"
+
+
+def test_a_valid_json_body_with_a_bad_field_is_still_422_naming_the_field(client):
+    response = client.post("/sessions", json={"model": "x", "on_gap": "sometimes"})
+    assert response.status_code == 422
+    assert "on_gap" in response.json()["error"]["message"]
