@@ -253,7 +253,7 @@ def _planes(part: OpenEXR.Part) -> _Planes:
     return planes
 
 
-def _frame_from_exr(exr: OpenEXR.File, source: str) -> FrameBundle:
+def _frame_from_exr(exr: OpenEXR.File, source: str, sanitizable: bool = False) -> FrameBundle:
     """The validated frame bundle an opened EXR holds (``read_frame`` and ``read_frame_bytes``)."""
     render_part, reference_parts = _split_parts(exr.parts, source)
     buffers, scale_one_targets = _render_buffers(render_part, source)
@@ -273,7 +273,7 @@ def _frame_from_exr(exr: OpenEXR.File, source: str) -> FrameBundle:
         camera_cut=bool(_int_attribute(header, "camera_cut", 0, source)),
         **{TARGET_FIELDS[name]: by_scale for name, by_scale in targets.items()},
     )
-    return validate_frame(frame, source)
+    return validate_frame(frame, source, sanitizable=sanitizable)
 
 
 def _split_parts(parts: list, source: str) -> tuple[OpenEXR.Part, dict[int, OpenEXR.Part]]:
@@ -415,15 +415,17 @@ def _string_attribute(header: dict, name: str, source: str) -> str:
 IMAGE_CHANNELS = ("R", "G", "B")
 
 
-def encode_frame_exr(frame: FrameBundle, *, half: bool = False, compression=OpenEXR.ZIP_COMPRESSION) -> bytes:
+def encode_frame_exr(frame: FrameBundle, *, half: bool = False, compression=OpenEXR.ZIP_COMPRESSION,
+                     sanitizable: bool = False) -> bytes:
     """The bytes ``write_frame`` would write for ``frame`` (validated the same way), e.g. a request body.
 
     ``compression``: any lossless OpenEXR compression (ZIP, as ``write_frame``, by default); ``read_frame_bytes``
     reads them all. Uncompressed frames cost the writer and the reader far less CPU time than ZIP (the reader's
-    one pass over them is the fastest read there is), for 1.5 to 3 times the bytes.
+    one pass over them is the fastest read there is), for 1.5 to 3 times the bytes. ``sanitizable``: NaN, Inf and
+    out-of-range values pass (``model.frames.validate_frame``), for a receiver that repairs them (a session).
     """
     source = "<frame>"
-    frame = validate_frame(frame, source)
+    frame = validate_frame(frame, source, sanitizable=sanitizable)
     if frame.frame_index > INT32_MAX:
         raise FrameValidationError(source, "frame_index", f"{frame.frame_index} does not fit an EXR int")
     if half:
@@ -433,12 +435,15 @@ def encode_frame_exr(frame: FrameBundle, *, half: bool = False, compression=Open
     return stream.getvalue()
 
 
-def read_frame_bytes(data: bytes, source: str = "<bytes>") -> FrameBundle:
-    """``read_frame`` for a frame bundle held in memory; errors are FrameErrors naming ``source``."""
+def read_frame_bytes(data: bytes, source: str = "<bytes>", *, sanitizable: bool = False) -> FrameBundle:
+    """``read_frame`` for a frame bundle held in memory; errors are FrameErrors naming ``source``.
+
+    ``sanitizable``: let NaN, Inf and out-of-range values through (``model.frames.validate_frame``), for input that
+    ``model.sanitize.sanitize_frame`` repairs next."""
     if data[: len(EXR_MAGIC)] != EXR_MAGIC:
         problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
         raise FrameFormatError(source, None, problem)
-    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source), source)
+    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source), source, sanitizable)
 
 
 def _image_file(rgb: np.ndarray, attributes: dict | None, compression) -> OpenEXR.File:

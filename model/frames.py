@@ -222,8 +222,13 @@ def box_downsample(image: np.ndarray, factor: int) -> np.ndarray:
     return blocks.mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
 
 
-def validate_frame(frame: FrameBundle, source: str) -> FrameBundle:
+def validate_frame(frame: FrameBundle, source: str, *, sanitizable: bool = False) -> FrameBundle:
     """Check ``frame`` against every convention; raise FrameValidationError naming ``source`` on the first break.
+
+    ``sanitizable``: for live input that ``model.sanitize.sanitize_frame`` repairs next (inference sessions): NaN,
+    Inf and out-of-range values (negative radiance, albedo or roughness outside [0, 1], negative depth, a jitter
+    that is not finite or outside its range) pass; everything a repair cannot fix is still checked: buffers,
+    shapes, types, unit-length normals and diffuse + specular == color on the pixels that are finite.
 
     Returns the frame with every array float32 and C-contiguous (arrays already so are reused, the rest
     copied), jitter as a tuple of two floats and frame_index as an int. The input frame is not modified.
@@ -245,14 +250,15 @@ def validate_frame(frame: FrameBundle, source: str) -> FrameBundle:
     named_arrays = list(buffers.items()) + [
         (name, array) for name, by_scale in targets.items() for array in by_scale.values()
     ]
-    for name, array in named_arrays:
-        _check_finite(name, array, source)
-    for name, array in named_arrays:
-        _check_range(BUFFERS[name], array, source)
+    if not sanitizable:
+        for name, array in named_arrays:
+            _check_finite(name, array, source)
+        for name, array in named_arrays:
+            _check_range(BUFFERS[name], array, source)
 
     _check_normals_unit_length(buffers["normal"], buffers["depth"], source)
     _check_lobe_split(buffers["color"], buffers.get("diffuse"), buffers.get("specular"), source)
-    jitter = _checked_jitter(frame.jitter, source)
+    jitter = _checked_jitter(frame.jitter, source, sanitizable)
     frame_index = _checked_frame_index(frame.frame_index, source)
     _check_type("sequence", frame.sequence, str, "a string", source)
     _check_type("camera_cut", frame.camera_cut, (bool, np.bool_), "a bool", source)
@@ -403,8 +409,9 @@ def _check_range(spec: BufferSpec, array: np.ndarray, source: str) -> None:
 
 def _check_normals_unit_length(normal: np.ndarray, depth: np.ndarray, source: str) -> None:
     # Only where something was hit: background pixels carry (0, 0, 0).
+    # Non-finite pixels are _check_finite's (or, for sanitizable input, the sanitizer's) business.
     length = np.linalg.norm(normal, axis=2)
-    error = np.where(depth > 0, np.abs(length - 1.0), 0.0)
+    error = np.where((depth > 0) & np.isfinite(length), np.abs(length - 1.0), 0.0)
     bad = error > NORMAL_LENGTH_TOLERANCE
     if bad.any():
         worst = int(np.argmax(error))
@@ -427,7 +434,9 @@ def _check_lobe_split(
     if diffuse is None:
         raise FrameValidationError(source, "diffuse", "is missing but specular is given (give both or neither)")
     # Relative to 1 + color: tight for bright pixels, absolute 1e-3 near black; half storage stays inside it.
-    excess = np.abs(diffuse + specular - color) - LOBE_SPLIT_TOLERANCE * (1.0 + color)
+    with np.errstate(invalid="ignore"):  # Inf - Inf in sanitizable input: such pixels are not compared
+        excess = np.abs(diffuse + specular - color) - LOBE_SPLIT_TOLERANCE * (1.0 + color)
+    excess = np.where(np.isfinite(excess), excess, 0.0)
     if excess.max() > 0:
         bad = _pixel_mask(excess > 0)
         worst = int(np.argmax(excess))
@@ -441,11 +450,13 @@ def _check_lobe_split(
         )
 
 
-def _checked_jitter(jitter, source: str) -> tuple[float, float]:
+def _checked_jitter(jitter, source: str, sanitizable: bool = False) -> tuple[float, float]:
     try:
         jitter_x, jitter_y = (float(value) for value in jitter)
     except (TypeError, ValueError):
         raise FrameValidationError(source, "jitter", f"{jitter!r} is not a pair of numbers") from None
+    if sanitizable:
+        return jitter_x, jitter_y
     if not (math.isfinite(jitter_x) and math.isfinite(jitter_y)):
         raise FrameValidationError(source, "jitter", f"({jitter_x}, {jitter_y}) is not finite")
     if max(abs(jitter_x), abs(jitter_y)) > JITTER_LIMIT:

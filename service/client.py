@@ -88,6 +88,7 @@ class FrameInfo:
     server_ms: float | None  # the whole request on the server
     history: str | None  # continued | started | reset-gap | reset-camera-cut
     round_trip_ms: float  # request sent to response read, as the client saw it
+    sanitized_pixels: int | None  # input pixels the server repaired (NaN / Inf / out of range)
     headers: httpx.Headers = field(repr=False, compare=False)
 
     @classmethod
@@ -96,7 +97,8 @@ class FrameInfo:
         return cls(frame_index=_optional(int, headers.get("X-Frame-Index")),
                    inference_ms=_optional(float, headers.get("X-Inference-Ms")),
                    server_ms=_optional(float, headers.get("X-Server-Ms")),
-                   history=headers.get("X-History"), round_trip_ms=round_trip_ms, headers=headers)
+                   history=headers.get("X-History"), round_trip_ms=round_trip_ms,
+                   sanitized_pixels=_optional(int, headers.get("X-Sanitized-Pixels")), headers=headers)
 
 
 @dataclass
@@ -621,10 +623,11 @@ FRAME_COMPRESSION = "none"
 
 def frame_bytes(frame: FrameBundle | str | os.PathLike, *, strip_references: bool = True,
                 compression: str = FRAME_COMPRESSION) -> bytes:
-    """A frame bundle EXR as bytes (what POST /sessions/{id}/frames takes), validated as write_frame does.
+    """A frame bundle EXR as bytes (what POST /sessions/{id}/frames takes), validated as write_frame does, except
+    that NaN, Inf and out-of-range values pass: a session repairs them and says so (X-Sanitized-Pixels).
 
-    A path is read as a frame first. References are dropped by default: the server ignores them. ``compression``
-    is one of FRAME_COMPRESSIONS.
+    A path is read as a frame first (a stored frame is validated strictly). References are dropped by default: the
+    server ignores them. ``compression`` is one of FRAME_COMPRESSIONS.
     """
     import OpenEXR
 
@@ -638,7 +641,7 @@ def frame_bytes(frame: FrameBundle | str | os.PathLike, *, strip_references: boo
     if strip_references:
         frame = dataclasses.replace(frame, references={}, reference_albedos={}, reference_specular_albedos={})
     name = "NO" if compression == "none" else compression.upper()
-    return encode_frame_exr(frame, compression=getattr(OpenEXR, f"{name}_COMPRESSION"))
+    return encode_frame_exr(frame, compression=getattr(OpenEXR, f"{name}_COMPRESSION"), sanitizable=True)
 
 
 def decode_rgb_exr(data: bytes) -> np.ndarray:

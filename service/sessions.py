@@ -66,6 +66,7 @@ from redis.retry import Retry
 from model.checkpoint import load_method
 from model.frames import FrameBundle
 from model.methods.base import FrameBatch, Method, State
+from model.sanitize import SanitizeReport, sanitize_frame
 from service.registry import Registry, UnknownModelError, registry_for
 from service.settings import Settings
 from service.torch_thread import TorchThread
@@ -173,6 +174,7 @@ class FrameResult:
     frame_index: int
     history: str  # STARTED, CONTINUED, RESET_GAP or RESET_CAMERA_CUT
     inference_ms: float  # method.step alone
+    sanitized: SanitizeReport  # NaN / Inf / out-of-range input pixels repaired before the step
     session: Session
 
 
@@ -400,7 +402,10 @@ class SessionStore:
                     code="resolution_mismatch",
                     details={"expected": list(session.resolution), "received": list(resolution)})
             history, state = self._history_for(session, frame)
-            image, state, inference_ms = self._torch.run(self._step, session.method, frame, state)
+            image, state, inference_ms, sanitized = self._torch.run(self._step, session.method, frame, state)
+            if not sanitized.clean:
+                log.warning("session %s frame %s: repaired input pixels (%s)", session_id, frame.frame_index,
+                            sanitized.describe())
             session.state = state
             session.next_frame_index = frame.frame_index + 1
             session.frames_processed += 1
@@ -409,11 +414,13 @@ class SessionStore:
             session.revision += 1
             self._mirror(session, wait=False, start=start_mirror)
             return FrameResult(output=image, frame_index=frame.frame_index, history=history,
-                               inference_ms=inference_ms, session=session)
+                               inference_ms=inference_ms, sanitized=sanitized, session=session)
 
-    def _step(self, method: Method, frame: FrameBundle, state: State | None) -> tuple[np.ndarray, State, float]:
-        """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms."""
-        batch = FrameBatch.from_bundles([frame], scale=None, device=self.device)
+    def _step(self, method: Method, frame: FrameBundle,
+              state: State | None) -> tuple[np.ndarray, State, float, SanitizeReport]:
+        """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms and
+        what was repaired in the input first (a NaN let into the history would poison every later frame)."""
+        batch, sanitized = sanitize_frame(FrameBatch.from_bundles([frame], scale=None, device=self.device))
         with torch.no_grad():
             start = time.perf_counter()
             output, state = method.step(batch, state)
@@ -423,7 +430,7 @@ class SessionStore:
         # A copy (the response is encoded after the lock is released, while the next frame of this session may
         # already run), kept as contiguous R, G, B planes, which the EXR encoder takes without copying.
         planes = output[0].detach().to("cpu", torch.float32, copy=True)
-        return planes.permute(1, 2, 0).numpy(), state, inference_ms
+        return planes.permute(1, 2, 0).numpy(), state, inference_ms, sanitized
 
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until every mirror handed to the background writers is written (or failed); False on timeout."""

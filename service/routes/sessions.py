@@ -197,6 +197,11 @@ _FRAME_HEADERS = {
     "X-Inference-Ms": {"description": "milliseconds in method.step", "schema": {"type": "number"}},
     "X-Server-Ms": {"description": "milliseconds of the whole request in the server (body read, EXR decode, "
                                    "inference, EXR encode)", "schema": {"type": "number"}},
+    "X-Sanitized-Pixels": {"description": "input pixels repaired before the step (NaN / Inf, negative radiance, "
+                                          "out-of-range guides; model.sanitize); 0 for a clean frame",
+                           "schema": {"type": "integer"}},
+    "X-Sanitized": {"description": "only when X-Sanitized-Pixels > 0: what was repaired, per buffer, e.g. "
+                                   "'color: 12 non-finite; depth: 3 out of range'", "schema": {"type": "string"}},
 }
 
 
@@ -243,8 +248,10 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
     with session_errors():
         result, data = await run_in_threadpool(_run_frame, store, session_id, body)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
-               "X-Inference-Ms": f"{result.inference_ms:.3f}",
+               "X-Inference-Ms": f"{result.inference_ms:.3f}", "X-Sanitized-Pixels": str(result.sanitized.total),
                "X-Server-Ms": f"{(time.perf_counter() - started) * 1000:.3f}"}
+    if not result.sanitized.clean:
+        headers["X-Sanitized"] = result.sanitized.describe()
     # The session's Redis mirror is written once the response is out (see service.sessions: at most the frame
     # in flight is missing from Redis, and the session's next request waits for the write).
     return Response(content=data, media_type=EXR_MEDIA_TYPE, headers=headers,
@@ -269,7 +276,8 @@ async def _start_mirror(store: SessionStore, session_id: str) -> None:
 
 def _parse_frame(body: bytes) -> FrameBundle:
     try:
-        return read_frame_bytes(body, FRAME_SOURCE)
+        # NaN / Inf / out-of-range values pass here and are repaired before the step (X-Sanitized-Pixels).
+        return read_frame_bytes(body, FRAME_SOURCE, sanitizable=True)
     except FrameError as error:
         raise ApiError(400, "invalid_frame", str(error),
                        {"buffer": error.buffer, "problem": error.problem}) from None

@@ -329,3 +329,25 @@ def test_box_downsample_averages_blocks():
     np.testing.assert_array_equal(box_downsample(image, 2), [[2.5, 4.5], [10.5, 12.5]])
     with pytest.raises(ValueError, match="does not divide"):
         box_downsample(np.zeros((3, 4)), 2)
+
+
+def test_sanitizable_input_lets_repairable_values_through_but_not_broken_conventions():
+    frame = make_frame()
+    frame.color[1, 2] = np.inf
+    frame.diffuse[1, 2] = np.inf  # Inf - Inf in the lobe check: not compared
+    frame.albedo[2, 2, 0] = 1.7
+    frame.depth[3, 1] = np.nan
+    frame.motion[0, 4, 1] = -np.inf
+    frame.jitter = (float("nan"), 0.9)
+    with pytest.raises(FrameValidationError, match="buffer 'color': 1 pixels are not finite"):
+        validate_frame(frame, "live")
+    checked = validate_frame(frame, "live", sanitizable=True)
+    assert np.isinf(checked.color[1, 2]).all() and checked.jitter[1] == 0.9
+
+    frame.normal[2, 3] *= 2.0  # not unit length: a convention, refused even for live input
+    with pytest.raises(FrameValidationError, match="buffer 'normal': 1 pixels are not unit length"):
+        validate_frame(frame, "live", sanitizable=True)
+    frame.normal[2, 3] /= 2.0
+    frame.specular[3, 4] += 1.0  # diffuse + specular != color on finite pixels
+    with pytest.raises(FrameValidationError, match="diffuse \\+ specular differs from color at 1 pixels"):
+        validate_frame(frame, "live", sanitizable=True)

@@ -197,10 +197,11 @@ def test_bad_frame_bodies_are_4xx_naming_the_problem(api):
     assert "truncated" in error_of(post_frame(client, sid, valid[: len(valid) // 2]), 400, "invalid_frame")
     assert "buffer 'depth': required buffer is missing" in error_of(
         post_frame(client, sid, _raw_exr(frame, drop="depth.Z")), 400, "invalid_frame")
-    frame.color[2, 3, 1] = np.nan
-    response = post_frame(client, sid, _raw_exr(frame))
-    assert "buffer 'color'" in error_of(response, 400, "invalid_frame")
-    assert response.json()["error"]["details"]["buffer"] == "color"
+    bent = stream_frames(1)[0]
+    bent.normal[2, 3] = (0.0, 0.0, 3.0)  # a convention a repair cannot guess: refused, not repaired
+    response = post_frame(client, sid, _raw_exr(bent))
+    assert "buffer 'normal': 1 pixels are not unit length" in error_of(response, 400, "invalid_frame")
+    assert response.json()["error"]["details"]["buffer"] == "normal"
 
     message = error_of(post_frame(client, sid, valid, "text/plain"), 415, "unsupported_media_type")
     assert "application/octet-stream, image/x-exr" in message
@@ -216,10 +217,30 @@ def test_bad_frame_bodies_are_4xx_naming_the_problem(api):
     assert post_frame(client, sid, valid).status_code == 200
 
 
+def test_nan_inf_and_out_of_range_input_is_repaired_and_reported_not_propagated(api):
+    client, _ = api()
+    sid = create(client)["id"]
+    frames = stream_frames(3)
+    broken = frames[1]
+    broken.color[2, 3, 1] = np.nan
+    broken.color[5, 5] = np.inf
+    broken.depth[7, 1] = np.inf
+    broken.albedo[0, 0] = (1.5, 0.2, 0.2)
+    answers = [post_frame(client, sid, _raw_exr(frame)) for frame in frames]
+    assert [r.status_code for r in answers] == [200, 200, 200]
+    assert [r.headers["X-Sanitized-Pixels"] for r in answers] == ["0", "4", "0"]
+    assert "X-Sanitized" not in answers[0].headers
+    assert answers[1].headers["X-Sanitized"] == "color: 2 non-finite; albedo: 1 out of range; depth: 1 non-finite"
+    # The history carried the repaired frame: every output stays finite, the frame after included.
+    assert all(np.isfinite(decode_image_exr(r.content)).all() for r in answers)
+    assert answers[2].headers["X-History"] == "continued"
+
+
 def test_openapi_documents_the_frame_endpoint(api):
     client, _ = api()
     operation = client.get("/openapi.json").json()["paths"]["/sessions/{session_id}/frames"]["post"]
     assert set(operation["requestBody"]["content"]) == {"application/octet-stream", "image/x-exr"}
     ok = operation["responses"]["200"]
-    assert "image/x-exr" in ok["content"] and {"X-History", "X-Inference-Ms", "X-Server-Ms"} <= set(ok["headers"])
+    assert "image/x-exr" in ok["content"]
+    assert {"X-History", "X-Inference-Ms", "X-Server-Ms", "X-Sanitized-Pixels", "X-Sanitized"} <= set(ok["headers"])
     assert {"400", "404", "409", "413", "415"} <= set(operation["responses"])
