@@ -27,6 +27,7 @@ counted, so a valid frame reports nothing. References are never touched: a metho
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -196,12 +197,40 @@ def _jitter(jitter: torch.Tensor, report: SanitizeReport) -> torch.Tensor:
     return jitter
 
 
+def _plainly_valid(frame: FrameBatch) -> bool:
+    """True when one min/max per buffer shows nothing to repair (min and max propagate NaN); False means "look
+    pixel by pixel", not that something is wrong. A clean 128x128 frame costs about 0.3 ms here, the pixel-wise
+    pass about 2.5 ms, which a session would pay on every frame."""
+    bounds = {"color": (0.0, None), "diffuse": (0.0, None), "specular": (0.0, None), "albedo": (0.0, 1.0),
+              "specular_albedo": (0.0, 1.0), "roughness": (0.0, 1.0), "depth": (0.0, None), "motion": (None, None)}
+    for name, (low, high) in bounds.items():
+        tensor = getattr(frame, name)
+        if tensor is None:
+            continue
+        lowest, highest = (float(v) for v in torch.aminmax(tensor))
+        if not (math.isfinite(lowest) and math.isfinite(highest)):
+            return False
+        if (low is not None and lowest < low) or (high is not None and highest > high):
+            return False
+    squared = (frame.normal * frame.normal).sum(dim=1)
+    # |n|^2 within (1 +- tol)^2 where anything was hit, or exactly 0: no normal is renormalized.
+    inside = (squared == 0) | (((1 - NORMAL_LENGTH_TOLERANCE) ** 2 < squared)
+                               & (squared < (1 + NORMAL_LENGTH_TOLERANCE) ** 2))
+    if not bool(inside.all()):
+        return False
+    jitter = frame.jitter
+    return bool(torch.isfinite(jitter).all()) and bool((jitter.abs() <= JITTER_LIMIT).all())
+
+
 def sanitize_frame(frame: FrameBatch) -> tuple[FrameBatch, SanitizeReport]:
     """The frame with every NaN, Inf and out-of-range value repaired (see the module docstring), and the counts.
 
-    Tensors that need no repair are returned as they are (no copy), so a valid frame costs a few reductions.
+    A frame that one min/max per buffer shows to be valid is returned as it is; otherwise tensors that need no
+    repair are returned as they are (no copy).
     """
     report = SanitizeReport(frames=frame.batch_size)
+    if _plainly_valid(frame):
+        return frame, report
     changes: dict[str, torch.Tensor] = dict(_radiance(frame, report))
     for name in UNIT_BUFFERS:
         tensor = getattr(frame, name)

@@ -38,6 +38,23 @@ def test_a_valid_frame_is_returned_untouched_and_reports_nothing():
     assert report.describe() == "clean"
 
 
+@pytest.mark.parametrize("buffer, index, value", [
+    ("color", (0, 1, 2, 3), -1e-6), ("albedo", (0, 0, 4, 4), 1.0 + 1e-6), ("roughness", (0, 0, 1, 1), math.nan),
+    ("depth", (0, 0, 2, 2), -0.5), ("motion", (0, 1, 5, 5), math.inf), ("normal", (0, 2, 3, 3), 5.0),
+])
+def test_one_bad_value_anywhere_is_found(buffer, index, value):
+    # The quick whole-buffer check must send every kind of bad value to the pixel-wise repairs.
+    bad = frame()
+    getattr(bad, buffer)[index] = value
+    repaired, report = sanitize_frame(bad)
+    assert repaired is not bad and getattr(repaired, buffer) is not getattr(bad, buffer)
+    assert_all_finite(repaired)
+    if buffer == "albedo":  # within the format's tolerance: clamped without being counted
+        assert report.total == 0 and float(repaired.albedo[index]) == 1.0
+    else:  # radiance has no tolerance: any negative counts
+        assert report.total == 1
+
+
 def test_non_finite_radiance_is_repaired_counted_and_keeps_the_lobe_split():
     clean = frame()
     color, diffuse, specular = clean.color.clone(), clean.diffuse.clone(), clean.specular.clone()
