@@ -217,14 +217,22 @@ class _MirrorWriter:
 
     A snapshot handed over with ``start=False`` waits for ``start()`` (the API starts it once the response is
     sent, so the write does not compete with the response for the CPU) or for anyone waiting on the writer.
+    With ``min_interval`` > 0, ``start()`` begins a write at most once per ``min_interval`` seconds; a snapshot
+    handed over sooner waits (newer ones replace it) and is written when the interval is over, by a timer if no
+    other call comes; ``wait()`` writes at once.
     """
 
-    def __init__(self, write: Callable[[_Snapshot], None], executor: ThreadPoolExecutor) -> None:
+    def __init__(self, write: Callable[[_Snapshot], None], executor: ThreadPoolExecutor,
+                 min_interval: float = 0.0) -> None:
         self._write = write
         self._executor = executor
         self._condition = threading.Condition()
         self._pending: _Snapshot | None = None
         self._running = False
+        self._min_interval = min_interval
+        self._not_before = 0.0  # time.monotonic() before which start() defers a write
+        self._timer: threading.Timer | None = None
+        self._forced = 0  # callers of wait() waiting: their writes are not deferred
 
     def submit(self, snapshot: _Snapshot, start: bool = True) -> None:
         with self._condition:
@@ -233,10 +241,10 @@ class _MirrorWriter:
             self.start()
 
     def start(self) -> None:
-        """Write the pending snapshot in the background, unless there is none or a write is running (which then
-        writes it next)."""
+        """Write the pending snapshot in the background, unless there is none, a write is running (which then
+        writes it next) or the minimum interval since the last write is not over (a timer starts it then)."""
         with self._condition:
-            if self._running or self._pending is None:
+            if self._running or self._pending is None or self._defer():
                 return
             self._running = True
         try:
@@ -245,25 +253,53 @@ class _MirrorWriter:
             self._drain()
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Until nothing is pending or being written (a held snapshot is started); False on ``timeout``."""
-        self.start()
+        """Until nothing is pending or being written (a held or deferred snapshot is started); False on
+        ``timeout``."""
         with self._condition:
-            return self._condition.wait_for(lambda: not self._running and self._pending is None, timeout)
+            self._forced += 1
+        try:
+            self.start()
+            with self._condition:
+                return self._condition.wait_for(lambda: not self._running and self._pending is None, timeout)
+        finally:
+            with self._condition:
+                self._forced -= 1
 
     def discard(self) -> None:
         """Drop a pending write and wait for one in progress (the session is being deleted)."""
         with self._condition:
             self._pending = None
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
             self._condition.wait_for(lambda: not self._running)
+
+    def _defer(self) -> bool:
+        """(Under the lock.) Whether the pending write must wait for the interval; if so, a timer will start it."""
+        delay = self._not_before - time.monotonic()
+        if self._forced or delay <= 0:
+            return False
+        if self._timer is None:
+            self._timer = threading.Timer(delay, self._interval_over)
+            self._timer.daemon = True
+            self._timer.start()
+        return True
+
+    def _interval_over(self) -> None:
+        with self._condition:
+            self._timer = None
+        self.start()
 
     def _drain(self) -> None:
         while True:
             with self._condition:
-                snapshot, self._pending = self._pending, None
+                snapshot = None if self._pending is None or self._defer() else self._pending
                 if snapshot is None:
                     self._running = False
                     self._condition.notify_all()
                     return
+                self._pending = None
+                self._not_before = time.monotonic() + self._min_interval
             try:
                 self._write(snapshot)
             except Exception:  # never leave the writer marked running: the session would wait forever
@@ -277,6 +313,7 @@ class SessionStore:
                  redis_client: redis.Redis | None = None, prefix: str | None = None,
                  clock: Callable[[], float] = time.time) -> None:
         self.ttl_seconds = settings.session_ttl_seconds
+        self.mirror_interval = settings.session_mirror_interval_seconds
         self.max_sessions = settings.max_sessions
         self.device = torch.device(settings.session_device)
         self.prefix = prefix or KEY_PREFIX
@@ -500,8 +537,10 @@ class SessionStore:
             return self._writers.get(session_id)
 
     def _wait_for_mirror(self, session_id: str) -> None:
+        """Before a frame: the previous frame's mirror is written first, so Redis lags by one frame at most;
+        with a mirror interval, Redis may lag by that long instead and the frame does not wait."""
         writer = self._writer_of(session_id)
-        if writer is not None:
+        if writer is not None and not self.mirror_interval:
             writer.wait()
 
     def _forget(self, session_id: str) -> None:
@@ -576,7 +615,8 @@ class SessionStore:
         with self._lock:
             writer = self._writers.get(session.id)
             if writer is None:
-                writer = self._writers[session.id] = _MirrorWriter(self._write_mirror, self._mirror_pool)
+                writer = self._writers[session.id] = _MirrorWriter(self._write_mirror, self._mirror_pool,
+                                                                   self.mirror_interval)
         writer.submit(_Snapshot(session, session.revision, json.dumps(session.metadata()), session.state), start)
         if wait:
             writer.wait()

@@ -25,6 +25,9 @@ class Settings(BaseSettings):
     max_sessions: int = Field(16, gt=0, description="live sessions; one more answers 429")
     session_device: str = Field("cpu", description="torch device sessions run on")
     session_threads: int | None = Field(None, gt=0, description="torch threads for session inference")
+    session_mirror_interval_seconds: float = Field(
+        0.0, ge=0, le=3600, description="0: every frame's history is in Redis before the next frame runs; > 0: "
+        "written at most this often (large histories, GPU sessions), so a restart may resume that far back")
     job_time_limit_seconds: int = Field(24 * 3600, gt=0, description="longest job; the visibility timeout exceeds it")
 
     def resolved_tracking_uri(self) -> str:

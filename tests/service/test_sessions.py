@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -175,6 +176,25 @@ def test_a_frames_mirror_is_written_in_the_background_before_the_sessions_next_u
     assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 2  # at most the frame in flight is missing
     store.close()  # a clean shutdown writes what is pending
     assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 3
+
+
+def test_with_a_mirror_interval_frames_do_not_wait_and_redis_catches_up_when_it_is_over(make_store, redis_db):
+    store = make_store(session_mirror_interval_seconds=0.5)
+    session = store.create(MODEL_NAME)  # creation is written at once, as always
+    frames = stream_frames(4)
+    store.process_frame(session.id, frames[0])  # the first frame's write starts the interval
+    assert store._writer_of(session.id).wait(timeout=30)  # (test only: until that write has landed)
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 1
+    for frame in frames[1:]:
+        store.process_frame(session.id, frame)  # within the interval: deferred, newer ones replace older ones
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 1
+    deadline = time.monotonic() + 10
+    while redis_meta(redis_db, store, session.id)["next_frame_index"] != 4 and time.monotonic() < deadline:
+        time.sleep(0.05)  # no more frames come: the timer writes the newest when the interval is over
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 4
+    store.process_frame(session.id, stream_frames(1, start=4)[0])
+    store.reset(session.id)  # a reset is written before it answers, interval or not
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] is None
 
 
 def test_a_frame_whose_mirror_never_landed_is_a_gap_after_a_restart(make_store, monkeypatch):
