@@ -25,6 +25,8 @@ from typing import Any
 
 from matplotlib.figure import Figure
 
+from model.evaluate import UNCOUNTED_COST
+
 # Quality measures in the rows: key, axis label, higher is better.
 QUALITY = (("psnr", "PSNR dB (display-encoded) ↑", True), ("flip", "FLIP (display-encoded) ↓", False))
 ROW_METRICS = ("psnr", "flip", "ssim", "smape", "temporal_error", "fvvdp_jod")
@@ -32,9 +34,6 @@ MARKERS = {1: "o", 2: "^", 4: "s"}
 SCALE_NAMES = {1: "x1 (output = render resolution)", 2: "x2 (output 2x render resolution)", 4: "x4"}
 FRONT_STYLES = {1: "--", 2: ":", 4: "-."}
 LABEL_OFFSETS = {1: (4, 3), 2: (4, -9)}  # points' labels: above right at x1, below right at x2
-# Methods whose network runs outside torch (OIDN's native library): torch counts none of their parameters or
-# FLOPs, so their rows say "not counted" (None) rather than 0, and the cost chart leaves them out.
-UNCOUNTED_COST = ("oidn",)
 
 BENCHMARK_JSON = "benchmark.json"
 BENCHMARK_MARKDOWN = "benchmark.md"

@@ -37,6 +37,10 @@ from model.metrics import VDP_DISPLAY, VDP_FRAMES_PER_SECOND, FovVideoVdp, frame
 from model.ops.tonemap import display_encode
 from model.sanitize import SanitizeReport, sanitize_frame
 
+# Methods whose network runs outside torch (OIDN's native library): torch counts none of their parameters or
+# FLOPs, so tables say "-" (not counted) rather than 0, and the cost chart leaves them out.
+UNCOUNTED_COST = ("oidn",)
+
 FRAME_METRICS = ("psnr", "ssim", "flip", "smape")
 SEQUENCE_METRICS = ("temporal_error", "fvvdp_jod")
 METRICS = FRAME_METRICS + SEQUENCE_METRICS
@@ -436,7 +440,9 @@ def format_table(report: dict) -> str:
     lines = [caption, "", "| " + " | ".join(header) + " |", alignment]
     for entry in report["methods"]:
         ratio = entry["time_ratio_to_oidn"]
-        cells = [entry["label"], _compact(entry["params"]), _compact(entry["flops_per_pixel"])]
+        counted = entry.get("method") not in UNCOUNTED_COST
+        cells = [entry["label"]] + ([_compact(entry["params"]), _compact(entry["flops_per_pixel"])] if counted
+                                    else ["-", "-"])
         cells += [_cell(entry["metrics"][key], fmt) for _, key, fmt in _COLUMNS]
         cells += [_cell(entry["ms_per_frame"], "{:.3g}"), _cell(ratio, "{:.3g}x")]
         lines.append("| " + " | ".join(cells) + " |")

@@ -18,10 +18,10 @@ optionally FovVideoVDP's JOD, and the PSNR of every frame (the curves). A method
 non-finite output in a scenario is recorded as failing there; the suite itself never stops on it.
 
 "Fails worst" (``fails_worst``): a method's *gain* in a scenario is its PSNR minus the noisy input's PSNR on the
-same frames (the 1spp color, sanitized, bicubic-upscaled at scale 2): that removes how hard the scene is. Its
-*drop* there is its median gain over the scenarios it completed minus that gain. The scenario where it fails
-worst is the one with the largest drop; a scenario where it failed outright (error or non-finite output) comes
-before any drop.
+same frames (the 1spp color, sanitized, bicubic-upscaled when the output is at scale 2): that removes how hard
+the scene is. Its *drop* there is its median gain over the scenarios it completed minus that gain. The scenario
+where it fails worst is the one with the largest drop; a scenario where it failed outright (error or non-finite
+output) comes before any drop.
 """
 
 from __future__ import annotations
@@ -79,10 +79,10 @@ SPLIT_PREFERENCE = ("test", "validation", "train")
 MIN_DROP_DB = 0.05  # a largest drop below this names no worst scenario (the method is as good everywhere)
 DEFINITION = (
     "gain = the method's PSNR minus the noisy input's PSNR on the same frames (the 1spp color, sanitized, "
-    "bicubic-upscaled at scale 2), which removes how hard the scene is; drop = the method's median gain over the "
-    "scenarios it completed minus its gain in the scenario. A method fails worst in the scenario with the largest "
-    "drop (none when every drop is under {min:g} dB); a scenario where it raised an error or returned a non-finite "
-    "output is a failure and comes before any drop.").format(min=MIN_DROP_DB)
+    "bicubic-upscaled when the output is at scale 2), which removes how hard the scene is; drop = the method's "
+    "median gain over the scenarios it completed minus its gain in the scenario. A method fails worst in the "
+    "scenario with the largest drop (none when every drop is under {min:g} dB); a scenario where it raised an error "
+    "or returned a non-finite output is a failure and comes before any drop.").format(min=MIN_DROP_DB)
 FRAME_METRICS = ("psnr", "ssim", "flip", "smape")
 SEQUENCE_METRICS = ("temporal_error", "fvvdp_jod")
 INPUT_LABEL = "input (1spp)"
@@ -187,10 +187,14 @@ def derive_scenarios(clean: EvaluationSequence, names: tuple[str, ...] = tuple(D
         "missing_buffers": lambda: (drop_optional_buffers(frames), list(cuts)),
     }
     scenarios = []
+    optional = ("diffuse", "specular", "specular_albedo", "roughness")
     for name in DERIVED_SCENARIOS:
         if name in names:
             made, made_cuts = makers[name]()
-            scenarios.append(Scenario(name, DERIVED_SCENARIOS[name],
+            description = DERIVED_SCENARIOS[name]
+            if name == "missing_buffers" and all(getattr(f, b) is None for f in frames for b in optional):
+                description += " (the base sequence has none of them: the same frames as 'clean')"
+            scenarios.append(Scenario(name, description,
                                       EvaluationSequence(name, made, made_cuts, clean.scale), clean.name,
                                       derived=True))
     return scenarios

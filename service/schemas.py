@@ -522,6 +522,9 @@ class BenchmarkParams(EvaluateParams):
     methods: list[str] | None = Field(None, min_length=1, max_length=64,  # type: ignore[assignment]
                                       description="as for evaluate; none: identity, accumulation, svgf and "
                                                   "oidn:fast/balanced/high (those that run at the scale)")
+    include_learned: list[str] | None = Field(
+        None, min_length=1, max_length=64, description="trained models added to the methods (as the CLI's "
+        "--include-learned): model references models:/NAME[/VERSION|@ALIAS] or checkpoint files in the data folder")
 
 
 class InferParams(BaseModel):

@@ -194,8 +194,8 @@ def job_artifact(job_id: JobId, store: StoreDep, storage: StorageDep,
     path = storage.job(job_id) / name
     if name not in ARTIFACT_TYPES or not path.is_file():
         raise ApiError(404, "not_found", f"job {job_id!r} has no artifact {name!r} (artifacts: "
-                       f"report.json, report.md and {QUALITY_SPEED_CHART} written by evaluate and benchmark jobs "
-                       f"when they succeed, {LADDER_JSON} and {LADDER_MARKDOWN} by fit jobs)")
+                       f"report.json and report.md written by evaluate and benchmark jobs when they succeed, "
+                       f"{QUALITY_SPEED_CHART} by benchmark jobs, {LADDER_JSON} and {LADDER_MARKDOWN} by fit jobs)")
     return FileResponse(path, media_type=ARTIFACT_TYPES[name], filename=name)
 
 

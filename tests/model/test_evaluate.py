@@ -222,3 +222,12 @@ def test_markdown_table_has_a_row_per_method_and_states_the_conditions(dataset_d
     assert len(rows) == 2
     cells = [cell.strip() for cell in rows[0].strip("|").split("|")]
     assert cells[3] == f"{report['methods'][0]['metrics']['psnr']:.2f}" and cells[-1].endswith("x")
+
+
+def test_the_table_says_not_counted_for_a_network_torch_does_not_run(dataset_dir):
+    report = run(dataset_dir, [NoisyInput()], timing_reference=NoisyInput())
+    report["methods"].append({**report["methods"][0], "label": "oidn:high", "method": "oidn"})
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")]
+            for line in format_table(report).splitlines()[4:]}
+    assert rows["oidn:high"][1:3] == ["-", "-"]  # OIDN's own library: torch counts neither, so not "0"
+    assert rows["noisy_input"][1:3] == ["0", "0"]

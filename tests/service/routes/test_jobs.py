@@ -320,6 +320,21 @@ def test_chart_png_serves_a_benchmark_jobs_chart_or_404(client, storage):
     assert "/jobs/{job_id}/chart.png" in client.get("/openapi.json").json()["paths"]
 
 
+def test_a_benchmark_adds_trained_models_to_its_default_methods(client, storage, dispatcher):
+    path = storage.job("trained") / "checkpoints" / "last.pt"
+    path.parent.mkdir(parents=True)
+    save_checkpoint(path, method=build_method(TINY_METHOD), optimizer=None, scheduler=None, train_config={},
+                    step=1, epoch=0.0, rng=None, best_metric=None, extra={})
+    body = {"kind": "benchmark", "params": {"dataset": "tiny", "include_learned": ["jobs/trained/checkpoints/last.pt"]}}
+    job = client.post("/jobs", json=body).json()
+    assert job["params"]["methods"] == ["identity", "accumulation", "svgf", "oidn:fast", "oidn:balanced",
+                                        "oidn:high", "jobs/trained/checkpoints/last.pt"]
+    assert job["params"]["include_learned"] is None
+    body["params"]["include_learned"] = [TINY_METHOD]  # a registry name has no trained weights
+    error = error_of(client.post("/jobs", json=body), 422)
+    assert f"include_learned: '{TINY_METHOD}' is not a trained model" in error["message"]
+
+
 def test_a_benchmark_refuses_untrained_learned_presets(client, dispatcher):
     body = {"kind": "benchmark", "params": {"dataset": "tiny", "methods": ["identity", TINY_METHOD]}}
     error = error_of(client.post("/jobs", json=body), 422)
