@@ -373,6 +373,12 @@ class DenoiserClient:
     def delete_alias(self, name: str, alias: str) -> None:
         self.request("DELETE", f"/models/{_segment(name)}/aliases/{_segment(alias)}")
 
+    def delete_model_version(self, name: str, version: str | int) -> None:
+        self.request("DELETE", f"/models/{_segment(name)}/versions/{_segment(str(version))}")
+
+    def delete_model(self, name: str) -> None:
+        self.request("DELETE", f"/models/{_segment(name)}")
+
     # --- sessions ------------------------------------------------------------------------------------------
 
     def create_session(self, model: str, version: str | int | None = None, alias: str | None = None,

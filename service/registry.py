@@ -227,6 +227,21 @@ class Registry:
         self.get_alias(name, alias)  # MLflow deletes an unknown alias silently; the API answers 404 for it
         self._call(f"alias {alias!r} of model {name!r}", self.client.delete_registered_model_alias, name, alias)
 
+    # -------------------------------------------------------------------------------------- deletion
+
+    def delete_version(self, name: str, version: str | int) -> None:
+        """Delete one version (MLflow drops the aliases that pointed at it) and its cached checkpoint. Sessions
+        already open on it keep their weights in memory; new sessions and jobs find it gone."""
+        info = self.get_version(name, version)  # 404 for an unknown model or version
+        self._call(f"version {info.version} of model {name!r}", self.client.delete_model_version, name, info.version)
+        shutil.rmtree(self.storage.model(name, info.version), ignore_errors=True)
+
+    def delete_model(self, name: str) -> None:
+        """Delete a registered model with every version and their cached checkpoints."""
+        self._call(f"model {name!r}", self.client.get_registered_model, name)  # 404 for an unknown model
+        self._call(f"model {name!r}", self.client.delete_registered_model, name)
+        shutil.rmtree(self.storage.model(name, "1").parent, ignore_errors=True)
+
     # ----------------------------------------------------------------------------------- resolution
 
     def resolve_version(self, name: str, version: str | int | None = None,

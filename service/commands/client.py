@@ -413,10 +413,24 @@ def _add_models(commands, common) -> None:
                                  help="list registered models, or one model's versions with tags and metrics")
     parser.add_argument("name", nargs="?", default=None, metavar="NAME", help="show this model's versions")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.add_argument("--delete", action="store_true",
+                        help="delete model NAME (with --version V: only that version) instead of showing it")
+    parser.add_argument("--version", default=None, metavar="V", help="with --delete: the version to delete")
     parser.set_defaults(run=_talks_to_server(_run_models))
 
 
 def _run_models(args) -> int:
+    if args.delete or args.version is not None:
+        if not (args.delete and args.name):
+            raise UsageError("--delete needs a model NAME (and --version V to delete one version only); "
+                             "--version is only for --delete")
+        with _client(args) as client:
+            if args.version is None:
+                client.delete_model(args.name)
+            else:
+                client.delete_model_version(args.name, args.version)
+        print(f"deleted {args.name}" + (f" version {args.version}" if args.version is not None else ""))
+        return 0
     with _client(args) as client:
         body = client.get_model(args.name) if args.name else client.list_models()
     if args.json:

@@ -105,6 +105,25 @@ def get_version(name: ModelName, version: VersionNumber, registry: RegistryDep) 
         return version_out(registry.get_version(name, version))
 
 
+@router.delete("/{name}/versions/{version}", status_code=204, summary="Delete one version of a model",
+               responses={404: _NOT_FOUND, 422: _INVALID, 503: _UNAVAILABLE})
+def delete_version(name: ModelName, version: VersionNumber, registry: RegistryDep) -> Response:
+    """Also drops the aliases that pointed at it and its cached checkpoint. Sessions already open on it go on
+    with the weights they loaded; new sessions and jobs answer 404 for it."""
+    with registry_errors():
+        registry.delete_version(name, version)
+    return Response(status_code=204)
+
+
+@router.delete("/{name}", status_code=204, summary="Delete a model with all its versions",
+               responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
+def delete_model(name: ModelName, registry: RegistryDep) -> Response:
+    """Every version, alias and cached checkpoint of the model; open sessions keep their loaded weights."""
+    with registry_errors():
+        registry.delete_model(name)
+    return Response(status_code=204)
+
+
 @router.put("/{name}/aliases/{alias}", response_model=AliasOut, summary="Point an alias at a version",
             responses={400: _error_response("the body is not JSON", "invalid_json",
                                             "the body is not valid JSON at character 10"),

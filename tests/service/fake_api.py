@@ -108,6 +108,8 @@ class FakeApi:
                 {k: v for k, v in m.items() if k != "versions"} for m in self.models.values()])),
             ("GET", r"/models/(?P<name>[^/]+)", self.get_model),
             ("PUT", r"/models/(?P<name>[^/]+)/aliases/(?P<alias>[^/]+)", self.put_alias),
+            ("DELETE", r"/models/(?P<name>[^/]+)/versions/(?P<version>[^/]+)", self.delete_version),
+            ("DELETE", r"/models/(?P<name>[^/]+)", self.delete_model),
             ("POST", r"/sessions", self.create_session),
             ("GET", r"/sessions/(?P<id>[^/]+)", self.get_session),
             ("DELETE", r"/sessions/(?P<id>[^/]+)", self.delete_session),
@@ -242,6 +244,20 @@ class FakeApi:
             return error(404, "not_found", f"model {name!r} has no version {version!r}")
         model["aliases"][alias] = version
         return httpx.Response(200, json={"name": name, "alias": alias, "version": version})
+
+    def delete_version(self, request):
+        name, version = request.extensions["match"]["name"], request.extensions["match"]["version"]
+        model = self.models.get(name)
+        if model is None or version not in {v["version"] for v in model["versions"]}:
+            return error(404, "not_found", f"version {version} of model {name!r} does not exist")
+        model["versions"] = [v for v in model["versions"] if v["version"] != version]
+        return httpx.Response(204)
+
+    def delete_model(self, request):
+        name = request.extensions["match"]["name"]
+        if self.models.pop(name, None) is None:
+            return error(404, "not_found", f"model {name!r} does not exist")
+        return httpx.Response(204)
 
     # --- sessions ------------------------------------------------------------------------------------------
 

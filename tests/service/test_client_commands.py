@@ -329,3 +329,14 @@ def test_mlflow_ui_runs_on_the_resolved_tracking_uri(monkeypatch, tmp_path, caps
     assert database.parent.is_dir()
     assert main(["mlflow-ui", "--tracking-uri", "http://mlflow:5000"]) == 2
     assert "open it in a browser" in capsys.readouterr().err
+
+
+def test_models_delete_a_version_or_a_model(api, capsys):
+    assert main(["models", "wskpn-xs", "--delete", "--version", "1"]) == 0
+    assert "deleted wskpn-xs version 1" in capsys.readouterr().out
+    assert "1" not in {v["version"] for v in api.models["wskpn-xs"]["versions"]}
+    assert main(["models", "wskpn-xs", "--delete", "--version", "1"]) == 2
+    assert "version 1 of model 'wskpn-xs' does not exist" in capsys.readouterr().err
+    assert main(["models", "wskpn-xs", "--delete"]) == 0 and "wskpn-xs" not in api.models
+    assert main(["models", "--delete"]) == 2  # which model?
+    assert "--delete needs a model NAME" in capsys.readouterr().err

@@ -66,3 +66,25 @@ def test_aliases_are_set_read_moved_and_deleted(client):
                                   "invalid_request")
     error_of(client.put(f"/models/{name}/aliases/staging", json={"version": "two"}), 422, "invalid_request")
     error_of(client.put(f"/models/{name}/aliases/staging", json={}), 422, "invalid_request")
+
+
+def test_versions_and_models_are_deleted_with_their_aliases_and_cached_checkpoints(client, settings):
+    from service.registry import registry_for
+
+    name = unique_name("delete-api")
+    register_model(name, versions=2)
+    assert client.put(f"/models/{name}/aliases/champion", json={"version": "2"}).status_code == 200
+    registry = registry_for(shared_registry().uri, settings.data_dir)
+    cached = registry.checkpoint(name, "2")
+    assert cached.is_file()
+
+    assert client.delete(f"/models/{name}/versions/2").status_code == 204
+    assert not cached.exists()
+    detail = client.get(f"/models/{name}").json()
+    assert [v["version"] for v in detail["versions"]] == ["1"] and detail["aliases"] == {}
+    assert "version 2 of model" in error_of(client.delete(f"/models/{name}/versions/2"), 404, "not_found")
+    assert "not a positive integer" in error_of(client.delete(f"/models/{name}/versions/x"), 422, "invalid_request")
+
+    assert client.delete(f"/models/{name}").status_code == 204
+    assert f"model '{name}' does not exist" in error_of(client.get(f"/models/{name}"), 404, "not_found")
+    assert f"model '{name}' does not exist" in error_of(client.delete(f"/models/{name}"), 404, "not_found")
