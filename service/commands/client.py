@@ -410,7 +410,8 @@ def _run_results(args) -> int:
 
 def _add_models(commands, common) -> None:
     parser = commands.add_parser("models", parents=[common],
-                                 help="list registered models, or one model's versions with tags and metrics")
+                                 help="list registered models, show one model's versions with tags and metrics, "
+                                      "or delete a model or version")
     parser.add_argument("name", nargs="?", default=None, metavar="NAME", help="show this model's versions")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--delete", action="store_true",
