@@ -95,10 +95,11 @@ def write_frame(path: str | os.PathLike, frame: FrameBundle, *, half: bool = Fal
     return path
 
 
-def read_frame(path: str | os.PathLike) -> FrameBundle:
-    """Read and validate one frame bundle; every error is a FrameError naming the file."""
+def read_frame(path: str | os.PathLike, *, sanitizable: bool = False) -> FrameBundle:
+    """Read and validate one frame bundle; every error is a FrameError naming the file. ``sanitizable``: let NaN,
+    Inf and out-of-range values through (``model.frames.validate_frame``), for frames a session repairs."""
     source = str(path)
-    return _frame_from_exr(_open_exr(Path(path), source), source)
+    return _frame_from_exr(_open_exr(Path(path), source), source, sanitizable)
 
 
 # --- writing ---------------------------------------------------------------------------------------------

@@ -440,7 +440,7 @@ class DenoiserClient:
         started = time.perf_counter()
         for index in range(len(sequence)):
             if strip_references and sequence.scales:
-                body = frame_bytes(sequence[index])
+                body = frame_bytes(sequence.frame_path(index))  # read leniently: the session repairs NaN / Inf
             else:
                 body = sequence.frame_path(index).read_bytes()
             data, info = self.send_frame_raw(session_id, body)
@@ -632,8 +632,8 @@ def frame_bytes(frame: FrameBundle | str | os.PathLike, *, strip_references: boo
     """A frame bundle EXR as bytes (what POST /sessions/{id}/frames takes), validated as write_frame does, except
     that NaN, Inf and out-of-range values pass: a session repairs them and says so (X-Sanitized-Pixels).
 
-    A path is read as a frame first (a stored frame is validated strictly). References are dropped by default: the
-    server ignores them. ``compression`` is one of FRAME_COMPRESSIONS.
+    A path is read as a frame first (leniently as well). References are dropped by default: the server ignores
+    them. ``compression`` is one of FRAME_COMPRESSIONS.
     """
     import OpenEXR
 
@@ -643,7 +643,7 @@ def frame_bytes(frame: FrameBundle | str | os.PathLike, *, strip_references: boo
     if compression not in FRAME_COMPRESSIONS:
         raise ValueError(f"compression must be one of {', '.join(FRAME_COMPRESSIONS)}, got {compression!r}")
     if not isinstance(frame, FrameBundle):
-        frame = read_frame(frame)
+        frame = read_frame(frame, sanitizable=True)
     if strip_references:
         frame = dataclasses.replace(frame, references={}, reference_albedos={}, reference_specular_albedos={})
     name = "NO" if compression == "none" else compression.upper()

@@ -521,7 +521,9 @@ def _run_stream(args) -> int:
         if not args.quiet:
             print(f"frame {info.frame_index if info.frame_index is not None else '?':>4}  "
                   f"inference {_ms(info.inference_ms)}  server {_ms(info.server_ms)}  "
-                  f"round trip {_ms(info.round_trip_ms)}  {info.history or '-':<16} {path.name}", flush=True)
+                  f"round trip {_ms(info.round_trip_ms)}  {info.history or '-':<16} {path.name}"
+                  + (f"  (server repaired {info.sanitized_pixels} input pixels: "
+                     f"{info.headers.get('X-Sanitized', '')})" if info.sanitized_pixels else ""), flush=True)
 
     with _client(args) as client:
         session = client.create_session(args.model, version=args.version, alias=args.alias, on_gap=args.on_gap)

@@ -425,3 +425,22 @@ def test_stream_sequence_sends_files_as_they_are_when_asked(api, tmp_path):
 def test_decode_rgb_exr_refuses_what_is_not_an_exr():
     with pytest.raises(ValueError, match="not an OpenEXR file"):
         decode_rgb_exr(b"{\"error\": 1}")
+
+
+def test_a_stored_frame_with_nan_is_sent_for_the_session_to_repair(tmp_path):
+    # A renderer's file with a stray NaN: the strict reader refuses it, the client sends it (the session repairs).
+    import OpenEXR
+
+    from model.exr import _frame_parts, read_frame_bytes
+    from model.frames import FrameError
+    from service.client import frame_bytes
+
+    frame = make_frame()
+    frame.color[1, 2, 0] = np.nan
+    frame.diffuse[1, 2, 0] = np.nan
+    path = tmp_path / "frame_0003.exr"
+    OpenEXR.File(_frame_parts(frame, half=False)).write(str(path))
+    with pytest.raises(FrameError, match="not finite"):
+        read_frame(path)
+    sent = read_frame_bytes(frame_bytes(path), sanitizable=True)
+    assert np.isnan(sent.color[1, 2, 0]) and sent.references == {}
