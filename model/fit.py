@@ -1,9 +1,10 @@
 """Right-sizing: the smallest preset of a method family that meets a target, chosen from a ladder of trained sizes.
 
 A *ladder* is the family's presets ordered by FLOPs per output pixel of their inference form
-(``model.methods.registry.inference_cost``, smallest first; ties by parameter count). Each preset on it is obtained (trained, or reused, see below), measured
-on the validation split (PSNR, SSIM, FLIP through ``model.evaluate``, the method in its inference form, driven
-frame by frame with its history) and timed (ms per frame, below), and the target picks one:
+(``model.methods.registry.inference_cost``, smallest first; ties by parameter count). Each preset on it is
+obtained (trained, or reused, see below), measured on the validation split (PSNR, SSIM, FLIP through
+``model.evaluate``, the method in its inference form, driven frame by frame with its history) and timed (ms
+per frame, below), and the target picks one:
 
     psnr=X          validation PSNR >= X dB                   -> the smallest preset that meets it
     flip=X          validation FLIP <= X                      -> the smallest preset that meets it

@@ -331,9 +331,10 @@ def main() -> None:
     round_trip, server_ms, step_ms, local_ms = (median(times[name])
                                                 for name in ("round_trip", "server", "inference", "local"))
     where = f"server {url}" if args.url else f"API in {'its own process' if args.server == 'process' else 'a thread'}"
-    print(f"{label} ({model}) {width}x{height} -> {width * scale}x{height * scale}, {args.rounds} x {args.frames} timed "
-          f"frames after {args.warmup}, {args.threads} torch thread(s), frame EXR ({args.compression or 'client default'}) "
-          f"{http['bytes_in'] / 1e6:.2f} MB in, {http['bytes_out'] / 1e6:.2f} MB out, {where}")
+    print(f"{label} ({model}) {width}x{height} -> {width * scale}x{height * scale}, {args.rounds} x {args.frames} "
+          f"timed frames after {args.warmup}, {args.threads} torch thread(s), frame EXR "
+          f"({args.compression or 'client default'}) {http['bytes_in'] / 1e6:.2f} MB in, "
+          f"{http['bytes_out'] / 1e6:.2f} MB out, {where}")
     print(f"  client encode            median {median(times['encode']):8.2f} ms/frame (not in the round trip)")
     print(f"  HTTP round trip          median {round_trip:8.2f} ms/frame")
     print(f"    server (X-Server-Ms)   median {server_ms:8.2f} ms   (client + transfer: {round_trip - server_ms:.2f})")

@@ -14,10 +14,12 @@ cd "$(dirname "$0")/.."
 TARGET=${1:-psnr=29.5}
 STEPS=${FIT_STEPS:-300}
 gen() { .venv/bin/denoiser generate --size 128 --ref-spp 256 --scales 1,2 --quiet "$@"; }
-[ -d data/fit-simple/diffuse_room_s1 ] || gen --out data/fit-simple --split train --frames 12 --seed 1 --scene diffuse_room
-[ -d data/fit-simple/diffuse_room_s3 ] || gen --out data/fit-simple --split validation --frames 8 --seed 3 --scene diffuse_room
-[ -d data/fit-hard/metals_s1 ] || gen --out data/fit-hard --split train --frames 12 --seed 1 --scene metals --scene swinging_light
-[ -d data/fit-hard/metals_s2 ] || gen --out data/fit-hard --split validation --frames 12 --seed 2 --scene metals --scene swinging_light
+simple=(--scene diffuse_room)
+hard=(--scene metals --scene swinging_light)
+[ -d data/fit-simple/diffuse_room_s1 ] || gen --out data/fit-simple --split train --frames 12 --seed 1 "${simple[@]}"
+[ -d data/fit-simple/diffuse_room_s3 ] || gen --out data/fit-simple --split validation --frames 8 --seed 3 "${simple[@]}"
+[ -d data/fit-hard/metals_s1 ] || gen --out data/fit-hard --split train --frames 12 --seed 1 "${hard[@]}"
+[ -d data/fit-hard/metals_s2 ] || gen --out data/fit-hard --split validation --frames 12 --seed 2 "${hard[@]}"
 suffix=""
 [ "$TARGET" = "psnr=29.5" ] || suffix="-${TARGET//=/-}"
 for kind in simple hard; do

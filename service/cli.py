@@ -36,9 +36,10 @@ def positive_int(text: str) -> int:
 
 def registered_name(text: str) -> str:
     """A name to register a model as: anything MLflow takes but 'auto', which sessions read as "choose for me"."""
-    if text == "auto":
-        raise argparse.ArgumentTypeError("'auto' is reserved: sessions read model 'auto' as 'choose a version for "
-                                         "me', so a model of that name could never be opened; choose another name")
+    from service.schemas import AUTO_MODEL, AUTO_MODEL_RESERVED
+
+    if text == AUTO_MODEL:
+        raise argparse.ArgumentTypeError(AUTO_MODEL_RESERVED)
     return text
 
 

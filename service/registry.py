@@ -33,6 +33,7 @@ from pathlib import Path
 
 from mlflow.exceptions import MlflowException
 
+from service.schemas import AUTO_MODEL
 from service.storage import Storage
 from workers.tracking import CHECKPOINT_ARTIFACT, MLflowTracker, download_registered_checkpoint
 
@@ -240,7 +241,7 @@ class Registry:
         """Delete a registered model with every version and their cached checkpoints."""
         self._call(f"model {name!r}", self.client.get_registered_model, name)  # 404 for an unknown model
         self._call(f"model {name!r}", self.client.delete_registered_model, name)
-        shutil.rmtree(self.storage.model(name, "1").parent, ignore_errors=True)
+        shutil.rmtree(self.storage.model_versions(name), ignore_errors=True)
 
     # ----------------------------------------------------------------------------------- resolution
 
@@ -360,7 +361,6 @@ def resolve_checkpoint(ref: str) -> Path:
 # Automatic choice: sessions created with {"model": "auto", ...} (README, "Right-sizing")
 # =========================================================================================================
 
-AUTO_MODEL = "auto"  # the session model name that asks for an automatic choice
 _FAMILY = re.compile(r"^[A-Za-z0-9_]+$")
 
 

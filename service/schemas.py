@@ -10,6 +10,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+AUTO_MODEL = "auto"  # POST /sessions {"model": "auto"} chooses a version: no registered model may take the name
+AUTO_MODEL_RESERVED = (f"{AUTO_MODEL!r} is reserved: sessions read model {AUTO_MODEL!r} as 'choose a version for "
+                       "me', so a model of that name could never be opened; choose another name")
+
 # =========================================================================================================
 # Health and readiness (GET /health, GET /ready)
 # =========================================================================================================
@@ -314,7 +318,7 @@ class SessionIn(BaseModel):
     def _auto_fields(self) -> SessionIn:
         auto_fields = [name for name in ("max_ms_per_frame", "min_psnr", "family", "scale")
                        if getattr(self, name) is not None]
-        if self.model == "auto":
+        if self.model == AUTO_MODEL:
             if self.version is not None or self.alias is not None:
                 raise ValueError("model 'auto' chooses a version itself: give no version or alias")
             if self.max_ms_per_frame is None and self.min_psnr is None:
@@ -416,13 +420,11 @@ JobSplit = Literal["train", "validation", "test"]
 # type, so `"steps": "100"` or `"overwrite": 0` is a 422 naming the field rather than silently coerced.
 # A stored id (dataset, registered model name): one safe path component, as service.storage.checked_id.
 _ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
-AUTO_MODEL = "auto"  # POST /sessions {"model": "auto"} chooses a version: no registered model may take the name
 
 
 def _registrable(name: str | None) -> str | None:
     if name == AUTO_MODEL:
-        raise ValueError(f"register_as {AUTO_MODEL!r} is reserved: sessions read model 'auto' as 'choose a version "
-                         "for me', so a model of that name could never be opened; choose another name")
+        raise ValueError(f"register_as {AUTO_MODEL_RESERVED}")
     return name
 
 

@@ -39,8 +39,9 @@ Loaded methods are shared by every session of the same model version (one copy o
 ``for_inference`` form under ``torch.no_grad``. Frames of one session are serialized by a per-session lock;
 different sessions run concurrently, except that every tensor operation (steps, loading weights, (de)serializing
 histories) runs on the store's one torch thread (``service.torch_thread``: one OpenMP team, not one per request
-thread); on a CPU each step uses every core, so running two at once would gain nothing. If Redis is unreachable, sessions keep working from memory (a warning is
-logged, by the background writer for frames) but cannot survive a restart meanwhile.
+thread); on a CPU each step uses every core, so running two at once would gain nothing. If Redis is unreachable,
+sessions keep working from memory (a warning is logged, by the background writer for frames) but cannot survive a
+restart meanwhile.
 """
 
 from __future__ import annotations

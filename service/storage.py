@@ -68,8 +68,12 @@ class Storage:
     def result(self, job_id: str) -> Path:
         return self.results / checked_id(job_id, "job id")
 
+    def model_versions(self, name: str) -> Path:
+        """The cached checkpoints of every version of registered model ``name``."""
+        return self.models / checked_id(name, "model name")
+
     def model(self, name: str, version: str | int) -> Path:
-        return self.models / checked_id(name, "model name") / checked_id(str(version), "model version")
+        return self.model_versions(name) / checked_id(str(version), "model version")
 
     def staging_folder(self, token: str) -> Path:
         return self.staging / checked_id(token, "staging token")

@@ -44,18 +44,20 @@ def check(params: EvaluateParams, storage: Storage) -> dict[str, Any]:
     dataset = open_dataset(storage, params.dataset)
     split_sequences(dataset, params.dataset, params.split, params.scale)
     methods = list(params.methods if params.methods is not None else default_methods(params.scale))
-    learned = getattr(params, "include_learned", None) or []
-    for text in learned:
-        if not (is_model_ref(text) or looks_like_path(text)):
-            raise ApiError(422, "invalid_request", f"include_learned: {text!r} is not a trained model; give a model "
-                           "reference (models:/NAME@ALIAS) or a checkpoint file")
-    methods += [text for text in learned if text not in methods]
+    benchmark = isinstance(params, BenchmarkParams)
+    if benchmark:
+        for text in params.include_learned or []:
+            if not (is_model_ref(text) or looks_like_path(text)):
+                raise ApiError(422, "invalid_request", f"include_learned: {text!r} is not a trained model; give a "
+                               "model reference (models:/NAME@ALIAS) or a checkpoint file")
+            if text not in methods:
+                methods.append(text)
     for method in methods:
         check_method(method, params.scale, storage)
-        if isinstance(params, BenchmarkParams):
+        if benchmark:
             _refuse_untrained(method)
     checked = {**params.model_dump(), "methods": methods}
-    if isinstance(params, BenchmarkParams):
+    if benchmark:
         checked["include_learned"] = None  # merged into methods above
     return checked
 

@@ -239,8 +239,9 @@ def run(context: JobContext) -> dict[str, Any]:
     write_ladder(result, context.folder)
     context.logger.info("ladder:\n%s", format_ladder(result))
     if not result.met:
+        run = f", MLflow run {recorder.run_id}" if recorder else ""
         raise JobFailure("target_not_met", f"{result.reason} (ladder: GET /jobs/{context.job_id}/artifacts/"
-                         f"{LADDER_MARKDOWN} or {LADDER_JSON}" + (f", MLflow run {recorder.run_id})" if recorder else ")"))
+                         f"{LADDER_MARKDOWN} or {LADDER_JSON}{run})")
     return summary(result, context)
 
 
