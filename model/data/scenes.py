@@ -388,3 +388,92 @@ def camera_cut(rng: np.random.Generator, frames: int) -> AnimatedScene:
                              (0.0, 1.0, 0.0), 55.0))
     cameras = base.cameras[:cut] + second[cut:]
     return AnimatedScene("camera_cut", cameras, base.objects, base.sky, frozenset({cut}) if cut > 0 else frozenset())
+
+
+# ------------------------------------------------------------------- failure modes of temporal reuse
+# Each recipe below makes history wrong on purpose, so a temporal method must learn (or be tested on) rejecting
+# it: a visible light that moves, a light that jumps tens of degrees a frame, objects sliding over fine texture,
+# highlights that slide over glossy surfaces.
+
+def _fine_texture(rng: np.random.Generator) -> np.ndarray:
+    """Stripes, bricks or a fine checker: the textures a ghost or a blur is most visible on."""
+    choice = int(rng.integers(0, 3))
+    if choice == 0:
+        return stripes_texture(rng)
+    if choice == 1:
+        return bricks_texture(rng)
+    cells = int(rng.integers(24, 48))
+    checker = (np.indices((cells, cells)).sum(axis=0) % 2).astype(np.float64)
+    image = np.kron(checker, np.ones((256 // cells + 1, 256 // cells + 1)))[:256, :256, None]
+    a, b = np.array(_colour(rng, 0.05, 0.3)), np.array(_colour(rng, 0.6, 0.95))
+    return (a * (1 - image) + b * image).astype(np.float32)
+
+
+@recipe("visible_emitter", "a bright lamp, directly visible, crosses the frame in front of a textured wall")
+def visible_emitter(rng: np.random.Generator, frames: int) -> AnimatedScene:
+    objects = _room(rng, frames, wall=ImageTexture(_fine_texture(rng), tiles=2.0))
+    objects.append(_ceiling_light(frames, power=4.0))
+    for i, (x, z) in enumerate(_scattered_positions(rng, 2, extent=1.2)):
+        objects.append(_box(f"box{i}", (x, 0.3, z + 0.6), (0.3, 0.3, 0.3), rng.uniform(0, 90),
+                            plastic(_colour(rng), 0.3), frames))
+    direction = 1 if rng.uniform() < 0.5 else -1
+    height, depth = rng.uniform(1.0, 1.8), rng.uniform(-1.2, -0.4)
+    path = []
+    for t in _progress(frames):
+        x = direction * 3.0 * (t - 0.5)
+        path.append(compose(translate(x, height + 0.2 * np.sin(3 * t), depth), scale(0.18)))
+    objects.append(SceneObject("lamp", "sphere", path, diffuse((0.0, 0.0, 0.0)), emission=(40.0, 36.0, 30.0)))
+    camera = Camera((rng.uniform(-0.5, 0.5), 1.5, 5.0), (0.0, 1.1, 0.0), (0.0, 1.0, 0.0), 55.0)
+    return AnimatedScene("visible_emitter", [camera] * frames, objects, sky=(0.02, 0.02, 0.03))
+
+
+@recipe("orbiting_light", "a small bright light orbits the objects at 20-50 degrees a frame over a slow camera")
+def orbiting_light(rng: np.random.Generator, frames: int) -> AnimatedScene:
+    objects = _room(rng, frames, floor=ImageTexture(_random_texture(rng), tiles=3.0))
+    for i, (x, z) in enumerate(_scattered_positions(rng, 3, extent=1.1)):
+        material = [diffuse(_colour(rng)), plastic(_colour(rng), 0.3), metal(_colour(rng, 0.6, 0.95), 0.3)][i]
+        objects.append(_sphere(f"ball{i}", (x, 0.35, z), 0.35, material, frames))
+    start = rng.uniform(0, 360)
+    degrees_per_frame = rng.uniform(20.0, 50.0) * (1 if rng.uniform() < 0.5 else -1)
+    radius, height = rng.uniform(1.0, 1.8), rng.uniform(0.9, 2.0)
+    path = []
+    for index in range(frames):
+        angle = np.radians(start + degrees_per_frame * index)
+        path.append(compose(translate(radius * np.sin(angle), height, radius * np.cos(angle)), scale(0.08)))
+    objects.append(SceneObject("orbiting_light", "sphere", path, diffuse((0.0, 0.0, 0.0)),
+                               emission=(150.0, 140.0, 120.0)))
+    return AnimatedScene("orbiting_light", _orbit_cameras(rng, frames, 6.0, radius=5.5), objects,
+                         sky=(0.02, 0.02, 0.03))
+
+
+@recipe("sliding_over_texture", "spheres and boxes slide fast over a finely textured floor and wall")
+def sliding_over_texture(rng: np.random.Generator, frames: int) -> AnimatedScene:
+    objects = _room(rng, frames, floor=ImageTexture(_fine_texture(rng), tiles=4.0),
+                    wall=ImageTexture(_fine_texture(rng), tiles=3.0)) + [_ceiling_light(frames)]
+    for i in range(2):
+        speed = rng.uniform(1.5, 3.0) * (1 if rng.uniform() < 0.5 else -1)
+        z, radius = rng.uniform(-1.0, 0.8), rng.uniform(0.25, 0.4)
+        y = radius if i == 0 else rng.uniform(0.8, 1.6)  # one rolls on the floor, one flies past the wall
+        path = [compose(translate(speed * (t - 0.5), y, z), rotate((0, 0, 1), -200 * speed * t), scale(radius))
+                for t in _progress(frames)]
+        material = plastic(ImageTexture(_random_texture(rng)), 0.3) if i else diffuse(_colour(rng))
+        objects.append(SceneObject(f"slider{i}", "sphere" if i == 0 else "cube", path, material))
+    camera = Camera((rng.uniform(-1, 1), 1.8, 5.0), (0.0, 0.6, 0.0), (0.0, 1.0, 0.0), 55.0)
+    return AnimatedScene("sliding_over_texture", [camera] * frames, objects, sky=(0.05, 0.05, 0.06))
+
+
+@recipe("moving_highlights", "a visible light glides over glossy metal and plastic: highlights slide every frame")
+def moving_highlights(rng: np.random.Generator, frames: int) -> AnimatedScene:
+    objects = _room(rng, frames, floor=(0.3, 0.3, 0.3))
+    objects[0].material = plastic(_colour(rng, 0.2, 0.5), 0.15)
+    for i, (x, z) in enumerate(_scattered_positions(rng, 4, extent=1.2)):
+        roughness = rng.uniform(0.05, 0.35)
+        material = metal(_colour(rng, 0.6, 0.95), roughness) if i % 2 else plastic(_colour(rng), roughness)
+        objects.append(_sphere(f"glossy{i}", (x, 0.4, z), 0.4, material, frames))
+    start, end = rng.uniform(-1.5, -0.5, 2), rng.uniform(0.5, 1.5, 2)
+    height = rng.uniform(1.2, 2.2)
+    path = [compose(translate(start[0] + (end[0] - start[0]) * t, height, start[1] + (end[1] - start[1]) * t),
+                    scale(0.12)) for t in _progress(frames)]
+    objects.append(SceneObject("glide_light", "sphere", path, diffuse((0.0, 0.0, 0.0)),
+                               emission=(60.0, 58.0, 50.0)))
+    return AnimatedScene("moving_highlights", _orbit_cameras(rng, frames, 8.0), objects, sky=(0.1, 0.1, 0.12))

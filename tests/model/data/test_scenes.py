@@ -71,3 +71,29 @@ def test_unknown_scene_and_bad_frame_count_are_named():
         build_scene("nope", 0, 4)
     with pytest.raises(ValueError, match="frames must be >= 1"):
         build_scene("glass", 0, 0)
+
+
+def _light_centre(obj, index):
+    return obj.transforms[index][:3, 3]
+
+
+def test_failure_mode_recipes_make_history_wrong_on_purpose():
+    emitter = build_scene("visible_emitter", 0, 8)
+    lamp = [o for o in _moving(emitter) if o.emission is not None]
+    assert len(lamp) == 1 and len({c for c in emitter.cameras}) == 1  # a static camera: only the lamp moves
+    assert abs(_light_centre(lamp[0], 7)[0] - _light_centre(lamp[0], 0)[0]) > 2.5  # it crosses the frame
+
+    orbit = build_scene("orbiting_light", 0, 8)
+    light = [o for o in orbit.objects if o.emission is not None][0]
+    a, b = _light_centre(light, 0)[[0, 2]], _light_centre(light, 1)[[0, 2]]
+    step = np.degrees(np.arccos(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b)))
+    assert 20.0 - 1e-6 <= step <= 50.0 + 1e-6  # tens of degrees a frame
+
+    sliding = build_scene("sliding_over_texture", 0, 8)
+    assert len(_moving(sliding)) == 2 and all(o.emission is None for o in _moving(sliding))
+    assert isinstance(sliding.objects[0].material.reflectance, ImageTexture)  # fine texture under them
+
+    highlights = build_scene("moving_highlights", 0, 8)
+    assert [o.name for o in _moving(highlights)] == ["glide_light"]
+    assert sum(o.material.kind in ("metal", "plastic") and o.material.roughness < 0.4
+               for o in highlights.objects) >= 4
