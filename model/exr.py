@@ -64,6 +64,23 @@ class FrameFormatError(FrameError):
     """The file is not a readable frame bundle EXR (missing, not EXR, truncated, wrong channels or header)."""
 
 
+class FrameTooLarge(FrameFormatError):
+    """The header declares more pixels than the reader's limit (found before any pixel is decoded)."""
+
+    def __init__(self, source: str, problem: str, pixels: int, limit: int) -> None:
+        super().__init__(source, None, problem)
+        self.pixels = pixels
+        self.limit = limit
+
+    def __reduce__(self):  # picklable with the extra fields (Celery ships errors across processes)
+        return (type(self), (self.source, self.problem, self.pixels, self.limit))
+
+
+# Besides the render part, a frame may hold reference parts at a larger scale: a 2x reference has 4 times the
+# render pixels, so the whole file may declare up to this many times the render-pixel limit.
+ALL_PARTS_PIXEL_FACTOR = 5
+
+
 def reference_part_name(scale: int) -> str:
     return f"reference_x{scale}"
 
@@ -95,11 +112,13 @@ def write_frame(path: str | os.PathLike, frame: FrameBundle, *, half: bool = Fal
     return path
 
 
-def read_frame(path: str | os.PathLike, *, sanitizable: bool = False) -> FrameBundle:
+def read_frame(path: str | os.PathLike, *, sanitizable: bool = False, max_pixels: int | None = None) -> FrameBundle:
     """Read and validate one frame bundle; every error is a FrameError naming the file. ``sanitizable``: let NaN,
-    Inf and out-of-range values through (``model.frames.validate_frame``), for frames a session repairs."""
+    Inf and out-of-range values through (``model.frames.validate_frame``), for frames a session repairs.
+    ``max_pixels``: FrameTooLarge, from the header alone, for a render part above that many pixels (see
+    ``check_declared_pixels``)."""
     source = str(path)
-    return _frame_from_exr(_open_exr(Path(path), source), source, sanitizable)
+    return _frame_from_exr(_open_exr(Path(path), source, max_pixels), source, sanitizable)
 
 
 # --- writing ---------------------------------------------------------------------------------------------
@@ -172,7 +191,7 @@ def _frame_parts(frame: FrameBundle, half: bool, compression=OpenEXR.ZIP_COMPRES
 # --- reading ---------------------------------------------------------------------------------------------
 
 
-def _open_exr(path: Path, source: str) -> OpenEXR.File:
+def _open_exr(path: Path, source: str, max_pixels: int | None = None) -> OpenEXR.File:
     if not path.is_file():
         problem = "is a directory, not a file" if path.is_dir() else "file not found"
         raise FrameFormatError(source, None, problem)
@@ -180,17 +199,58 @@ def _open_exr(path: Path, source: str) -> OpenEXR.File:
         magic = file.read(len(EXR_MAGIC))
     if magic != EXR_MAGIC:
         raise FrameFormatError(source, None, "not an OpenEXR file (wrong magic number)")
-    return _read_exr(lambda: str(path), source)
+    return _read_exr(lambda: str(path), source, max_pixels)
 
 
-def _read_exr(target: Callable[[], str | io.BytesIO], source: str) -> OpenEXR.File:
-    """Every part of the EXR at ``target()`` (a path, or a fresh stream per call) with its pixels."""
+def _read_headers(target: str | io.BytesIO, source: str) -> list:
     # The bindings raise RuntimeError for unreadable headers and document nothing else: any failure of
-    # these calls means the file cannot be read.
+    # this call means the file cannot be read.
     try:
-        part_count = len(OpenEXR.File(target(), header_only=True).parts)
+        return OpenEXR.File(target, header_only=True).parts
     except Exception as error:
         raise FrameFormatError(source, None, f"unreadable or truncated EXR ({error})") from None
+
+
+def _part_pixels(part) -> tuple[int, int]:
+    """(width, height) of a part's data window, as its header declares it."""
+    try:
+        low, high = part.header["dataWindow"]
+        return int(high[0]) - int(low[0]) + 1, int(high[1]) - int(low[1]) + 1
+    except (KeyError, TypeError, ValueError, IndexError):
+        return 0, 0  # no usable data window: the full read reports what is wrong with the file
+
+
+def check_declared_pixels(parts: list, source: str, max_pixels: int) -> None:
+    """FrameTooLarge when the headers declare a render part (the first) of more than ``max_pixels`` pixels, or
+    all parts together more than ALL_PARTS_PIXEL_FACTOR times that. Compressed pixel data can declare any size
+    (an all-zero 2048x2048 frame compresses to about 200 KB), so this runs before anything is decoded."""
+    sizes = [_part_pixels(part) for part in parts]
+    if not sizes:
+        return
+    width, height = sizes[0]
+    if width * height > max_pixels:
+        raise FrameTooLarge(source, f"declares {width}x{height} = {width * height} pixels; the limit is "
+                                    f"{max_pixels} pixels per frame", width * height, max_pixels)
+    total = sum(w * h for w, h in sizes)
+    if total > ALL_PARTS_PIXEL_FACTOR * max_pixels:
+        raise FrameTooLarge(source, f"declares {total} pixels in its {len(sizes)} parts; the limit is "
+                                    f"{ALL_PARTS_PIXEL_FACTOR * max_pixels} (the render part plus a 2x reference at "
+                                    f"{max_pixels} pixels per frame)", total, ALL_PARTS_PIXEL_FACTOR * max_pixels)
+
+
+def check_frame_file_pixels(path: str | os.PathLike, max_pixels: int, source: str | None = None) -> None:
+    """``check_declared_pixels`` for an EXR file, reading its headers only."""
+    source = source or str(path)
+    check_declared_pixels(_read_headers(str(path), source), source, max_pixels)
+
+
+def _read_exr(target: Callable[[], str | io.BytesIO], source: str, max_pixels: int | None = None) -> OpenEXR.File:
+    """Every part of the EXR at ``target()`` (a path, or a fresh stream per call) with its pixels; with
+    ``max_pixels``, the headers are checked against it first."""
+    parts = _read_headers(target(), source)
+    part_count = len(parts)
+    if max_pixels is not None:
+        check_declared_pixels(parts, source, max_pixels)
     exr = _read_coalesced(target, part_count)
     if exr is None:  # an unusual channel layout, or a damaged file: the plain read reports what is wrong
         try:
@@ -436,15 +496,16 @@ def encode_frame_exr(frame: FrameBundle, *, half: bool = False, compression=Open
     return stream.getvalue()
 
 
-def read_frame_bytes(data: bytes, source: str = "<bytes>", *, sanitizable: bool = False) -> FrameBundle:
+def read_frame_bytes(data: bytes, source: str = "<bytes>", *, sanitizable: bool = False,
+                     max_pixels: int | None = None) -> FrameBundle:
     """``read_frame`` for a frame bundle held in memory; errors are FrameErrors naming ``source``.
 
     ``sanitizable``: let NaN, Inf and out-of-range values through (``model.frames.validate_frame``), for input that
-    ``model.sanitize.sanitize_frame`` repairs next."""
+    ``model.sanitize.sanitize_frame`` repairs next. ``max_pixels``: as ``read_frame``."""
     if data[: len(EXR_MAGIC)] != EXR_MAGIC:
         problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
         raise FrameFormatError(source, None, problem)
-    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source), source, sanitizable)
+    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source, max_pixels), source, sanitizable)
 
 
 def _image_file(rgb: np.ndarray, attributes: dict | None, compression) -> OpenEXR.File:

@@ -52,7 +52,7 @@ from model.dataset import (
     frame_file_name,
     write_json_atomically,
 )
-from model.exr import CHANNEL_SLOTS, read_frame, write_frame
+from model.exr import CHANNEL_SLOTS, FrameTooLarge, check_frame_file_pixels, read_frame, write_frame
 from model.frames import BUFFERS, FrameBundle, FrameError
 from service.schemas import DatasetDetail, DatasetSummary, SequenceInfo, SplitSummary, StagedSequence
 from service.storage import Storage, checked_id
@@ -62,9 +62,6 @@ log = logging.getLogger("denoiser.datasets")
 ArchiveKind = Literal["zip", "tar", "tar.gz"]
 
 CHUNK_BYTES = 1024 * 1024
-# Unpacked contents may be this many times the upload limit: EXRs barely compress further, so a legitimate
-# archive stays far below it while a zip bomb hits it early.
-UNPACKED_FACTOR = 4
 MAX_ARCHIVE_MEMBERS = 100_000
 # Files that archivers on macOS add; they are dropped rather than refused.
 _IGNORED_FOLDERS = {"__MACOSX"}
@@ -90,6 +87,10 @@ class InvalidUpload(UploadError):
 
 class UploadTooLarge(UploadError):
     """The upload, or what it unpacks to, exceeds the configured limit."""
+
+
+class FrameTooLargeUpload(UploadError):
+    """A frame's header declares more pixels than the limit (refused before its pixels are decoded)."""
 
 
 class UnknownDataset(UploadError):
@@ -202,6 +203,13 @@ def sniff_archive(path: Path) -> ArchiveKind:
                                            f"(first bytes {head[:8].hex(' ')})")
 
 
+def unpacked_limit(archive_bytes: int, *, max_bytes: int, max_ratio: float, exempt_bytes: int) -> int:
+    """The most bytes an archive of ``archive_bytes`` may unpack to: ``max_ratio`` times its size (at least
+    ``exempt_bytes``), and never more than ``max_bytes``. Frame EXRs barely compress further, so a legitimate
+    archive stays near 1:1 while a zip bomb (1000:1 and more) is stopped after a few megabytes."""
+    return min(max_bytes, max(exempt_bytes, int(max_ratio * archive_bytes)))
+
+
 def unpack_archive(archive: Path, destination: Path, max_bytes: int) -> ArchiveKind:
     """Extract ``archive`` into ``destination`` member by member, refusing anything unsafe; return its kind."""
     kind = sniff_archive(archive)
@@ -274,10 +282,14 @@ class _Extractor:
             while chunk := source.read(CHUNK_BYTES):
                 self.written += len(chunk)
                 if self.written > self.max_bytes:
-                    raise UploadTooLarge("payload_too_large", f"the archive unpacks to more than {self.max_bytes} "
-                                                              f"bytes", {"limit_bytes": self.max_bytes})
+                    raise self.too_large("unpacks to more")  # "... than N bytes"
                 out.write(chunk)
         self.files += 1
+
+    def too_large(self, what: str) -> UploadTooLarge:
+        return UploadTooLarge("payload_too_large", f"the archive {what} than {self.max_bytes} bytes, the most "
+                                                   f"this upload may unpack to (limits on the unpacked size and "
+                                                   f"on the compression ratio)", {"limit_bytes": self.max_bytes})
 
     def _target(self, parts: tuple[str, ...], name: str) -> Path:
         # A file member earlier in the archive may sit where this member needs a folder.
@@ -291,6 +303,11 @@ class _Extractor:
 
 def _unpack_zip(archive: Path, extractor: _Extractor) -> None:
     with zipfile.ZipFile(archive) as bundle:
+        # A zip lists every member's size up front: an archive that says it is too large is refused before a
+        # byte is written (one that lies is still stopped by the byte count while unpacking).
+        declared = sum(info.file_size for info in bundle.infolist())
+        if declared > extractor.max_bytes:
+            raise extractor.too_large(f"declares {declared} unpacked bytes, more")
         for info in bundle.infolist():
             parts = extractor.parts(info.filename)
             mode = info.external_attr >> 16
@@ -550,8 +567,10 @@ def dataset_exists(storage: Storage, dataset_id: str) -> bool:
 
 
 def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str, *, create: bool,
-                   split: str = "train", replace: bool = False, max_unpacked_bytes: int) -> DatasetDetail:
-    """Unpack and validate an uploaded archive in ``work`` (a staging workspace), then store it.
+                   split: str = "train", replace: bool = False, max_unpacked_bytes: int,
+                   max_pixels: int | None = None) -> DatasetDetail:
+    """Unpack and validate an uploaded archive in ``work`` (a staging workspace), then store it; ``max_pixels``:
+    every frame's header is checked against it before any frame is decoded (FrameTooLargeUpload).
 
     ``create``: make dataset ``dataset_id`` (UploadConflict if it exists), else add the archive's sequences
     to it (UnknownDataset if it does not exist; UploadConflict for taken names unless ``replace``).
@@ -561,6 +580,8 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
     unpacked = work / "unpacked"
     unpack_archive(archive, unpacked, max_unpacked_bytes)
     archive.unlink()  # the unpacked copy is all we need; free the space early
+    if max_pixels is not None:
+        check_unpacked_frame_pixels(unpacked, max_pixels)
     sequences = find_sequences(unpacked, split)
     with dataset_lock(storage, dataset_id):
         if create:
@@ -570,6 +591,23 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
                 raise UnknownDataset("not_found", f"dataset {dataset_id!r} does not exist")
             _add_to_dataset(storage, dataset_id, sequences, work, replace)
     return describe_dataset(storage, dataset_id)
+
+
+def check_unpacked_frame_pixels(root: Path, max_pixels: int) -> None:
+    """FrameTooLargeUpload for the first EXR under ``root`` whose header declares more than ``max_pixels``."""
+    for path in sorted(root.rglob("*.exr")):
+        if path.is_file():
+            try:
+                check_frame_file_pixels(path, max_pixels, _relative(path, root))
+            except FrameTooLarge as error:
+                raise _too_many_pixels(error) from None
+            except FrameError:
+                continue  # unreadable: the full validation names the problem
+
+
+def _too_many_pixels(error: FrameTooLarge) -> FrameTooLargeUpload:
+    return FrameTooLargeUpload("frame_too_large", str(error), {"path": error.source, "pixels": error.pixels,
+                                                               "limit_pixels": error.limit})
 
 
 # --- frame-by-frame uploads --------------------------------------------------------------------------------
@@ -595,7 +633,8 @@ def _staged_info(dataset_id: str, state: dict) -> StagedSequence:
 
 
 def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, *, split: str | None = None,
-                scene: str | None = None, scales: list[int] | None = None) -> StagedSequence:
+                scene: str | None = None, scales: list[int] | None = None,
+                max_pixels: int | None = None) -> StagedSequence:
     """Validate one uploaded frame EXR and append it to the staged sequence (the first frame starts it).
 
     The frame's ``frame_index`` must be the next one (0 first); resolution, reference scales and buffers must
@@ -608,7 +647,9 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
         raise InvalidUpload("invalid_split", f"unknown split {split!r}; allowed: {', '.join(SPLITS)}")
     label = f"frame upload to {dataset_id}/{sequence}"
     try:
-        frame = read_frame(upload)
+        frame = read_frame(upload, max_pixels=max_pixels)
+    except FrameTooLarge as error:
+        raise _too_many_pixels(FrameTooLarge(label, error.problem, error.pixels, error.limit)) from None
     except FrameError as error:
         message = str(error).replace(str(upload), label)
         raise InvalidUpload("invalid_frame", message, {"buffer": error.buffer, "problem": error.problem}) from None

@@ -21,6 +21,25 @@ class Settings(BaseSettings):
     api_key: str | None = Field(None, description="when set, every request but /health needs X-API-Key")
     max_upload_bytes: int = Field(2 * 1024**3, gt=0, description="largest accepted dataset upload")
     max_frame_bytes: int = Field(256 * 1024**2, gt=0, description="largest accepted single-frame EXR")
+    max_frame_pixels: int = Field(
+        2 * 1024**2, gt=0, description="largest render resolution (width x height) of any frame (sessions, frame "
+        "uploads, archives), checked from the EXR header before decoding; all parts together may hold 5 times it")
+    max_unpacked_bytes: int = Field(4 * 1024**3, gt=0, description="most bytes one archive may unpack to")
+    max_archive_ratio: float = Field(
+        20.0, gt=0, description="most bytes an archive may unpack to per byte uploaded, once past "
+        "archive_ratio_exempt_bytes (frame EXRs barely compress further; a zip bomb compresses 1000:1)")
+    archive_ratio_exempt_bytes: int = Field(
+        16 * 1024**2, ge=0, description="unpacked bytes any archive may have whatever its ratio (tiny uploads)")
+    max_concurrent_uploads: int = Field(2, gt=0, description="dataset uploads (archives and frames) received or "
+                                                             "unpacked at once; one more answers 429")
+    max_concurrent_frames: int = Field(
+        32, gt=0, description="session frame bodies held in memory at once; one more answers 503 (retry)")
+    body_read_timeout_seconds: float = Field(
+        30.0, gt=0, description="longest wait for the next chunk of a request body (frames and uploads): 408 after")
+    staged_upload_ttl_seconds: int = Field(
+        24 * 3600, gt=0, description="frame-by-frame uploads untouched this long are discarded")
+    session_owner_tokens: bool = Field(
+        False, description="sessions answer only to the X-Session-Token returned when they were created")
     session_ttl_seconds: int = Field(1800, gt=0, description="idle time after which a session expires")
     max_sessions: int = Field(16, gt=0, description="live sessions; one more answers 429")
     session_device: str = Field("cpu", description="torch device sessions run on")

@@ -39,7 +39,7 @@ ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application
 FRAME_TYPES = ("image/x-exr", "application/octet-stream")
 
 _STATUS = {store.InvalidUpload: 400, store.UnknownDataset: 404, store.UploadConflict: 409,
-           store.UploadTooLarge: 413}
+           store.UploadTooLarge: 413, store.FrameTooLargeUpload: 413}
 
 
 def _error_response(description: str, code: str, message: str) -> dict:
@@ -91,9 +91,12 @@ async def _receive_archive(request: Request, storage: Storage, settings: Setting
         archive = work / "upload.bin"
         await store.save_stream(request.stream(), archive, settings.max_upload_bytes, "upload",
                                 request.headers.get("content-length"))
+        limit = store.unpacked_limit(archive.stat().st_size, max_bytes=settings.max_unpacked_bytes,
+                                     max_ratio=settings.max_archive_ratio,
+                                     exempt_bytes=settings.archive_ratio_exempt_bytes)
         return await run_in_threadpool(
             store.ingest_archive, storage, archive, work, dataset_id, create=create, split=split,
-            replace=replace, max_unpacked_bytes=store.UNPACKED_FACTOR * settings.max_upload_bytes)
+            replace=replace, max_unpacked_bytes=limit, max_pixels=settings.max_frame_pixels)
 
 
 @router.post(
@@ -217,7 +220,8 @@ async def upload_frame(
             await store.save_stream(request.stream(), upload, settings.max_frame_bytes, "frame",
                                     request.headers.get("content-length"))
             return await run_in_threadpool(store.stage_frame, storage, dataset_id, sequence, upload, split=split,
-                                           scene=scene, scales=expected_scales)
+                                           scene=scene, scales=expected_scales,
+                                           max_pixels=settings.max_frame_pixels)
 
 
 def _parse_scales(values: list[str] | None) -> list[int] | None:

@@ -19,7 +19,7 @@ from fastapi import APIRouter, Depends, Path, Request, Response
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
-from model.exr import encode_image_exr, read_frame_bytes
+from model.exr import FrameTooLarge, encode_image_exr, read_frame_bytes
 from model.frames import FrameBundle, FrameError
 from service.errors import ApiError
 from service.registry import AUTO_MODEL
@@ -221,8 +221,10 @@ _FRAME_HEADERS = {
                              "frame_out_of_order, resolution_mismatch)", "frame_out_of_order",
                              "frame_index 4 repeats the last frame processed (4); this session expects "
                              "frame_index 5 (reset the session to restart the stream)"),
-        413: _error_response("the body is larger than the server's frame limit", "payload_too_large",
-                             "the frame is at least 268435457 bytes; the limit is 268435456 bytes"),
+        413: _error_response("the body is larger than the server's frame limit (payload_too_large), or its "
+                             "header declares more pixels than the pixel limit (frame_too_large)",
+                             "frame_too_large", "frame body: declares 2048x2048 = 4194304 pixels; the limit is "
+                                                "2097152 pixels per frame"),
         415: _error_response("Content-Type not accepted", "unsupported_media_type",
                              "Content-Type text/plain is not accepted here; send application/octet-stream, "
                              "image/x-exr"),
@@ -246,7 +248,7 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
             await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
     body = await _read_body(request, settings.max_frame_bytes)
     with session_errors():
-        result, data = await run_in_threadpool(_run_frame, store, session_id, body)
+        result, data = await run_in_threadpool(_run_frame, store, session_id, body, settings.max_frame_pixels)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
                "X-Inference-Ms": f"{result.inference_ms:.3f}", "X-Sanitized-Pixels": str(result.sanitized.total),
                "X-Server-Ms": f"{(time.perf_counter() - started) * 1000:.3f}"}
@@ -258,8 +260,8 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
                     background=BackgroundTask(_start_mirror, store, session_id))
 
 
-def _run_frame(store: SessionStore, session_id: str, body: bytes):
-    frame = _parse_frame(body)
+def _run_frame(store: SessionStore, session_id: str, body: bytes, max_pixels: int):
+    frame = _parse_frame(body, max_pixels)
     result = store.process_frame(session_id, frame, start_mirror=False)
     try:
         data = encode_image_exr(result.output, {"frame_index": result.frame_index, "sequence": frame.sequence,
@@ -274,10 +276,13 @@ async def _start_mirror(store: SessionStore, session_id: str) -> None:
     store.start_mirror(session_id)  # never blocks: hands the write to the store's writer threads
 
 
-def _parse_frame(body: bytes) -> FrameBundle:
+def _parse_frame(body: bytes, max_pixels: int) -> FrameBundle:
     try:
         # NaN / Inf / out-of-range values pass here and are repaired before the step (X-Sanitized-Pixels).
-        return read_frame_bytes(body, FRAME_SOURCE, sanitizable=True)
+        return read_frame_bytes(body, FRAME_SOURCE, sanitizable=True, max_pixels=max_pixels)
+    except FrameTooLarge as error:
+        raise ApiError(413, "frame_too_large", str(error), {"pixels": error.pixels, "limit_pixels": error.limit}) \
+            from None
     except FrameError as error:
         raise ApiError(400, "invalid_frame", str(error),
                        {"buffer": error.buffer, "problem": error.problem}) from None

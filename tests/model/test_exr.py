@@ -309,3 +309,44 @@ def test_invalid_contents_are_validated_on_read(tmp_path):
     write_raw_exr(tmp_path / "f.exr", channels, {"jitter": (0.0, 0.0)})
     with pytest.raises(FrameValidationError, match=r"f.exr: buffer 'depth': 1 pixels are negative"):
         read_frame(tmp_path / "f.exr")
+
+
+# --- declared size, checked before decoding ----------------------------------------------------------------
+
+
+def zero_bomb(width: int, height: int) -> bytes:
+    """An all-zero ZIP-compressed EXR declaring width x height: a few kilobytes that decode to megabytes."""
+    import io
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    stream = io.BytesIO()
+    OpenEXR.File(header, {"color": np.zeros((height, width, 3), np.float32)}).write(stream)
+    return stream.getvalue()
+
+
+def test_a_frame_declaring_more_pixels_than_the_limit_is_refused_before_decoding(monkeypatch):
+    import model.exr as exr
+
+    bomb = zero_bomb(1024, 1024)
+    assert len(bomb) < 100_000
+    decoded = []
+    monkeypatch.setattr(exr, "_read_coalesced", lambda *args: decoded.append(args))
+    with pytest.raises(exr.FrameTooLarge, match=r"declares 1024x1024 = 1048576 pixels; the limit is 1000000") as info:
+        read_frame_bytes(bomb, "bomb.exr", max_pixels=1_000_000)
+    assert (info.value.pixels, info.value.limit, info.value.source) == (1048576, 1_000_000, "bomb.exr")
+    assert decoded == []
+
+
+def test_the_pixel_limit_counts_the_render_part_and_leaves_room_for_a_2x_reference(tmp_path):
+    import pickle
+
+    import model.exr as exr
+
+    frame = make_frame(0, 8, 6, scales=(1, 2))
+    path = write_frame(tmp_path / "f.exr", frame)
+    read_frame(path, max_pixels=48)  # 48 render pixels, a 2x reference of 192 beside them
+    with pytest.raises(exr.FrameTooLarge, match="= 48 pixels; the limit is 47 pixels per frame"):
+        read_frame(path, max_pixels=47)
+    exr.check_frame_file_pixels(path, 48)
+    error = exr.FrameTooLarge("f.exr", "declares too much", 10, 5)
+    assert pickle.loads(pickle.dumps(error)).pixels == 10

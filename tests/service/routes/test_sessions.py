@@ -244,3 +244,17 @@ def test_openapi_documents_the_frame_endpoint(api):
     assert "image/x-exr" in ok["content"]
     assert {"X-History", "X-Inference-Ms", "X-Server-Ms", "X-Sanitized-Pixels", "X-Sanitized"} <= set(ok["headers"])
     assert {"400", "404", "409", "413", "415"} <= set(operation["responses"])
+
+
+def test_a_decompression_bomb_frame_is_413_before_it_is_decoded(api, monkeypatch):
+    import model.exr
+    from tests.model.test_exr import zero_bomb
+
+    client, store = api(max_frame_pixels=1_000_000)
+    session = create(client)
+    decoded = []
+    monkeypatch.setattr(model.exr, "_read_coalesced", lambda *args: decoded.append(args))
+    message = error_of(post_frame(client, session["id"], zero_bomb(1024, 1024)), 413, "frame_too_large")
+    assert "declares 1024x1024 = 1048576 pixels; the limit is 1000000" in message
+    assert decoded == []
+    assert client.get(f"/sessions/{session['id']}").json()["frames_processed"] == 0
