@@ -16,6 +16,7 @@ from starlette.concurrency import run_in_threadpool
 
 from service import datasets as store
 from service.errors import ApiError
+from service.request_limits import timed_chunks, upload_slots
 from service.schemas import DatasetDetail, DatasetSummary, Split, StagedSequence
 from service.settings import Settings, get_settings
 from service.storage import Storage, get_storage
@@ -53,6 +54,10 @@ _NOT_FOUND = _error_response("no such dataset", "not_found", "dataset 'kitchens'
 _BAD_NAME = _error_response("the dataset id or sequence name is not a valid id", "invalid_name",
                             "dataset id '.hidden' is not a valid id: use letters, digits, '.', '_' and '-' (at most "
                             "128, not starting with a punctuation mark)")
+_BUSY = _error_response("the server's limit of uploads in progress is reached (Retry-After)", "too_many_uploads",
+                        "2 dataset uploads are in progress, the server's limit is 2: retry in a moment")
+_STALLED = _error_response("the client paused longer than the body read timeout", "body_timeout",
+                           "the request body stalled: nothing arrived for 30 s; send the whole body without pausing")
 _TOO_LARGE = _error_response("upload larger than the configured limit", "payload_too_large",
                              "the upload is at least 2147483649 bytes; the limit is 2147483648 bytes")
 _UNSUPPORTED = _error_response("Content-Type not accepted", "unsupported_media_type",
@@ -87,10 +92,11 @@ def _check_content_type(request: Request, accepted: tuple[str, ...]) -> None:
 async def _receive_archive(request: Request, storage: Storage, settings: Settings, dataset_id: str, *,
                            create: bool, split: str, replace: bool) -> DatasetDetail:
     _check_content_type(request, ARCHIVE_TYPES)
-    with _api_errors(), store.workspace(storage, "upload") as work:
+    with upload_slots(settings.max_concurrent_uploads).take(), _api_errors(), \
+            store.workspace(storage, "upload") as work:
         archive = work / "upload.bin"
-        await store.save_stream(request.stream(), archive, settings.max_upload_bytes, "upload",
-                                request.headers.get("content-length"))
+        await store.save_stream(timed_chunks(request.stream(), settings.body_read_timeout_seconds), archive,
+                                settings.max_upload_bytes, "upload", request.headers.get("content-length"))
         limit = store.unpacked_limit(archive.stat().st_size, max_bytes=settings.max_unpacked_bytes,
                                      max_ratio=settings.max_archive_ratio,
                                      exempt_bytes=settings.archive_ratio_exempt_bytes)
@@ -106,7 +112,7 @@ async def _receive_archive(request: Request, storage: Storage, settings: Setting
     summary="Upload a new dataset (zip, tar or tar.gz)",
     responses={400: _BAD_UPLOAD, 409: _error_response("the id is taken", "dataset_exists",
                                                       "dataset 'kitchens' already exists"),
-               413: _TOO_LARGE, 415: _UNSUPPORTED},
+               408: _STALLED, 413: _TOO_LARGE, 415: _UNSUPPORTED, 429: _BUSY},
     openapi_extra=_binary_body(ARCHIVE_TYPES, "an archive of sequence folders (each manifest.json + frame EXRs), "
                                               "or of a whole dataset folder (manifest.json with splits)"),
 )
@@ -162,7 +168,7 @@ def delete_dataset(dataset_id: DatasetId, storage: StorageDep) -> Response:
     responses={400: _BAD_UPLOAD, 404: _NOT_FOUND,
                409: _error_response("a sequence name is taken", "sequence_exists",
                                     "dataset 'kitchens' already has sequence(s) kitchen_0; pass replace=true"),
-               413: _TOO_LARGE, 415: _UNSUPPORTED},
+               408: _STALLED, 413: _TOO_LARGE, 415: _UNSUPPORTED, 429: _BUSY},
     openapi_extra=_binary_body(ARCHIVE_TYPES, "an archive of sequence folders or of a dataset folder"),
 )
 async def add_sequences(
@@ -193,7 +199,7 @@ async def add_sequences(
                                                      "2 pixels are not finite"),
                409: _error_response("frame_index is not the next one", "frame_out_of_order",
                                     "frame upload to kitchens/kitchen_7: frame_index is 5, expected 3"),
-               413: _TOO_LARGE, 415: _UNSUPPORTED},
+               408: _STALLED, 413: _TOO_LARGE, 415: _UNSUPPORTED, 429: _BUSY},
     openapi_extra=_binary_body(FRAME_TYPES, "one frame bundle EXR as written by model.exr.write_frame"),
 )
 async def upload_frame(
@@ -215,10 +221,10 @@ async def upload_frame(
         store.checked_dataset_id(dataset_id)
         store.checked_sequence_name(sequence)
         expected_scales = _parse_scales(scales)
-        with store.workspace(storage, "frame") as work:
+        with upload_slots(settings.max_concurrent_uploads).take(), store.workspace(storage, "frame") as work:
             upload = work / "frame.exr"
-            await store.save_stream(request.stream(), upload, settings.max_frame_bytes, "frame",
-                                    request.headers.get("content-length"))
+            await store.save_stream(timed_chunks(request.stream(), settings.body_read_timeout_seconds), upload,
+                                    settings.max_frame_bytes, "frame", request.headers.get("content-length"))
             return await run_in_threadpool(store.stage_frame, storage, dataset_id, sequence, upload, split=split,
                                            scene=scene, scales=expected_scales,
                                            max_pixels=settings.max_frame_pixels)

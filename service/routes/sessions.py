@@ -23,6 +23,7 @@ from model.exr import FrameTooLarge, encode_image_exr, read_frame_bytes
 from model.frames import FrameBundle, FrameError
 from service.errors import ApiError
 from service.registry import AUTO_MODEL
+from service.request_limits import frame_slots, timed_chunks
 from service.routes.models import registry_errors
 from service.schemas import SessionIn, SessionModelOut, SessionOut
 from service.sessions import (
@@ -225,10 +226,16 @@ _FRAME_HEADERS = {
                              "header declares more pixels than the pixel limit (frame_too_large)",
                              "frame_too_large", "frame body: declares 2048x2048 = 4194304 pixels; the limit is "
                                                 "2097152 pixels per frame"),
+        408: _error_response("the client paused longer than the body read timeout while sending the frame",
+                             "body_timeout", "the request body stalled: nothing arrived for 30 s; send the whole "
+                                             "body without pausing"),
         415: _error_response("Content-Type not accepted", "unsupported_media_type",
                              "Content-Type text/plain is not accepted here; send application/octet-stream, "
                              "image/x-exr"),
-        503: _UNAVAILABLE,
+        503: _error_response("the session store or the registry cannot be reached (session_store_unavailable), "
+                             "or the server holds its limit of frames in progress (server_busy, Retry-After)",
+                             "server_busy", "32 session frames are in progress, the server's limit is 32: retry "
+                                            "in a moment"),
     },
     openapi_extra={"requestBody": {
         "required": True,
@@ -246,9 +253,11 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
     if not store.exists(session_id):  # one in memory is checked against Redis when its frame runs
         with session_errors():
             await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
-    body = await _read_body(request, settings.max_frame_bytes)
-    with session_errors():
-        result, data = await run_in_threadpool(_run_frame, store, session_id, body, settings.max_frame_pixels)
+    # A slot for the body from its first byte until its output is encoded: bounds the frames held in memory.
+    with frame_slots(settings.max_concurrent_frames).take():
+        body = await _read_body(request, settings.max_frame_bytes, settings.body_read_timeout_seconds)
+        with session_errors():
+            result, data = await run_in_threadpool(_run_frame, store, session_id, body, settings.max_frame_pixels)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
                "X-Inference-Ms": f"{result.inference_ms:.3f}", "X-Sanitized-Pixels": str(result.sanitized.total),
                "X-Server-Ms": f"{(time.perf_counter() - started) * 1000:.3f}"}
@@ -298,13 +307,14 @@ def _check_content_type(request: Request) -> None:
                                                       f"{', '.join(FRAME_TYPES)}", {"accepted": list(FRAME_TYPES)})
 
 
-async def _read_body(request: Request, limit: int) -> bytes:
-    """The whole body, refusing (413) past ``limit`` bytes without reading further."""
+async def _read_body(request: Request, limit: int, timeout_seconds: float) -> bytes:
+    """The whole body, refusing (413) past ``limit`` bytes without reading further, and (408) a client that
+    pauses for ``timeout_seconds``."""
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > limit:
         raise _too_large(int(declared), limit)
     chunks, size = [], 0
-    async for chunk in request.stream():
+    async for chunk in timed_chunks(request.stream(), timeout_seconds):
         size += len(chunk)
         if size > limit:
             raise _too_large(size, limit, at_least=True)

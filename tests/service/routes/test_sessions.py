@@ -258,3 +258,15 @@ def test_a_decompression_bomb_frame_is_413_before_it_is_decoded(api, monkeypatch
     assert "declares 1024x1024 = 1048576 pixels; the limit is 1000000" in message
     assert decoded == []
     assert client.get(f"/sessions/{session['id']}").json()["frames_processed"] == 0
+
+
+def test_frames_past_the_concurrency_limit_are_503_with_retry_after(api):
+    from service.request_limits import frame_slots
+
+    client, _ = api(max_concurrent_frames=1)
+    session = create(client)
+    with frame_slots(1).take():  # another session's frame in progress
+        response = post_frame(client, session["id"], stream_frames(1)[0])
+        assert response.status_code == 503 and response.headers["retry-after"] == "1"
+        assert error_of(response, 503, "server_busy")
+    assert post_frame(client, session["id"], stream_frames(1)[0]).status_code == 200

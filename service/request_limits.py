@@ -1,0 +1,81 @@
+"""Bounds on request bodies: how many are taken in at once, and how long a client may pause while sending one.
+
+Without them a client that declares 100 bytes and sends 1 holds a connection (and a task) forever, and many
+large bodies buffered at once (session frames, up to DENOISER_MAX_FRAME_BYTES each) or unpacked at once (dataset
+archives) exhaust memory and disk. Both answer at once instead of queueing: a full server says so (429 or 503
+with Retry-After) and the client retries later.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import AsyncIterable, AsyncIterator, Iterator
+from contextlib import contextmanager
+
+from service.errors import ApiError
+
+RETRY_AFTER_SECONDS = 1
+
+
+class Slots:
+    """At most ``capacity`` holders at once; ``take`` refuses the next one rather than make it wait."""
+
+    def __init__(self, capacity: int, what: str, status: int, code: str) -> None:
+        self.capacity = capacity
+        self.what = what
+        self.status = status
+        self.code = code
+        self.held = 0
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def take(self) -> Iterator[None]:
+        with self._lock:
+            if self.held >= self.capacity:
+                raise ApiError(self.status, self.code, f"{self.held} {self.what} are in progress, the server's "
+                                                       f"limit is {self.capacity}: retry in a moment",
+                               {"limit": self.capacity}, headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
+            self.held += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self.held -= 1
+
+
+_slots: dict[tuple[str, int], Slots] = {}
+_slots_lock = threading.Lock()
+
+
+def upload_slots(capacity: int) -> Slots:
+    """The process's slots for dataset uploads (archives and frames): 429 when all are taken."""
+    return _shared("uploads", capacity, lambda: Slots(capacity, "dataset uploads", 429, "too_many_uploads"))
+
+
+def frame_slots(capacity: int) -> Slots:
+    """The process's slots for session frame bodies in memory: 503 (the server is busy, not the caller wrong)."""
+    return _shared("frames", capacity, lambda: Slots(capacity, "session frames", 503, "server_busy"))
+
+
+def _shared(name: str, capacity: int, build) -> Slots:
+    with _slots_lock:
+        key = (name, capacity)
+        if key not in _slots:
+            _slots[key] = build()
+        return _slots[key]
+
+
+async def timed_chunks(chunks: AsyncIterable[bytes], timeout_seconds: float) -> AsyncIterator[bytes]:
+    """The chunks of a request body, answering 408 when the client sends nothing for ``timeout_seconds``."""
+    iterator = chunks.__aiter__()
+    while True:
+        try:
+            chunk = await asyncio.wait_for(iterator.__anext__(), timeout_seconds)
+        except StopAsyncIteration:
+            return
+        except asyncio.TimeoutError:
+            raise ApiError(408, "body_timeout", f"the request body stalled: nothing arrived for "
+                                                f"{timeout_seconds:g} s; send the whole body without pausing",
+                           {"timeout_seconds": timeout_seconds}) from None
+        yield chunk
