@@ -50,6 +50,7 @@ from model.dataset import (
     DatasetError,
     Sequence,
     frame_file_name,
+    json_problem,
     write_json_atomically,
 )
 from model.exr import CHANNEL_SLOTS, FrameTooLarge, check_frame_file_pixels, read_frame, write_frame
@@ -405,9 +406,9 @@ def _unwrap(root: Path) -> Path:
 def _manifest_format(path: Path, root: Path) -> Any:
     try:
         content = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+    except (ValueError, RecursionError) as error:
         relative = _relative(path, root)
-        raise InvalidUpload("invalid_dataset", f"{relative}: not valid JSON ({error})", {"path": relative}) from None
+        raise InvalidUpload("invalid_dataset", f"{relative}: {json_problem(error)}", {"path": relative}) from None
     return content.get("format") if isinstance(content, dict) else None
 
 

@@ -78,6 +78,17 @@ def _body_problem(request: Request, errors: list[dict]) -> tuple[int, str, str, 
     return None
 
 
+def _unparsable_body(cause: BaseException | None) -> str:
+    """Why FastAPI could not parse a JSON body (it keeps the parser's exception as the cause)."""
+    if isinstance(cause, UnicodeDecodeError):
+        return "the body could not be read as JSON text: it is not UTF-8"
+    if isinstance(cause, RecursionError):
+        return "the body is not accepted as JSON: it is nested too deeply"
+    if isinstance(cause, ValueError) and "digits" in str(cause):
+        return f"the body is not accepted as JSON: an integer has too many digits ({cause})"
+    return "the body could not be read as JSON text"
+
+
 def _status_code_name(status: int) -> str:
     return {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found",
             405: "method_not_allowed", 409: "conflict", 413: "payload_too_large", 415: "unsupported_media_type",
@@ -129,9 +140,8 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _http_error(request: Request, error: StarletteHTTPException) -> JSONResponse:
         message = error.detail if isinstance(error.detail, str) else str(error.detail)
         headers = getattr(error, "headers", None)
-        if error.status_code == 400 and message == FASTAPI_BODY_PARSE_ERROR:  # e.g. a body that is not UTF-8
-            return JSONResponse(error_body(INVALID_JSON, "the body could not be read as JSON text (is it UTF-8?)"),
-                                status_code=400)
+        if error.status_code == 400 and message == FASTAPI_BODY_PARSE_ERROR:
+            return JSONResponse(error_body(INVALID_JSON, _unparsable_body(error.__cause__)), status_code=400)
         if error.status_code == 405:
             allowed = _allowed_methods(request)
             headers = {**(headers or {}), "Allow": allowed}

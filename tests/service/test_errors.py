@@ -47,3 +47,15 @@ def test_a_valid_json_body_with_a_bad_field_is_still_422_naming_the_field(client
     response = client.post("/sessions", json={"model": "x", "on_gap": "sometimes"})
     assert response.status_code == 422
     assert "on_gap" in response.json()["error"]["message"]
+
+
+@pytest.mark.parametrize(("body", "fragment"), [
+    (b"[" * 100_000, "nested too deeply"),
+    (b'{"model": ' + b"9" * 5000 + b"}", "an integer has too many digits"),
+    (b"\xff\xfe\x00", "it is not UTF-8"),
+])
+def test_json_bodies_the_parser_refuses_are_400_saying_why(client, body, fragment):
+    response = client.post("/jobs", content=body, headers={"content-type": "application/json"})
+    assert response.status_code == 400, response.text
+    error = response.json()["error"]
+    assert error["code"] == "invalid_json" and fragment in error["message"], error

@@ -476,3 +476,13 @@ def test_an_archive_holding_a_decompression_bomb_is_413_before_frames_are_decode
     assert error["details"]["path"] == "seq_b/frame_0001.exr"
     assert decoded == []
     assert_nothing_stored(storage)
+
+
+@pytest.mark.parametrize(("manifest", "fragment"), [
+    (b"[" * 100_000, "manifest.json: not valid JSON here (nested too deeply)"),
+    (b'{"format": ' + b"1" * 5000 + b"}", "manifest.json: not valid JSON here"),
+])
+def test_a_manifest_the_json_parser_refuses_is_400_not_500(api, storage, manifest, fragment):
+    body = zip_bytes({"seq/manifest.json": manifest, "seq/frame_0000.exr": b"x"})
+    assert_error(post_archive(api, body), 400, "invalid_dataset", fragment)
+    assert_nothing_stored(storage)
