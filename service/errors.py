@@ -7,7 +7,9 @@ are all turned into that shape here. Anything else is a bug and answers 500 with
 
 from __future__ import annotations
 
+import errno
 import logging
+import uuid
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -160,8 +162,40 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _dataset_error(request: Request, error: DatasetError) -> JSONResponse:
         return JSONResponse(error_body("invalid_dataset", str(error)), status_code=400)
 
+    @app.exception_handler(OSError)
+    async def _storage_error(request: Request, error: OSError) -> JSONResponse:
+        return _os_error_response(request, error)
+
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, error: Exception) -> JSONResponse:
-        log.exception("unhandled error on %s %s", request.method, request.url.path)
-        return JSONResponse(error_body("internal_error", f"internal error: {type(error).__name__}: {error}"),
-                            status_code=500)
+        return _internal_error(request, error)
+
+
+# Storage that cannot take a write: the server's condition, not the caller's mistake, and not a bug either.
+STORAGE_FULL_ERRNOS = {errno.ENOSPC: "no space left", errno.EDQUOT: "disk quota exceeded",
+                       errno.EROFS: "storage is read-only", errno.EACCES: "storage is not writable",
+                       errno.EPERM: "storage is not writable"}
+
+
+def _os_error_response(request: Request, error: OSError) -> JSONResponse:
+    """507 for storage that is full or read-only, with a neutral message (paths go to the log only); any other
+    OSError is an internal error."""
+    reason = STORAGE_FULL_ERRNOS.get(error.errno) if error.errno is not None else None
+    if reason is None:
+        return _internal_error(request, error)
+    reference = uuid.uuid4().hex[:12]
+    log.error("storage error %s on %s %s: %s (path %s)", reference, request.method, request.url.path, error,
+              error.filename)
+    return JSONResponse(error_body("insufficient_storage", f"the server cannot store data now ({reason}); "
+                                                           f"nothing was changed, retry later (reference "
+                                                           f"{reference})", {"reference": reference}),
+                        status_code=507, headers={"Retry-After": "60"})
+
+
+def _internal_error(request: Request, error: Exception) -> JSONResponse:
+    """500 naming the kind of failure and a reference to the log entry, never the message (it may hold paths)."""
+    reference = uuid.uuid4().hex[:12]
+    log.error("unhandled error %s on %s %s", reference, request.method, request.url.path, exc_info=error)
+    return JSONResponse(error_body("internal_error", f"internal error ({type(error).__name__}); the server log "
+                                                     f"has the details under reference {reference}",
+                                   {"reference": reference}), status_code=500)
