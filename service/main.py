@@ -34,9 +34,12 @@ Authentication: header `X-API-Key` when the server has `DENOISER_API_KEY` set.
 
 @asynccontextmanager
 async def _lifespan(app: FastAPI):
+    from service.auth import check_deployment_key
     from service.sessions import get_session_store
+    from service.settings import get_settings
     from service.storage import get_storage
 
+    check_deployment_key(get_settings())  # before anything starts: an exposed API without a real key must not run
     get_storage()
     store = get_session_store()
     yield

@@ -19,6 +19,9 @@ class Settings(BaseSettings):
     tracking_uri: str | None = Field(None, description="MLflow tracking URI; none: sqlite under data_dir")
     mlflow_ui_url: str | None = Field(None, description="public URL of the MLflow UI, for links in job records")
     api_key: str | None = Field(None, description="when set, every request but /health needs X-API-Key")
+    require_api_key: bool = Field(
+        False, description="refuse to start without a real api_key (set where the API is reachable from other "
+                           "machines; `denoiser serve --host` beyond localhost implies it)")
     max_upload_bytes: int = Field(2 * 1024**3, gt=0, description="largest accepted dataset upload")
     max_frame_bytes: int = Field(256 * 1024**2, gt=0, description="largest accepted single-frame EXR")
     max_frame_pixels: int = Field(
