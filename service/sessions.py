@@ -650,19 +650,47 @@ class SessionStore:
             self._forget(session_id)
             log.info("session %s expired", session_id)
 
-    def _live_ids(self) -> set[str]:
+    def _live_ids(self, require_redis: bool = False) -> set[str]:
+        """Ids of the sessions live now: in memory and not idle too long, or in Redis with metadata that says so
+        (a key outlives its session's idle time by up to the time its last mirror took, and by more under a
+        test's clock). ``require_redis``: SessionStoreUnavailable rather than memory alone when Redis is down."""
         self._purge_expired()
         with self._lock:
             ids = set(self._sessions)
         try:
-            keys = self._redis(lambda client: list(client.scan_iter(match=f"{self.prefix}*", count=1000)))
-            ids.update(key.decode()[len(self.prefix):] for key in keys)
+            ids.update(self._redis(self._live_ids_in_redis))
         except redis.RedisError as error:
+            if require_redis:
+                raise SessionStoreUnavailable(f"the session store (Redis) is unreachable, so the open sessions "
+                                              f"cannot be counted: {error}") from None
             log.warning("session store (Redis) unreachable, counting sessions in memory only: %s", error)
         return {session_id for session_id in ids if SESSION_ID.match(session_id)}
 
+    def _live_ids_in_redis(self, client: redis.Redis) -> set[str]:
+        keys = list(client.scan_iter(match=f"{self.prefix}*", count=1000))
+        if not keys:
+            return set()
+        pipeline = client.pipeline(transaction=False)
+        for key in keys:
+            pipeline.hget(key, "meta")
+        now = self.clock()
+        live = set()
+        for key, raw in zip(keys, pipeline.execute()):
+            if raw is None:
+                continue  # deleted or expired since the scan
+            try:
+                meta = json.loads(raw)
+                expired = meta["last_used_at"] + self.ttl_seconds <= now
+            except (ValueError, KeyError, TypeError):
+                continue  # not a session this code wrote
+            if not expired:
+                live.add(key.decode()[len(self.prefix):])
+        return live
+
     def _check_capacity(self) -> None:
-        live = len(self._live_ids())
+        # Counting memory alone while Redis is down would let every API process (and a restarted one) open up to
+        # the limit each: refuse instead (503) until the count can be trusted.
+        live = len(self._live_ids(require_redis=True))
         if live >= self.max_sessions:
             raise SessionLimitReached(
                 f"{live} sessions are open, the server's limit is {self.max_sessions}: delete a session or wait "

@@ -23,6 +23,7 @@ from service.sessions import (
     SessionLimitReached,
     SessionNotFound,
     SessionStore,
+    SessionStoreUnavailable,
     deserialize_state,
     serialize_state,
 )
@@ -284,18 +285,42 @@ def test_concurrent_frames_of_one_session_are_serialized(make_store):
     assert session.frames_processed == 2
 
 
-def test_sessions_keep_working_in_memory_when_redis_is_down(registry_settings, caplog):
+def test_sessions_keep_working_in_memory_when_redis_is_down(make_store, caplog):
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    store.redis = redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2, socket_timeout=0.2,
+                              retry=Retry(NoBackoff(), 0))  # Redis goes away
+    results = [store.process_frame(session.id, frame).history for frame in stream_frames(2)]
+    assert results == [STARTED, CONTINUED]
+    assert [s.id for s in store.list()] == [session.id]
+    assert "could not mirror to Redis" in caplog.text
+
+
+def test_no_session_is_created_while_redis_is_down(registry_settings):
+    # Counting memory alone would let every API process (and a restarted one) go past the limit.
     down = redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2, socket_timeout=0.2,
                        retry=Retry(NoBackoff(), 0))
     store = SessionStore(registry_settings, redis_client=down, prefix="denoiser:session:test-down:")
     try:
-        session = store.create(MODEL_NAME)
-        results = [store.process_frame(session.id, frame).history for frame in stream_frames(2)]
-        assert results == [STARTED, CONTINUED]
-        assert [s.id for s in store.list()] == [session.id]
-        assert "could not mirror to Redis" in caplog.text
+        with pytest.raises(SessionStoreUnavailable, match="cannot be counted"):
+            store.create(MODEL_NAME)
     finally:
         store.close()
+
+
+def test_the_session_cap_does_not_count_sessions_idle_past_their_ttl(make_store, redis_db):
+    clock = FakeClock()
+    store = make_store(clock=clock, max_sessions=2, session_ttl_seconds=60)
+    store.create(MODEL_NAME)
+    store.create(MODEL_NAME)
+    clock.advance(61)  # both idle past the TTL; their Redis keys (real time) are still there
+    assert len(list(redis_db.scan_iter(match=f"{store.prefix}*"))) == 2
+    assert store.list() == []
+    store.create(MODEL_NAME)
+    restarted = make_store(clock=clock, max_sessions=2, session_ttl_seconds=60)
+    restarted.create(MODEL_NAME)  # a fresh process counts Redis alone: the two idle ones do not count either
+    with pytest.raises(SessionLimitReached, match="2 sessions are open"):
+        restarted.create(MODEL_NAME)
 
 
 def test_every_step_runs_on_the_store_torch_thread(make_store):
