@@ -50,6 +50,8 @@ class Settings(BaseSettings):
     session_mirror_interval_seconds: float = Field(
         0.0, ge=0, le=3600, description="0: every frame's history is in Redis before the next frame runs; > 0: "
         "written at most this often (large histories, GPU sessions), so a restart may resume that far back")
+    worker_heartbeat_seconds: float = Field(
+        10.0, gt=0, description="how often each worker writes its heartbeat; one silent for 3 times this is gone")
     job_time_limit_seconds: int = Field(24 * 3600, gt=0, description="longest job; the visibility timeout exceeds it")
 
     def resolved_tracking_uri(self) -> str:
