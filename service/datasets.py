@@ -30,6 +30,7 @@ import re
 import shutil
 import stat
 import tarfile
+import time
 import uuid
 import zipfile
 import zlib
@@ -686,6 +687,29 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
     return _staged_info(dataset_id, state)
 
 
+def expire_staged_uploads(storage: Storage, ttl_seconds: float, now: float | None = None) -> list[str]:
+    """Discard frame-by-frame uploads untouched for ``ttl_seconds`` (their state file's modification time: every
+    staged frame rewrites it); returns "dataset/sequence" of each one discarded."""
+    now = time.time() if now is None else now
+    root = storage.staging / "sequences"
+    expired = []
+    for state_file in sorted(root.glob("*/*.json")) if root.is_dir() else []:
+        dataset_id, sequence = state_file.parent.name, state_file.stem
+        try:
+            if now - state_file.stat().st_mtime < ttl_seconds:
+                continue
+            with dataset_lock(storage, dataset_id):
+                if not state_file.is_file() or now - state_file.stat().st_mtime < ttl_seconds:
+                    continue  # committed, discarded or continued meanwhile
+                state_file.unlink()
+                shutil.rmtree(state_file.with_suffix(""), ignore_errors=True)
+        except (OSError, InvalidUpload):  # gone meanwhile, or a name this code never wrote
+            continue
+        expired.append(f"{dataset_id}/{sequence}")
+        log.info("discarded the frame upload %s/%s: untouched for %s s", dataset_id, sequence, ttl_seconds)
+    return expired
+
+
 def _check_continues(state: dict, frame: FrameBundle, buffers: list[str], split: str | None, label: str) -> None:
     first = "the first frame's"
     if (frame.width, frame.height) != (state["width"], state["height"]):
@@ -709,6 +733,7 @@ def staged_sequence(storage: Storage, dataset_id: str, sequence: str) -> StagedS
 
 def discard_staged_sequence(storage: Storage, dataset_id: str, sequence: str) -> None:
     folder, state_file = _staged_paths(storage, dataset_id, sequence)
+    _load_state(state_file, dataset_id, sequence)  # 404 before a lock file is made for an unknown id
     with dataset_lock(storage, dataset_id):
         _load_state(state_file, dataset_id, sequence)
         state_file.unlink()
@@ -719,6 +744,7 @@ def commit_staged_sequence(storage: Storage, dataset_id: str, sequence: str, *, 
                            ) -> DatasetDetail:
     """Write the staged sequence's manifest, check it, and move it into the dataset (created if new)."""
     folder, state_file = _staged_paths(storage, dataset_id, sequence)
+    _load_state(state_file, dataset_id, sequence)  # 404 before a lock file is made for an unknown id
     with dataset_lock(storage, dataset_id), workspace(storage, "commit") as work:
         state = _load_state(state_file, dataset_id, sequence)
         frames = state["frames"]
@@ -811,6 +837,7 @@ def list_datasets(storage: Storage) -> list[DatasetSummary]:
 
 
 def delete_dataset(storage: Storage, dataset_id: str) -> None:
+    _open(storage, dataset_id)  # 404 before a lock file is made for an unknown id
     with dataset_lock(storage, checked_dataset_id(dataset_id)):
         _open(storage, dataset_id)
         storage.remove_tree(storage.dataset(dataset_id))

@@ -400,6 +400,9 @@ class SessionOut(BaseModel):
     resolution: list[int] | None = Field(description="[width, height] every frame must have until a reset "
                                                       "(set by the first frame); null before it")
     choice: AutoChoiceOut | None = Field(None, description="model 'auto' only: the version chosen and why")
+    token: str | None = Field(None, description="only in the answer to POST /sessions, and only where the server "
+                                                "has DENOISER_SESSION_OWNER_TOKENS on: send it as X-Session-Token "
+                                                "with every request on this session")
 
 
 # =========================================================================================================

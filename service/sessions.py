@@ -46,6 +46,7 @@ restart meanwhile.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import logging
@@ -118,6 +119,11 @@ class ModelNotLoadable(SessionError):
     code = "model_not_loadable"
 
 
+def token_digest(token: str) -> str:
+    """What a session keeps of its owner token (the token itself is only ever in the creation's answer)."""
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
 @dataclass(frozen=True)
 class SessionModel:
     name: str
@@ -143,6 +149,8 @@ class Session:
     next_frame_index: int | None = None  # None: no history, the next frame starts one
     resolution: tuple[int, int] | None = None  # (width, height) at render resolution
     revision: int = 0
+    # SHA-256 of the owner token given at creation (DENOISER_SESSION_OWNER_TOKENS), None: any key holder drives it.
+    owner_digest: str | None = None
     # Runtime only (not in the metadata):
     state: State | None = field(default=None, repr=False)
     method: Method | None = field(default=None, repr=False)
@@ -159,14 +167,16 @@ class Session:
         return {"id": self.id, "model": self.model.__dict__, "on_gap": self.on_gap, "created_at": self.created_at,
                 "last_used_at": self.last_used_at, "frames_processed": self.frames_processed,
                 "next_frame_index": self.next_frame_index,
-                "resolution": list(self.resolution) if self.resolution else None, "revision": self.revision}
+                "resolution": list(self.resolution) if self.resolution else None, "revision": self.revision,
+                "owner_digest": self.owner_digest}
 
     @classmethod
     def from_metadata(cls, meta: dict[str, Any], ttl_seconds: int) -> Session:
         return cls(id=meta["id"], model=SessionModel(**meta["model"]), on_gap=meta["on_gap"],
                    created_at=meta["created_at"], last_used_at=meta["last_used_at"], ttl_seconds=ttl_seconds,
                    frames_processed=meta["frames_processed"], next_frame_index=meta["next_frame_index"],
-                   resolution=tuple(meta["resolution"]) if meta["resolution"] else None, revision=meta["revision"])
+                   resolution=tuple(meta["resolution"]) if meta["resolution"] else None, revision=meta["revision"],
+                   owner_digest=meta.get("owner_digest"))
 
 
 @dataclass(frozen=True)
@@ -341,9 +351,11 @@ class SessionStore:
     # ------------------------------------------------------------------------------------ public
 
     def create(self, model: str, version: str | None = None, alias: str | None = None,
-               on_gap: str = "reset", choice: dict[str, Any] | None = None) -> Session:
+               on_gap: str = "reset", choice: dict[str, Any] | None = None,
+               owner_digest: str | None = None) -> Session:
         """A new session of registered model ``model`` at ``version``, ``alias`` or (neither) its latest version;
-        ``choice`` (model "auto": how the version was chosen) is kept with the session's model.
+        ``choice`` (model "auto": how the version was chosen) is kept with the session's model; ``owner_digest``:
+        see ``token_digest``.
 
         Raises UnknownModelError (KeyError) / ValueError from the registry, SessionLimitReached past the cap.
         """
@@ -360,7 +372,8 @@ class SessionStore:
                 model=SessionModel(name=info.name, version=info.version, alias=alias, method=method.name,
                                    preset=method.preset, scale=method.scale, params=method.parameter_count(),
                                    choice=choice),
-                on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method)
+                on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method,
+                owner_digest=owner_digest)
             with self._lock:
                 self._sessions[session.id] = session
             self._mirror(session, wait=True)
@@ -406,6 +419,14 @@ class SessionStore:
             except redis.RedisError as error:
                 log.warning("session %s: could not delete its Redis copy: %s", session_id, error)
         log.info("session %s deleted", session_id)
+
+    def owner_digest(self, session_id: str) -> str | None:
+        """The session's owner digest: from memory when it is there (no Redis access), else as ``get``."""
+        with self._lock:
+            session = self._sessions.get(session_id)
+        if session is None or session.expired(self.clock()):
+            session = self.get(session_id)
+        return session.owner_digest
 
     def exists(self, session_id: str) -> bool:
         """Whether the session is live in this process's memory (no Redis access, so cheap enough to call from an

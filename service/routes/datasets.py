@@ -221,6 +221,7 @@ async def upload_frame(
         store.checked_dataset_id(dataset_id)
         store.checked_sequence_name(sequence)
         expected_scales = _parse_scales(scales)
+        await run_in_threadpool(store.expire_staged_uploads, storage, settings.staged_upload_ttl_seconds)
         with upload_slots(settings.max_concurrent_uploads).take(), store.workspace(storage, "frame") as work:
             upload = work / "frame.exr"
             await store.save_stream(timed_chunks(request.stream(), settings.body_read_timeout_seconds), upload,

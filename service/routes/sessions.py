@@ -9,13 +9,15 @@ service.sessions).
 
 from __future__ import annotations
 
+import hmac
+import secrets
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi import APIRouter, Depends, Header, Path, Request, Response
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
@@ -35,6 +37,7 @@ from service.sessions import (
     SessionStore,
     SessionStoreUnavailable,
     get_session_store,
+    token_digest,
 )
 from service.settings import Settings, get_settings
 
@@ -43,6 +46,9 @@ router = APIRouter(prefix="/sessions", tags=["sessions"])
 StoreDep = Annotated[SessionStore, Depends(get_session_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 SessionId = Annotated[str, Path(description="session id", examples=["0f8fad5bd9cb469fa16570867728950e"])]
+SESSION_TOKEN_HEADER = "X-Session-Token"
+SessionToken = Annotated[str | None, Header(alias=SESSION_TOKEN_HEADER, description="the session's owner token "
+                                            "(the `token` of its creation), where the server has owner tokens on")]
 
 FRAME_TYPES = ("application/octet-stream", "image/x-exr")
 EXR_MEDIA_TYPE = "image/x-exr"
@@ -56,6 +62,9 @@ def _error_response(description: str, code: str, message: str) -> dict:
 
 _NOT_FOUND = _error_response("no such session (never created, deleted, or expired)", "not_found",
                              "session '0f8fad5bd9cb469fa16570867728950e' does not exist (expired or deleted)")
+_FORBIDDEN = _error_response("the server has owner tokens on and X-Session-Token is missing or not this "
+                              "session's token", "session_forbidden", "session '0f8f...' belongs to the client that "
+                                                                      "created it: send its token in X-Session-Token")
 _UNAVAILABLE = _error_response("Redis (the session store) or the model registry cannot be reached",
                                "session_store_unavailable", "session '0f8f...' is not in memory and the session "
                                                             "store (Redis) is unreachable: Connection refused")
@@ -77,6 +86,20 @@ def session_errors() -> Iterator[None]:
         raise ApiError(422, error.code, error.message, error.details) from None
     except SessionStoreUnavailable as error:
         raise ApiError(503, error.code, error.message, error.details) from None
+
+
+def _check_owner(store: SessionStore, session_id: str, token: str | None) -> None:
+    """403 unless ``token`` is the session's owner token (sessions created without one answer any key holder)."""
+    with session_errors():
+        digest = store.owner_digest(session_id)
+    if digest is None:
+        return
+    if token is None:
+        raise ApiError(403, "session_forbidden", f"session {session_id!r} belongs to the client that created it: "
+                                                 f"send its token in {SESSION_TOKEN_HEADER}")
+    if not hmac.compare_digest(token_digest(token), digest):
+        raise ApiError(403, "session_forbidden", f"the {SESSION_TOKEN_HEADER} header is not session "
+                                                 f"{session_id!r}'s token")
 
 
 def _time(seconds: float) -> datetime:
@@ -125,7 +148,7 @@ _SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
                                              "16 sessions are open, the server's limit is 16: delete a session "
                                              "or wait for an idle one to expire (1800 s)"),
                         503: _UNAVAILABLE})
-def create_session(body: SessionIn, response: Response, store: StoreDep) -> SessionOut:
+def create_session(body: SessionIn, response: Response, store: StoreDep, settings: SettingsDep) -> SessionOut:
     """The model is `version` of `model`, else the version `alias` points at now, else its latest version; it is
     loaded (shared with other sessions of the same version) before the session is answered.
 
@@ -137,14 +160,19 @@ def create_session(body: SessionIn, response: Response, store: StoreDep) -> Sess
     choice = None
     if body.model == AUTO_MODEL:
         choice = _choose(store, body)
+    token = secrets.token_urlsafe(24) if settings.session_owner_tokens else None
+    owner = token_digest(token) if token is not None else None
     with session_errors():
         if choice is None:
-            session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap)
+            session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap,
+                                   owner_digest=owner)
         else:
             session = store.create(choice.info.name, version=choice.info.version, on_gap=body.on_gap,
-                                   choice=choice.to_dict())
+                                   choice=choice.to_dict(), owner_digest=owner)
     response.headers["Location"] = f"/sessions/{session.id}"
-    return session_out(session)
+    out = session_out(session)
+    out.token = token
+    return out
 
 
 def _choose(store: SessionStore, body: SessionIn):
@@ -168,23 +196,26 @@ def list_sessions(store: StoreDep) -> list[SessionOut]:
 
 
 @router.get("/{session_id}", response_model=SessionOut, summary="A session's model and stream position",
-            responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
-def get_session(session_id: SessionId, store: StoreDep) -> SessionOut:
+            responses={403: _FORBIDDEN, 404: _NOT_FOUND, 503: _UNAVAILABLE})
+def get_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> SessionOut:
+    _check_owner(store, session_id, token)
     with session_errors():
         return session_out(store.get(session_id))
 
 
 @router.post("/{session_id}/reset", response_model=SessionOut, summary="Drop a session's history",
-             responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
-def reset_session(session_id: SessionId, store: StoreDep) -> SessionOut:
+             responses={403: _FORBIDDEN, 404: _NOT_FOUND, 503: _UNAVAILABLE})
+def reset_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> SessionOut:
     """The next frame starts a new history at any frame_index and may have a new resolution."""
+    _check_owner(store, session_id, token)
     with session_errors():
         return session_out(store.reset(session_id))
 
 
 @router.delete("/{session_id}", status_code=204, summary="Close a session",
-               responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
-def delete_session(session_id: SessionId, store: StoreDep) -> Response:
+               responses={403: _FORBIDDEN, 404: _NOT_FOUND, 503: _UNAVAILABLE})
+def delete_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> Response:
+    _check_owner(store, session_id, token)
     with session_errors():
         store.delete(session_id)
     return Response(status_code=204)
@@ -217,6 +248,7 @@ _FRAME_HEADERS = {
         400: _error_response("the body is not a valid frame bundle EXR (the message names the buffer and problem)",
                              "invalid_frame", "frame body: buffer 'color': 3 values are negative (radiance must be "
                                               ">= 0)"),
+        403: _FORBIDDEN,
         404: _NOT_FOUND,
         409: _error_response("frame_index or resolution does not continue the session (codes frame_gap, "
                              "frame_out_of_order, resolution_mismatch)", "frame_out_of_order",
@@ -242,7 +274,8 @@ _FRAME_HEADERS = {
         "description": "one frame bundle EXR, as model.exr.write_frame writes it (references optional, ignored)",
         "content": {kind: {"schema": {"type": "string", "format": "binary"}} for kind in FRAME_TYPES}}},
 )
-async def post_frame(session_id: SessionId, request: Request, store: StoreDep, settings: SettingsDep) -> Response:
+async def post_frame(session_id: SessionId, request: Request, store: StoreDep, settings: SettingsDep,
+                     token: SessionToken = None) -> Response:
     """Frame order: the first frame (or the first after a reset) starts the history at any frame_index; then
     frame_index == next continues it; a larger one skips frames (history reset, X-History: reset-gap, or 409
     frame_gap when the session has on_gap=reject); a smaller one (a repeat or backwards) is 409
@@ -253,6 +286,7 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
     if not store.exists(session_id):  # one in memory is checked against Redis when its frame runs
         with session_errors():
             await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
+    await run_in_threadpool(_check_owner, store, session_id, token)
     # A slot for the body from its first byte until its output is encoded: bounds the frames held in memory.
     with frame_slots(settings.max_concurrent_frames).take():
         body = await _read_body(request, settings.max_frame_bytes, settings.body_read_timeout_seconds)

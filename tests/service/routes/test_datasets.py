@@ -486,3 +486,33 @@ def test_a_manifest_the_json_parser_refuses_is_400_not_500(api, storage, manifes
     body = zip_bytes({"seq/manifest.json": manifest, "seq/frame_0000.exr": b"x"})
     assert_error(post_archive(api, body), 400, "invalid_dataset", fragment)
     assert_nothing_stored(storage)
+
+
+def test_requests_on_unknown_ids_leave_no_lock_files(api, storage):
+    for method, path in (("DELETE", "/datasets/ghost"), ("GET", "/datasets/ghost"),
+                         ("DELETE", "/datasets/ghost/sequences/cam/frames"),
+                         ("POST", "/datasets/ghost/sequences/cam/commit")):
+        assert api.request(method, path).status_code == 404, (method, path)
+    locks = storage.staging / "locks"
+    assert not locks.exists() or list(locks.iterdir()) == []
+
+
+def test_abandoned_frame_uploads_expire(make_app, storage, tmp_path, tiny_frames):
+    import os
+    import time
+
+    api = TestClient(make_app(datasets.router, staged_upload_ttl_seconds=3600))
+    assert post_frame(api, frame_bytes(tmp_path, tiny_frames(1)[0]), sequence="old").status_code == 200
+    assert post_frame(api, frame_bytes(tmp_path, tiny_frames(1)[0]), sequence="fresh").status_code == 200
+    state = storage.staging / "sequences" / "live" / "old.json"
+    long_ago = time.time() - 3601
+    os.utime(state, (long_ago, long_ago))  # untouched for longer than the TTL
+    assert datasets.store.expire_staged_uploads(storage, 3600) == ["live/old"]
+    assert api.get("/datasets/live/sequences/old/frames").status_code == 404
+    assert not (storage.staging / "sequences" / "live" / "old").exists()
+    assert api.get("/datasets/live/sequences/fresh/frames").json()["frames"] == 1
+    # Uploading a frame sweeps too: one more abandoned upload goes with the next frame of any sequence.
+    fresh = storage.staging / "sequences" / "live" / "fresh.json"
+    os.utime(fresh, (long_ago, long_ago))
+    assert post_frame(api, frame_bytes(tmp_path, tiny_frames(1)[0]), sequence="other").status_code == 200
+    assert api.get("/datasets/live/sequences/fresh/frames").status_code == 404

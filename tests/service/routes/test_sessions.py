@@ -270,3 +270,46 @@ def test_frames_past_the_concurrency_limit_are_503_with_retry_after(api):
         assert response.status_code == 503 and response.headers["retry-after"] == "1"
         assert error_of(response, 503, "server_busy")
     assert post_frame(client, session["id"], stream_frames(1)[0]).status_code == 200
+
+
+def test_with_owner_tokens_only_the_creator_drives_a_session(api):
+    client, _ = api(session_owner_tokens=True)
+    session = create(client)
+    token = session["token"]
+    assert token and len(token) >= 32
+    mine = {"X-Session-Token": token}
+    frame = frame_bytes(stream_frames(1)[0])
+    for method, path, body in (("GET", "", None), ("POST", "/frames", frame), ("POST", "/reset", None),
+                               ("DELETE", "", None)):
+        url = f"/sessions/{session['id']}{path}"
+        headers = {"Content-Type": "image/x-exr"} if body else {}
+        missing = client.request(method, url, content=body, headers=headers)
+        assert "X-Session-Token" in error_of(missing, 403, "session_forbidden"), (method, path)
+        wrong = client.request(method, url, content=body, headers={**headers, "X-Session-Token": "x" * 32})
+        error_of(wrong, 403, "session_forbidden")
+    assert client.get(f"/sessions/{session['id']}", headers=mine).json()["frames_processed"] == 0
+    assert post_frame_with(client, session["id"], frame, mine).status_code == 200
+    assert client.get(f"/sessions/{session['id']}", headers=mine).json()["token"] is None  # only at creation
+    assert client.delete(f"/sessions/{session['id']}", headers=mine).status_code == 204
+
+
+def test_a_restarted_api_keeps_the_owner_token(api):
+    client, store = api(session_owner_tokens=True)
+    session = create(client)
+    store.flush(timeout=30)
+    restarted, _ = api(session_owner_tokens=True)
+    error_of(restarted.get(f"/sessions/{session['id']}"), 403, "session_forbidden")
+    assert restarted.get(f"/sessions/{session['id']}",
+                         headers={"X-Session-Token": session["token"]}).status_code == 200
+
+
+def test_without_owner_tokens_sessions_have_none(api):
+    client, _ = api()
+    session = create(client)
+    assert session["token"] is None
+    assert client.get(f"/sessions/{session['id']}").status_code == 200
+
+
+def post_frame_with(client, session_id, body, headers):
+    return client.post(f"/sessions/{session_id}/frames", content=body,
+                       headers={"Content-Type": "image/x-exr", **headers})
