@@ -52,6 +52,8 @@ class Settings(BaseSettings):
         "written at most this often (large histories, GPU sessions), so a restart may resume that far back")
     worker_heartbeat_seconds: float = Field(
         10.0, gt=0, description="how often each worker writes its heartbeat; one silent for 3 times this is gone")
+    redis_retry_seconds: float = Field(
+        20.0, ge=0, description="how long a running job retries Redis (with backoff) before its attempt fails")
     job_time_limit_seconds: int = Field(24 * 3600, gt=0, description="longest job; the visibility timeout exceeds it")
 
     def resolved_tracking_uri(self) -> str:
