@@ -50,6 +50,7 @@ import hashlib
 import io
 import json
 import logging
+import os
 import re
 import threading
 import time
@@ -71,7 +72,7 @@ from model.methods.base import FrameBatch, Method, State
 from model.sanitize import SanitizeReport, sanitize_frame
 from service.registry import Registry, UnknownModelError, registry_for
 from service.settings import Settings
-from service.torch_thread import TorchThread
+from service.torch_thread import TorchPool
 
 log = logging.getLogger("denoiser.sessions")
 
@@ -335,10 +336,11 @@ class SessionStore:
         self.redis = redis_client if redis_client is not None else redis.Redis.from_url(
             settings.redis_url, socket_timeout=5, socket_connect_timeout=1, retry=Retry(NoBackoff(), 1))
         self._redis_paused_until = 0.0
-        # Every tensor operation of the sessions (steps, state (de)serialization, loading weights) runs on this
-        # one thread: torch's OpenMP threads then form one team instead of one per request thread (see
-        # service.torch_thread for the measured cost).
-        self._torch = TorchThread(settings.session_threads, name="session-torch")
+        # Every tensor operation of the sessions (steps, state (de)serialization, loading weights) runs on these
+        # few threads: torch's OpenMP threads then form one team per worker instead of one per request thread, and
+        # a slow session holds one worker while the others serve the rest (service.torch_thread).
+        self.workers, self.threads_per_worker = session_thread_budget(settings)
+        self._torch = TorchPool(self.workers, self.threads_per_worker, name="session-torch")
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, threading.Lock] = {}
         self._methods: dict[tuple[str, str], Method] = {}
@@ -742,6 +744,13 @@ class SessionStore:
         for parameter in method.parameters():
             parameter.requires_grad_(False)
         return method
+
+
+def session_thread_budget(settings: Settings) -> tuple[int, int]:
+    """(inference worker threads, torch threads of each): DENOISER_SESSION_WORKERS, and DENOISER_SESSION_THREADS
+    or else the cores shared out among the workers."""
+    threads = settings.session_threads or max(1, (os.cpu_count() or 1) // settings.session_workers)
+    return settings.session_workers, threads
 
 
 _store: SessionStore | None = None

@@ -46,7 +46,14 @@ class Settings(BaseSettings):
     session_ttl_seconds: int = Field(1800, gt=0, description="idle time after which a session expires")
     max_sessions: int = Field(16, gt=0, description="live sessions; one more answers 429")
     session_device: str = Field("cpu", description="torch device sessions run on")
-    session_threads: int | None = Field(None, gt=0, description="torch threads for session inference")
+    session_workers: int = Field(
+        2, gt=0, description="threads that run session frames (each its own torch thread team): one slow session "
+                             "holds one of them while the others serve the rest")
+    session_threads: int | None = Field(
+        None, gt=0, description="torch threads of each session worker; none: the cores shared out among them")
+    job_threads: int | None = Field(
+        None, gt=0, description="torch threads of a job in a worker (training, evaluation, inference; DDP ranks "
+                                "share them); none: torch's default, every core")
     session_mirror_interval_seconds: float = Field(
         0.0, ge=0, le=3600, description="0: every frame's history is in Redis before the next frame runs; > 0: "
         "written at most this often (large histories, GPU sessions), so a restart may resume that far back")

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -324,9 +326,9 @@ def test_the_session_cap_does_not_count_sessions_idle_past_their_ttl(make_store,
 
 
 def test_every_step_runs_on_the_store_torch_thread(make_store):
-    # One OpenMP team for the process (service.torch_thread): steps asked for from different request threads all
-    # run on one thread, never on the caller's.
-    store = make_store()
+    # One OpenMP team per session worker (service.torch_thread): steps asked for from different request threads all
+    # run on the store's one worker here, never on the caller's.
+    store = make_store(session_workers=1)
     session = store.create(MODEL_NAME)
     method = session.method
     steps: list[int] = []
@@ -352,3 +354,37 @@ def test_every_step_runs_on_the_store_torch_thread(make_store):
     assert len(steps) == 4 and len(set(steps)) == 1
     assert all(step != caller for step, caller in zip(steps, callers))
     assert session.next_frame_index == 4
+
+
+def test_a_slow_session_does_not_hold_up_the_others(make_store):
+    # Two session workers: session A's step is stuck (a huge frame, say) until session B's frame is done.
+    store = make_store(session_workers=2, session_threads=1)
+    slow, fast = store.create(MODEL_NAME, version="1"), store.create(MODEL_NAME, version="2")
+    assert slow.method is not fast.method
+    released, original = threading.Event(), slow.method.step
+
+    def stuck_step(batch, state):
+        assert released.wait(30), "session B's frame waited behind session A's"
+        return original(batch, state)
+
+    slow.method.step = stuck_step
+    frames = stream_frames(2)
+    try:
+        with ThreadPoolExecutor(1) as caller:
+            pending = caller.submit(store.process_frame, slow.id, frames[0])
+            assert store.process_frame(fast.id, frames[0]).history == STARTED  # while A's step is still stuck
+            released.set()
+            assert pending.result().history == STARTED
+    finally:
+        released.set()
+        del slow.method.step
+
+
+def test_the_session_thread_budget(registry_settings):
+    from service.sessions import session_thread_budget
+
+    assert session_thread_budget(registry_settings.model_copy(update={"session_workers": 3,
+                                                                      "session_threads": 2})) == (3, 2)
+    workers, threads = session_thread_budget(registry_settings.model_copy(update={"session_workers": 2,
+                                                                                  "session_threads": None}))
+    assert workers == 2 and threads == max(1, (os.cpu_count() or 1) // 2)

@@ -68,6 +68,7 @@ def execute(job_id: str, store: JobStore, storage: Storage, settings: Settings,
         state = decision.record["state"] if decision.record else None
         return {"job_id": job_id, "state": state, "skipped": decision.outcome}
     context = JobContext(decision.record, store, storage, settings, owner, sink)
+    apply_job_threads(settings)
     handler = JobLogHandler(context.folder / LOG_FILE)
     root = logging.getLogger()
     root.addHandler(handler)
@@ -81,6 +82,15 @@ def execute(job_id: str, store: JobStore, storage: Storage, settings: Settings,
         root.removeHandler(handler)
         handler.close()
         store.release(job_id, owner)
+
+
+def apply_job_threads(settings: Settings) -> None:
+    """The job's torch thread budget (DENOISER_JOB_THREADS): a worker beside an API serving sessions must not take
+    every core (DDP ranks share the budget, see workers.tasks.train)."""
+    if settings.job_threads:
+        import torch
+
+        torch.set_num_threads(settings.job_threads)
 
 
 def _run(context: JobContext) -> dict[str, Any]:
