@@ -404,10 +404,12 @@ def kill_worker_phase(stack: Stack, client: DenoiserClient, results: dict) -> No
     print(f"[drill] kill -9 worker at step {at_kill} of job {job_id}", flush=True)
     time.sleep(31)  # the lease (30 s) lapses: the next worker's start-up recovery re-sends the job
     stack.start_worker()
-    wait_for(lambda: job_progress(client, job_id)[2] >= 2 and job_progress(client, job_id)[1] > 0,
-             "the resumed attempt", 300)
-    logs = "\n".join(client.job_logs(job_id, 200))
-    resumed = [line for line in logs.splitlines() if "resum" in line.lower()]
+
+    def resume_lines() -> list[str]:
+        return [line for line in client.job_logs(job_id, 200) if "resuming from" in line]
+
+    wait_for(lambda: bool(resume_lines()), "the resumed attempt", 300)
+    resumed = resume_lines()
     state, step, attempts = job_progress(client, job_id)
     client.cancel_job(job_id)
     results["kill_worker"] = {"step_at_kill": at_kill, "attempts": attempts, "step_after": step,
