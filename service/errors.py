@@ -143,6 +143,8 @@ def install_error_handlers(app: FastAPI) -> None:
         message = error.detail if isinstance(error.detail, str) else str(error.detail)
         headers = getattr(error, "headers", None)
         if error.status_code == 400 and message == FASTAPI_BODY_PARSE_ERROR:
+            if isinstance(error.__cause__, ApiError):  # e.g. the body read timed out (service.request_limits)
+                return await _api_error(request, error.__cause__)
             return JSONResponse(error_body(INVALID_JSON, _unparsable_body(error.__cause__)), status_code=400)
         if error.status_code == 405:
             allowed = _allowed_methods(request)

@@ -12,7 +12,9 @@ from fastapi import Depends, FastAPI
 
 from service.auth import UNAUTHORIZED_RESPONSE, require_api_key
 from service.errors import install_error_handlers
+from service.request_limits import BodyReadTimeout
 from service.routes import datasets, health, jobs, models, sessions
+from service.settings import get_settings
 
 API_VERSION = "1.0"
 
@@ -49,6 +51,7 @@ async def _lifespan(app: FastAPI):
 def create_app() -> FastAPI:
     app = FastAPI(title="denoiser-service", version=API_VERSION, description=DESCRIPTION, lifespan=_lifespan)
     install_error_handlers(app)
+    app.add_middleware(BodyReadTimeout, timeout_seconds=get_settings().body_read_timeout_seconds)
     app.include_router(health.router)
     protected = [Depends(require_api_key)]
     for module in (datasets, jobs, models, sessions):

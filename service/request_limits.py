@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import AsyncIterable, AsyncIterator, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 
 from service.errors import ApiError
@@ -66,16 +66,36 @@ def _shared(name: str, capacity: int, build) -> Slots:
         return _slots[key]
 
 
-async def timed_chunks(chunks: AsyncIterable[bytes], timeout_seconds: float) -> AsyncIterator[bytes]:
-    """The chunks of a request body, answering 408 when the client sends nothing for ``timeout_seconds``."""
-    iterator = chunks.__aiter__()
-    while True:
-        try:
-            chunk = await asyncio.wait_for(iterator.__anext__(), timeout_seconds)
-        except StopAsyncIteration:
+def body_timeout(timeout_seconds: float) -> ApiError:
+    return ApiError(408, "body_timeout", f"the request body stalled: nothing arrived for {timeout_seconds:g} s; "
+                                         f"send the whole body without pausing", {"timeout_seconds": timeout_seconds})
+
+
+class BodyReadTimeout:
+    """ASGI middleware: every read of a request's body waits at most ``timeout_seconds`` (then 408 body_timeout),
+    for every route, JSON bodies included. Once the body is complete, reads pass through untimed (a streaming
+    response waits on them for the client's disconnect)."""
+
+    def __init__(self, app, timeout_seconds: float) -> None:
+        self.app = app
+        self.timeout_seconds = timeout_seconds
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
             return
-        except asyncio.TimeoutError:
-            raise ApiError(408, "body_timeout", f"the request body stalled: nothing arrived for "
-                                                f"{timeout_seconds:g} s; send the whole body without pausing",
-                           {"timeout_seconds": timeout_seconds}) from None
-        yield chunk
+        complete = False
+
+        async def timed_receive():
+            nonlocal complete
+            if complete:
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), self.timeout_seconds)
+            except asyncio.TimeoutError:
+                raise body_timeout(self.timeout_seconds) from None
+            if message["type"] != "http.request" or not message.get("more_body", False):
+                complete = True
+            return message
+
+        await self.app(scope, timed_receive, send)

@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 
 from service import datasets as store
 from service.errors import ApiError
-from service.request_limits import timed_chunks, upload_slots
+from service.request_limits import upload_slots
 from service.schemas import DatasetDetail, DatasetSummary, Split, StagedSequence
 from service.settings import Settings, get_settings
 from service.storage import Storage, get_storage
@@ -95,8 +95,8 @@ async def _receive_archive(request: Request, storage: Storage, settings: Setting
     with upload_slots(settings.max_concurrent_uploads).take(), _api_errors(), \
             store.workspace(storage, "upload") as work:
         archive = work / "upload.bin"
-        await store.save_stream(timed_chunks(request.stream(), settings.body_read_timeout_seconds), archive,
-                                settings.max_upload_bytes, "upload", request.headers.get("content-length"))
+        await store.save_stream(request.stream(), archive, settings.max_upload_bytes, "upload",
+                                request.headers.get("content-length"))
         limit = store.unpacked_limit(archive.stat().st_size, max_bytes=settings.max_unpacked_bytes,
                                      max_ratio=settings.max_archive_ratio,
                                      exempt_bytes=settings.archive_ratio_exempt_bytes)
@@ -224,8 +224,8 @@ async def upload_frame(
         await run_in_threadpool(store.expire_staged_uploads, storage, settings.staged_upload_ttl_seconds)
         with upload_slots(settings.max_concurrent_uploads).take(), store.workspace(storage, "frame") as work:
             upload = work / "frame.exr"
-            await store.save_stream(timed_chunks(request.stream(), settings.body_read_timeout_seconds), upload,
-                                    settings.max_frame_bytes, "frame", request.headers.get("content-length"))
+            await store.save_stream(request.stream(), upload, settings.max_frame_bytes, "frame",
+                                    request.headers.get("content-length"))
             return await run_in_threadpool(store.stage_frame, storage, dataset_id, sequence, upload, split=split,
                                            scene=scene, scales=expected_scales,
                                            max_pixels=settings.max_frame_pixels)

@@ -25,7 +25,7 @@ from model.exr import FrameTooLarge, encode_image_exr, read_frame_bytes
 from model.frames import FrameBundle, FrameError
 from service.errors import ApiError
 from service.registry import AUTO_MODEL
-from service.request_limits import frame_slots, timed_chunks
+from service.request_limits import frame_slots
 from service.routes.models import registry_errors
 from service.schemas import SessionIn, SessionModelOut, SessionOut
 from service.sessions import (
@@ -289,7 +289,7 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
     await run_in_threadpool(_check_owner, store, session_id, token)
     # A slot for the body from its first byte until its output is encoded: bounds the frames held in memory.
     with frame_slots(settings.max_concurrent_frames).take():
-        body = await _read_body(request, settings.max_frame_bytes, settings.body_read_timeout_seconds)
+        body = await _read_body(request, settings.max_frame_bytes)
         with session_errors():
             result, data = await run_in_threadpool(_run_frame, store, session_id, body, settings.max_frame_pixels)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
@@ -341,14 +341,13 @@ def _check_content_type(request: Request) -> None:
                                                       f"{', '.join(FRAME_TYPES)}", {"accepted": list(FRAME_TYPES)})
 
 
-async def _read_body(request: Request, limit: int, timeout_seconds: float) -> bytes:
-    """The whole body, refusing (413) past ``limit`` bytes without reading further, and (408) a client that
-    pauses for ``timeout_seconds``."""
+async def _read_body(request: Request, limit: int) -> bytes:
+    """The whole body, refusing (413) past ``limit`` bytes without reading further."""
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > limit:
         raise _too_large(int(declared), limit)
     chunks, size = [], 0
-    async for chunk in timed_chunks(request.stream(), timeout_seconds):
+    async for chunk in request.stream():  # each read bounded by the BodyReadTimeout middleware (408)
         size += len(chunk)
         if size > limit:
             raise _too_large(size, limit, at_least=True)

@@ -1,4 +1,5 @@
-"""Bounds on request bodies: slots taken and refused, and a body that stalls answered 408, over the real routes."""
+"""Bounds on request bodies: slots taken and refused, and a body that stalls answered 408 (the BodyReadTimeout
+middleware) on the real routes: archive and frame uploads and JSON bodies."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.errors import ApiError
-from service.request_limits import Slots, frame_slots, timed_chunks, upload_slots
-from service.routes import datasets
+from service.request_limits import BodyReadTimeout, Slots, frame_slots, upload_slots
+from service.routes import datasets, jobs
+from service.settings import get_settings
 
 
 def test_slots_refuse_past_their_capacity_and_free_on_exit():
@@ -24,20 +26,6 @@ def test_slots_refuse_past_their_capacity_and_free_on_exit():
     with slots.take():
         assert slots.held == 1
     assert slots.held == 0
-
-
-def test_a_stalled_stream_times_out_with_408():
-    async def stalls():
-        yield b"x"
-        await asyncio.Event().wait()  # never set: the client sends nothing more
-        yield b"never"
-
-    async def read():
-        return [chunk async for chunk in timed_chunks(stalls(), 0.01)]
-
-    with pytest.raises(ApiError) as info:
-        asyncio.run(read())
-    assert (info.value.status, info.value.code) == (408, "body_timeout")
 
 
 def _call(app, path: str, headers: dict[str, str], first_chunk: bytes) -> tuple[int, dict]:
@@ -65,14 +53,26 @@ def _call(app, path: str, headers: dict[str, str], first_chunk: bytes) -> tuple[
     return start["status"], json.loads(body)
 
 
-def test_an_upload_whose_body_stalls_is_408_and_leaves_nothing(make_app, storage):
-    app = make_app(datasets.router, body_read_timeout_seconds=0.05)
+def test_a_body_that_stalls_is_408_and_leaves_nothing(make_app, storage):
+    app = make_app(datasets.router, jobs.router)
+    app.add_middleware(BodyReadTimeout, timeout_seconds=0.05)  # the client never sends the rest: no race
     status, body = _call(app, "/datasets/live/sequences/cam_0/frames",
                          {"content-type": "image/x-exr", "content-length": "100"}, b"v")
     assert status == 408 and body["error"]["code"] == "body_timeout"
     assert [p.name for p in storage.staging.iterdir() if p.name != "locks"] == []
     status, body = _call(app, "/datasets", {"content-type": "application/zip", "content-length": "100"}, b"P")
     assert status == 408 and body["error"]["code"] == "body_timeout"
+    status, body = _call(app, "/jobs", {"content-type": "application/json", "content-length": "100"}, b'{"kind"')
+    assert status == 408 and body["error"]["code"] == "body_timeout", body
+
+
+def test_the_app_bounds_body_reads_with_the_setting(settings, monkeypatch):
+    from service.main import create_app
+
+    monkeypatch.setenv("DENOISER_BODY_READ_TIMEOUT_SECONDS", "7.5")
+    get_settings.cache_clear()
+    app = create_app()
+    assert [(m.cls, m.kwargs) for m in app.user_middleware] == [(BodyReadTimeout, {"timeout_seconds": 7.5})]
 
 
 def test_uploads_past_the_concurrency_limit_are_429_with_retry_after(make_app, storage):
