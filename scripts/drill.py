@@ -64,6 +64,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--sessions", type=int, default=16)
     parser.add_argument("--frames", type=int, default=24, help="frames per session")
     parser.add_argument("--size", type=int, default=32, help="render resolution of the frames (output 2x)")
+    parser.add_argument("--big-size", type=int, default=256,
+                        help="also stream the sessions beside one session of frames this large (0: no)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["sessions", "training", "kills", "bombs"])
     return parser.parse_args()
 
@@ -223,13 +225,12 @@ def percentile(values: list[float], fraction: float) -> float:
 
 
 def stream_sessions(url: str, streams: list[list[bytes]], start: int = 0, stop: int | None = None,
-                    session_ids: list[str] | None = None) -> tuple[list[str], dict[str, list], list[float],
-                                                                    list[float]]:
+                    session_ids: list[str] | None = None) -> tuple[list[str], dict[str, list], dict, dict]:
     """Stream frames start..stop of every stream through its own session, all at once (one thread each)."""
     ids = session_ids or [DenoiserClient(url).create_session(MODEL, version="1")["id"] for _ in streams]
     outputs: dict[str, list] = {session_id: [] for session_id in ids}
-    round_trips: list[float] = []
-    server: list[float] = []
+    round_trips: dict[str, list[float]] = {session_id: [] for session_id in ids}
+    server: dict[str, list[float]] = {session_id: [] for session_id in ids}
     lock = threading.Lock()
     errors: list[str] = []
 
@@ -244,8 +245,8 @@ def stream_sessions(url: str, streams: list[list[bytes]], start: int = 0, stop: 
                     errors.append(f"{session_id}: {error}")
                     return
                 with lock:
-                    round_trips.append(info.round_trip_ms)
-                    server.append(info.server_ms)
+                    round_trips[session_id].append(info.round_trip_ms)
+                    server[session_id].append(info.server_ms)
                 outputs[session_id].append(decode_image_exr(data))
 
     threads = [threading.Thread(target=run, args=(sid, frames)) for sid, frames in zip(ids, streams)]
@@ -263,17 +264,21 @@ def crossing(outputs: list[list[np.ndarray]], expected: list[list[np.ndarray]]) 
     return max(float(np.abs(a - b).max()) for got, want in zip(outputs, expected) for a, b in zip(got, want))
 
 
-def sessions_phase(stack: Stack, args, streams, expected, label: str, results: dict) -> None:
+def sessions_phase(stack: Stack, args, streams, expected, label: str, results: dict, measured: int | None = None
+                   ) -> None:
+    """Latency over the first ``measured`` sessions (default all; the others are load, e.g. one big session)."""
     started = time.perf_counter()
-    ids, outputs, round_trips, server = stream_sessions(stack.url, streams)
+    ids, outputs, per_session, per_session_server = stream_sessions(stack.url, streams)
     elapsed = time.perf_counter() - started
     worst = crossing([outputs[i] for i in ids], expected)
+    round_trips = [ms for i in ids[:measured] for ms in per_session[i]]
+    server = [ms for i in ids[:measured] for ms in per_session_server[i]]
     results[label] = {"sessions": len(ids), "frames": len(round_trips), "p50_ms": percentile(round_trips, 0.5),
                       "p95_ms": percentile(round_trips, 0.95), "server_p50_ms": percentile(server, 0.5),
                       "server_p95_ms": percentile(server, 0.95), "max_difference": worst,
                       "frames_per_second": len(round_trips) / elapsed}
     r = results[label]
-    print(f"[drill] sessions {label}: {r['sessions']} sessions, {r['frames']} frames, round trip p50 "
+    print(f"[drill] sessions {label}: {r['sessions']} sessions, {r['frames']} frames timed, round trip p50 "
           f"{r['p50_ms']:.1f} ms p95 {r['p95_ms']:.1f} ms (server p50 {r['server_p50_ms']:.1f} p95 "
           f"{r['server_p95_ms']:.1f}), {r['frames_per_second']:.1f} frames/s, largest difference from in-process "
           f"{worst:.2e} ({'no crossing' if worst < 1e-4 else 'MISMATCH'})", flush=True)
@@ -491,6 +496,12 @@ def main() -> None:
         client.upload_dataset(write_dataset(args.work / "dataset", 16), name="drill")
         if "sessions" not in args.skip:
             sessions_phase(stack, args, streams, expected, "alone", results)
+            if args.big_size:
+                big = frames_of(999, args.frames, args.big_size)
+                sessions_phase(stack, args, streams[:-1] + [[encode_frame_exr(f) for f in big]],
+                               expected[:-1] + [in_process(checkpoint, big)],
+                               f"alone, {len(streams) - 1} timed beside one at {args.big_size}x{args.big_size}",
+                               results, measured=len(streams) - 1)
         if "training" not in args.skip:
             job_id = start_training(client, 1_000_000)
             wait_for(lambda: job_progress(client, job_id)[1] >= 3, "the training job to run", 600)
