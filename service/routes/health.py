@@ -164,5 +164,6 @@ def _describe_workers(beats: list[WorkerBeat], interval: float) -> str:
         return (f"no worker heartbeat in the last {TTL_INTERVALS * interval:g} s: jobs wait in the queue until a "
                 f"worker starts")
     running = [f"{beat.hostname} runs job {beat.job}" for beat in beats if beat.job]
-    alive = f"{len(beats)} worker{'s' if len(beats) != 1 else ''} alive (heartbeat within {TTL_INTERVALS * interval:g} s)"
+    window = TTL_INTERVALS * interval
+    alive = f"{len(beats)} worker{'s' if len(beats) != 1 else ''} alive (heartbeat within {window:g} s)"
     return alive + (f"; {', '.join(running)}" if running else "; all idle")
