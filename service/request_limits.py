@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from service.errors import ApiError
@@ -44,7 +44,7 @@ class Slots:
                 self.held -= 1
 
 
-_slots: dict[tuple[str, int], Slots] = {}
+_slots: dict[tuple[str, int], Slots | ByteBudget] = {}
 _slots_lock = threading.Lock()
 
 
@@ -53,12 +53,43 @@ def upload_slots(capacity: int) -> Slots:
     return _shared("uploads", capacity, lambda: Slots(capacity, "dataset uploads", 429, "too_many_uploads"))
 
 
-def frame_slots(capacity: int) -> Slots:
-    """The process's slots for session frame bodies in memory: 503 (the server is busy, not the caller wrong)."""
-    return _shared("frames", capacity, lambda: Slots(capacity, "session frames", 503, "server_busy"))
+class ByteBudget:
+    """At most ``capacity`` bytes held at once by all holders; ``hold`` gives a holder whose ``add`` refuses
+    (503 server_busy, Retry-After) the bytes that would pass it. A holder's bytes are freed when it exits."""
+
+    def __init__(self, capacity: int, what: str) -> None:
+        self.capacity = capacity
+        self.what = what
+        self.held = 0
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def hold(self) -> Iterator[Callable[[int], None]]:
+        mine = 0
+
+        def add(count: int) -> None:
+            nonlocal mine
+            with self._lock:
+                if self.held + count > self.capacity:
+                    raise ApiError(503, "server_busy", f"the server holds {self.held} bytes of {self.what} in "
+                                                       f"progress, its limit is {self.capacity}: retry in a moment",
+                                   {"limit_bytes": self.capacity}, headers={"Retry-After": str(RETRY_AFTER_SECONDS)})
+                self.held += count
+                mine += count
+
+        try:
+            yield add
+        finally:
+            with self._lock:
+                self.held -= mine
 
 
-def _shared(name: str, capacity: int, build) -> Slots:
+def frame_budget(capacity: int) -> ByteBudget:
+    """The process's budget for session frame bodies in memory: 503 (the server is busy, not the caller wrong)."""
+    return _shared("frames", capacity, lambda: ByteBudget(capacity, "session frames"))
+
+
+def _shared(name: str, capacity: int, build):
     with _slots_lock:
         key = (name, capacity)
         if key not in _slots:

@@ -35,8 +35,9 @@ class Settings(BaseSettings):
         16 * 1024**2, ge=0, description="unpacked bytes any archive may have whatever its ratio (tiny uploads)")
     max_concurrent_uploads: int = Field(2, gt=0, description="dataset uploads (archives and frames) received or "
                                                              "unpacked at once; one more answers 429")
-    max_concurrent_frames: int = Field(
-        32, gt=0, description="session frame bodies held in memory at once; one more answers 503 (retry)")
+    max_buffered_frame_bytes: int = Field(
+        1024**3, gt=0, description="bytes of session frame bodies held in memory at once (each from its first byte "
+                                   "until its output is encoded); a frame past it answers 503 (retry)")
     body_read_timeout_seconds: float = Field(
         30.0, gt=0, description="longest wait for the next chunk of a request body (frames and uploads): 408 after")
     staged_upload_ttl_seconds: int = Field(

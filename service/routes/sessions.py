@@ -12,7 +12,7 @@ from __future__ import annotations
 import hmac
 import secrets
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from typing import Annotated
@@ -25,7 +25,7 @@ from model.exr import FrameTooLarge, encode_image_exr, read_frame_bytes
 from model.frames import FrameBundle, FrameError
 from service.errors import ApiError
 from service.registry import AUTO_MODEL
-from service.request_limits import frame_slots
+from service.request_limits import frame_budget
 from service.routes.models import registry_errors
 from service.schemas import SessionIn, SessionModelOut, SessionOut
 from service.sessions import (
@@ -265,9 +265,9 @@ _FRAME_HEADERS = {
                              "Content-Type text/plain is not accepted here; send application/octet-stream, "
                              "image/x-exr"),
         503: _error_response("the session store or the registry cannot be reached (session_store_unavailable), "
-                             "or the server holds its limit of frames in progress (server_busy, Retry-After)",
-                             "server_busy", "32 session frames are in progress, the server's limit is 32: retry "
-                                            "in a moment"),
+                             "or the frames in progress hold the server's frame memory budget (server_busy, "
+                             "Retry-After)", "server_busy", "the server holds 1073000000 bytes of session frames in "
+                                                           "progress, its limit is 1073741824: retry in a moment"),
     },
     openapi_extra={"requestBody": {
         "required": True,
@@ -287,9 +287,10 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
         with session_errors():
             await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
     await run_in_threadpool(_check_owner, store, session_id, token)
-    # A slot for the body from its first byte until its output is encoded: bounds the frames held in memory.
-    with frame_slots(settings.max_concurrent_frames).take():
-        body = await _read_body(request, settings.max_frame_bytes)
+    # The body's bytes count against the frame budget from the first byte until the output is encoded: bounds
+    # the memory all frames in progress hold, whatever their number.
+    with frame_budget(settings.max_buffered_frame_bytes).hold() as hold:
+        body = await _read_body(request, settings.max_frame_bytes, hold)
         with session_errors():
             result, data = await run_in_threadpool(_run_frame, store, session_id, body, settings.max_frame_pixels)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
@@ -341,16 +342,22 @@ def _check_content_type(request: Request) -> None:
                                                       f"{', '.join(FRAME_TYPES)}", {"accepted": list(FRAME_TYPES)})
 
 
-async def _read_body(request: Request, limit: int) -> bytes:
-    """The whole body, refusing (413) past ``limit`` bytes without reading further."""
+async def _read_body(request: Request, limit: int, hold: Callable[[int], None]) -> bytes:
+    """The whole body, refusing (413) past ``limit`` bytes without reading further; its bytes are ``hold``-ed (a
+    declared length at once, so a frame the budget cannot take is refused before it is read)."""
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > limit:
         raise _too_large(int(declared), limit)
+    reserved = int(declared) if declared.isdigit() else 0
+    hold(reserved)
     chunks, size = [], 0
     async for chunk in request.stream():  # each read bounded by the BodyReadTimeout middleware (408)
         size += len(chunk)
         if size > limit:
             raise _too_large(size, limit, at_least=True)
+        if size > reserved:  # no (or a wrong) Content-Length: held as it arrives
+            hold(size - reserved)
+            reserved = size
         chunks.append(chunk)
     if size == 0:
         raise ApiError(400, "invalid_frame", f"{FRAME_SOURCE}: empty; send one frame bundle EXR")

@@ -10,7 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.errors import ApiError
-from service.request_limits import BodyReadTimeout, Slots, frame_slots, upload_slots
+from service.request_limits import BodyReadTimeout, ByteBudget, Slots, frame_budget, upload_slots
 from service.routes import datasets, jobs
 from service.settings import get_settings
 
@@ -88,6 +88,14 @@ def test_uploads_past_the_concurrency_limit_are_429_with_retry_after(make_app, s
     assert response.status_code == 400  # taken in once the slot is free (and found not to be an archive)
 
 
-def test_frame_slots_answer_503_server_busy():
-    slots = frame_slots(3)
-    assert slots is frame_slots(3) and (slots.status, slots.code) == (503, "server_busy")
+def test_a_byte_budget_refuses_what_would_pass_it_and_frees_on_exit():
+    budget = ByteBudget(100, "frames")
+    with budget.hold() as first:
+        first(60)
+        with pytest.raises(ApiError) as info, budget.hold() as second:
+            second(30)
+            second(11)  # 101 held
+        assert (info.value.status, info.value.code) == (503, "server_busy")
+        assert budget.held == 60  # the refused holder's 30 are freed with it
+    assert budget.held == 0
+    assert frame_budget(100) is frame_budget(100)

@@ -260,16 +260,22 @@ def test_a_decompression_bomb_frame_is_413_before_it_is_decoded(api, monkeypatch
     assert client.get(f"/sessions/{session['id']}").json()["frames_processed"] == 0
 
 
-def test_frames_past_the_concurrency_limit_are_503_with_retry_after(api):
-    from service.request_limits import frame_slots
+def test_frames_past_the_memory_budget_are_503_with_retry_after(api):
+    from service.request_limits import frame_budget
 
-    client, _ = api(max_concurrent_frames=1)
+    body = frame_bytes(stream_frames(1)[0])
+    budget = 3 * len(body) // 2
+    client, _ = api(max_buffered_frame_bytes=budget)
     session = create(client)
-    with frame_slots(1).take():  # another session's frame in progress
-        response = post_frame(client, session["id"], stream_frames(1)[0])
+    with frame_budget(budget).hold() as other:
+        other(len(body))  # another session's frame in progress: this one would pass the budget
+        response = post_frame(client, session["id"], body)
         assert response.status_code == 503 and response.headers["retry-after"] == "1"
-        assert error_of(response, 503, "server_busy")
-    assert post_frame(client, session["id"], stream_frames(1)[0]).status_code == 200
+        assert "bytes of session frames in progress" in error_of(response, 503, "server_busy")
+        chunked = client.post(f"/sessions/{session['id']}/frames", content=iter([body[:100], body[100:]]),
+                              headers={"Content-Type": "image/x-exr"})  # no Content-Length: held as it arrives
+        error_of(chunked, 503, "server_busy")
+    assert post_frame(client, session["id"], body).status_code == 200
 
 
 def test_with_owner_tokens_only_the_creator_drives_a_session(api):
