@@ -240,3 +240,7 @@ def test_the_api_key_has_no_default_and_is_required(compose):
     key = environment["DENOISER_API_KEY"]
     assert key.startswith("${DENOISER_API_KEY:?"), f"compose must refuse to start without a key, not default: {key}"
     assert environment["DENOISER_REQUIRE_API_KEY"] == "true"
+
+
+def test_the_image_requires_a_real_api_key():
+    assert "ENV DENOISER_REQUIRE_API_KEY=true" in DOCKERFILE.read_text()
