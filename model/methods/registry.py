@@ -19,6 +19,7 @@ from model.methods.base import FrameBatch, Method
 METHOD_MODULES = (
     "model.methods.baselines",
     "model.methods.oidn",
+    "model.methods.oidn_taa",
     "model.methods.wskpn",
     "model.methods.afn",
     "model.methods.jnds",
