@@ -20,6 +20,7 @@ METHOD_MODULES = (
     "model.methods.baselines",
     "model.methods.oidn",
     "model.methods.oidn_taa",
+    "model.methods.fused",
     "model.methods.wskpn",
     "model.methods.afn",
     "model.methods.jnds",
