@@ -128,6 +128,13 @@ class Fused(Method):
         inputs = 3 * 7 + 3 + HIDDEN + (2 if scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
         self.net = FusionNet(inputs, scale)
 
+    def for_inference(self) -> Fused:
+        """Eval mode with the network in channels_last: 2.5x faster convolutions on this CPU at 128x128 (6.3 against
+        15.8 ms, 2 threads), the same arithmetic (tests compare it with the training form)."""
+        self.eval()
+        self.net.to(memory_format=torch.channels_last)
+        return self
+
     def spatial_estimate(self, frame: FrameBatch) -> torch.Tensor:
         estimate = frame.spatial_estimate
         if estimate is None:
@@ -160,7 +167,10 @@ class Fused(Method):
                  (history_r - s).abs(), depth, valid.to(s.dtype), length / MAX_HISTORY, hidden]
         if self.scale > 1:
             parts.append(frame.jitter.view(n, 2, 1, 1).expand(n, 2, height, width).to(s.dtype))
-        weights, kernels, new_hidden = self.net(torch.cat(parts, dim=1))
+        features = torch.cat(parts, dim=1)
+        if self.net.head.weight.is_contiguous(memory_format=torch.channels_last) and features.dim() == 4:
+            features = features.contiguous(memory_format=torch.channels_last)
+        weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
         blended = weights[:, 0:1] * s_out + weights[:, 1:2] * history + weights[:, 2:3] * rectified
         output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")

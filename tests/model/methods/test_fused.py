@@ -114,3 +114,19 @@ def test_training_teaches_it_to_trust_a_static_history():
     with torch.no_grad():
         final = last_frame_error().item()
     assert final < 0.8 * initial, (initial, final)
+
+
+def test_the_inference_form_gives_the_training_forms_output():
+    torch.manual_seed(3)
+    trained = build_method("fused", 2)
+    for parameter in trained.parameters():  # away from the initial head, so every path matters
+        parameter.data += 0.05 * torch.randn_like(parameter)
+    import copy
+    fast = copy.deepcopy(trained).for_inference()
+    frames = [frame_with_estimate(truth() * (1 + 0.1 * k)) for k in range(3)]
+    state_a = state_b = None
+    with torch.no_grad():
+        for frame in frames:
+            out_a, state_a = trained.eval().step(frame, state_a)
+            out_b, state_b = fast.step(frame, state_b)
+    torch.testing.assert_close(out_b, out_a, atol=1e-5, rtol=1e-4)
