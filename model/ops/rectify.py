@@ -21,7 +21,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip"]
+__all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip",
+           "variance_clip_hdr"]
 
 
 def rgb_to_ycocg(rgb: torch.Tensor) -> torch.Tensor:
@@ -81,3 +82,11 @@ def variance_clip(history: torch.Tensor, guide: torch.Tensor, size: int = 3, gam
     mean, std = neighbourhood_moments(guide, size)
     spread = gamma * std
     return ycocg_to_rgb(torch.maximum(torch.minimum(rgb_to_ycocg(history), mean + spread), mean - spread))
+
+
+def variance_clip_hdr(history: torch.Tensor, guide: torch.Tensor, size: int = 3, gamma: float = 1.0) -> torch.Tensor:
+    """:func:`variance_clip` for linear HDR radiance: clipped in x / (1 + x) space, where one firefly or a bright
+    light does not blow the window's sigma up to cover everything; linear radiance out."""
+    tonemapped = variance_clip(history / (1.0 + history), guide / (1.0 + guide), size, gamma)
+    tonemapped = tonemapped.clamp(0.0, 1.0 - 1e-6)
+    return tonemapped / (1.0 - tonemapped)
