@@ -4,7 +4,9 @@ Scenarios come from a dataset folder (sequences matched by their manifest's ``sc
 first with the Mitsuba generator (``generate_scenarios``):
 
 - scene scenarios, one sequence of each generator recipe: ``moving_object`` (disocclusion), ``moving_light``,
-  ``camera_cut``, ``fast_camera``, ``metals`` (glossy and mirror-like), ``glass``, ``dark_fireflies``;
+  ``camera_cut``, ``fast_camera``, ``metals`` (glossy and mirror-like), ``glass``, ``dark_fireflies``, and the
+  ghosting cases ``visible_emitter`` (a visible lamp crossing a textured wall), ``orbiting_light`` (a light
+  jumping 20-50 degrees a frame) and ``sliding_over_texture`` (objects sliding fast over fine texture);
 - derived scenarios, made in memory from one clean base sequence (``diffuse_room`` when present): ``clean`` (the
   base itself), ``first_frames`` (its frames 0-2: before history exists), ``exposure_bright`` / ``exposure_dark``
   (radiance and references x16 and x1/16; albedo, normals and the rest unchanged), ``nan_inf_color`` (NaN and
@@ -55,6 +57,12 @@ SCENE_SCENARIOS: dict[str, str] = {
     "metals": "smooth (mirror-like), glossy and rough metal",
     "glass": "smooth and frosted glass",
     "dark_fireflies": "a dark room lit by one tiny, very bright light: fireflies",
+    "visible_emitter": "a bright, directly visible lamp crosses a finely textured wall under a static camera: "
+                       "history leaves a bright trail",
+    "orbiting_light": "a small bright light orbits at 20-50 degrees a frame over a slow camera orbit: shading and "
+                      "shadows jump every frame",
+    "sliding_over_texture": "a sphere and a textured cube slide fast over fine checker, stripes or bricks under a "
+                            "static camera: ghost copies over texture",
 }
 EXPOSURE_BRIGHT = 16.0
 EXPOSURE_DARK = 1.0 / 16.0

@@ -9,7 +9,7 @@ from service.cli import UsageError, device_option, positive_int, size_option
 
 # As model.stability.SCENARIOS; repeated so --help stays import-light (a test checks they agree).
 SCENARIOS = ("moving_object", "moving_light", "camera_cut", "fast_camera", "metals", "glass", "dark_fireflies",
-             "clean", "first_frames", "exposure_bright", "exposure_dark", "nan_inf_color", "nan_inf_guides",
+             "visible_emitter", "orbiting_light", "sliding_over_texture", "clean", "first_frames", "exposure_bright", "exposure_dark", "nan_inf_color", "nan_inf_guides",
              "zero_motion", "garbage_motion", "missing_buffers")
 GENERATED_DATA = "data"  # folder inside --out that --generate renders into
 
@@ -18,7 +18,8 @@ def add_commands(commands) -> None:
     parser = commands.add_parser(
         "stability", help="run methods on hard scenarios and corrupted inputs; report where each fails worst",
         description="Scenarios: one sequence per generator scene (moving_object, moving_light, camera_cut, "
-                    "fast_camera, metals, glass, dark_fireflies), and scenarios made from one clean base sequence: "
+                    "fast_camera, metals, glass, dark_fireflies, and the ghosting cases visible_emitter, "
+                    "orbiting_light, sliding_over_texture), and scenarios made from one clean base sequence: "
                     "clean, first_frames (frames 0-2), exposure_bright / exposure_dark (radiance and references "
                     "x16, x1/16), nan_inf_color, nan_inf_guides, zero_motion, garbage_motion, missing_buffers. "
                     "Inputs are sanitized (NaN/Inf repaired and counted) before any method sees them; a method "

@@ -121,7 +121,8 @@ def test_build_scenarios_matches_scenes_picks_the_base_and_reports_what_is_missi
     by_name = {s.name: s for s in scenarios}
     assert by_name["moving_object"].source == "mover" and by_name["clean"].source == "room"
     assert by_name["camera_cut"].sequence.camera_cuts == [False, False, True, False]
-    assert {m["name"] for m in missing} == {"moving_light", "fast_camera", "metals", "glass", "dark_fireflies"}
+    assert {m["name"] for m in missing} == {"moving_light", "fast_camera", "metals", "glass", "dark_fireflies",
+                                            "visible_emitter", "orbiting_light", "sliding_over_texture"}
     assert all("no sequence of scene" in m["reason"] for m in missing)
     chosen, _ = build_scenarios(data_dir, names=("clean", "zero_motion"), base="cut", frame_limit=2)
     assert [s.source for s in chosen] == ["cut", "cut"] and len(chosen[0].frames) == 2
