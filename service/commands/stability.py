@@ -25,7 +25,9 @@ def add_commands(commands) -> None:
                     "Inputs are sanitized (NaN/Inf repaired and counted) before any method sees them; a method "
                     "that raises or returns non-finite output is recorded as failing. Writes stability.md, "
                     "stability.json and PNG charts (per-frame PSNR curves, drop heat map) into --out. A method "
-                    "fails worst where its PSNR gain over the noisy input falls furthest below its median gain.")
+                    "fails worst where its PSNR gain over the noisy input falls furthest below its median gain. "
+                    "Ghosting: the error inside the region whose reference changed in the last 4 frames (from the "
+                    "references and motion vectors), in every scenario that has one; lower is better.")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", type=Path, metavar="DIR",
                         help="dataset folder; scene scenarios use sequences whose manifest names that scene")
@@ -95,5 +97,9 @@ def _run_stability(args) -> int:
         else:
             what = f"{worst['scenario']} ({worst['drop_db']:.2f} dB below its median gain)"
         print(f"{entry['label']}: fails worst on {what}")
+    ghosting = report["ghosting"]
+    if ghosting["least"] is not None:
+        print(f"ghosts least among temporal methods: {ghosting['least']} (mean ghost error "
+              f"{ghosting['mean_error'][ghosting['least']]:.4f} over {len(ghosting['common_scenarios'])} scenarios)")
     print(f"wrote {files['markdown']}, {files['json'].name} and charts in {args.out}")
     return 0
