@@ -78,13 +78,15 @@ class NaNOnFastMotion(Method):
 
 
 class BlendWithPrevious(Method):
-    """Trusts its history blindly: output = w * previous output + (1 - w) * color, w = the preset. It ghosts."""
+    """Trusts its history blindly: output = w * previous output + (1 - w) * color (nearest-upscaled to the
+    output scale), w = the preset. It ghosts."""
 
     name = "blend"
 
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         weight = float(self.preset)
-        output = frame.color if state is None else weight * state["previous"] + (1 - weight) * frame.color
+        color = frame.color.repeat_interleave(self.scale, dim=2).repeat_interleave(self.scale, dim=3)
+        output = color if state is None else weight * state["previous"] + (1 - weight) * color
         return output, {"previous": output}
 
 
@@ -252,9 +254,9 @@ def emitter_frame(index: int, moving: bool = True) -> FrameBundle:
                        jitter=(0.0, 0.0), frame_index=index, references={1: wall.copy()})
 
 
-def in_memory(name: str, bundles: list[FrameBundle]) -> Scenario:
-    frames = [FrameBatch.from_bundles([b], 1) for b in bundles]
-    sequence = EvaluationSequence(name, frames, [False] * len(frames), 1)
+def in_memory(name: str, bundles: list[FrameBundle], scale: int = 1) -> Scenario:
+    frames = [FrameBatch.from_bundles([b], scale) for b in bundles]
+    sequence = EvaluationSequence(name, frames, [False] * len(frames), scale)
     return Scenario(name, SCENE_SCENARIOS.get(name, name), sequence, "memory")
 
 
@@ -288,6 +290,19 @@ def test_ghosting_is_measured_where_a_trail_exists_and_names_the_temporal_method
     assert ghosting["by_scenario"] == {"visible_emitter": "blend:0.2"}
     assert ghosting["common_scenarios"] == ["visible_emitter"]
     assert ghosting["mean_error"]["blend:0.5"] == emitter["blend:0.5"]["ghost_error"]
+
+
+def test_ghosting_at_scale_two_measures_the_trail_at_the_reference_resolution():
+    bundles = []
+    for index in range(5):
+        frame = emitter_frame(index)
+        double = frame.color.repeat(2, axis=0).repeat(2, axis=1)
+        bundles.append(dataclasses.replace(frame, references={2: double}))
+    report = run_suite([in_memory("visible_emitter", bundles, scale=2)], [BlendWithPrevious("0.5", scale=2)],
+                       scale=2, threads=1)
+    trail = report["scenarios"][0]["trail"]
+    assert trail["frames"] == 4 and len(report["input"]["visible_emitter"]["per_frame_ghost_error"]) == 5
+    assert report["methods"][0]["scenarios"]["visible_emitter"]["ghost_error"] > 0.01
 
 
 def test_the_report_has_a_ghosting_table(ghost_suite):
