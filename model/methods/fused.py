@@ -59,7 +59,8 @@ WIDTH = 16
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
     """Resample a render-resolution image whose pixel (x, y) holds the sample at (x + 0.5 + jitter) onto the
     target grid: target pixel centre P (in render pixels, P = (X + 0.5) / scale) reads the image at P - jitter.
-    Bicubic (clamped at 0 below), border padding. The images are in [0, 1) (tone-mapped), so no clamp above."""
+    Bicubic, border padding, clamped to the min/max of the source pixels around each sample (bicubic overshoots
+    next to a bright emitter, and in x / (1 + x) space an overshoot past 1 would map back to unbounded radiance)."""
     n, _, h, w = image.shape
     xs = (torch.arange(w * scale, device=image.device, dtype=image.dtype) + 0.5) / scale
     ys = (torch.arange(h * scale, device=image.device, dtype=image.dtype) + 0.5) / scale
@@ -67,7 +68,12 @@ def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -
     grid_y = ys.view(1, -1, 1) - jitter[:, 1].view(-1, 1, 1)
     grid = torch.stack([(2 * grid_x / w - 1).expand(n, h * scale, w * scale),
                         (2 * grid_y / h - 1).expand(n, h * scale, w * scale)], dim=-1)
-    return F.grid_sample(image, grid, mode="bicubic", padding_mode="border", align_corners=False).clamp_min(0.0)
+    resampled = F.grid_sample(image, grid, mode="bicubic", padding_mode="border", align_corners=False)
+    # Bounds: the 2x2 source pixels a bilinear read would use lie inside each pixel's 3x3 neighbourhood.
+    padded = F.pad(image, (1, 1, 1, 1), mode="replicate")
+    bounds = torch.cat([F.max_pool2d(padded, 3, stride=1), -F.max_pool2d(-padded, 3, stride=1)], dim=1)
+    bounds = F.grid_sample(bounds, grid, mode="nearest", padding_mode="border", align_corners=False)
+    return torch.minimum(torch.maximum(resampled, bounds[:, 3:]), bounds[:, :3])
 
 
 def _conv(inputs: int, outputs: int) -> nn.Sequential:

@@ -130,3 +130,10 @@ def test_the_inference_form_gives_the_training_forms_output():
             out_a, state_a = trained.eval().step(frame, state_a)
             out_b, state_b = fast.step(frame, state_b)
     torch.testing.assert_close(out_b, out_a, atol=1e-5, rtol=1e-4)
+
+
+def test_resampling_next_to_a_bright_emitter_does_not_overshoot():
+    image = torch.full((1, 3, 8, 8), 0.02)
+    image[..., 3:5, 3:5] = 0.98  # x / (1 + x) of radiance 49: a visible light
+    resampled = unjittered_resample(image, torch.tensor([[0.37, -0.41]]), 2)
+    assert float(resampled.max()) <= 0.98 + 1e-6 and float(resampled.min()) >= 0.02 - 1e-6
