@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+import uuid
 
 import numpy as np
 import pytest
@@ -327,3 +328,36 @@ def test_every_step_runs_on_the_store_torch_thread(make_store):
     assert len(steps) == 4 and len(set(steps)) == 1
     assert all(step != caller for step, caller in zip(steps, callers))
     assert session.next_frame_index == 4
+
+
+def test_a_fused_model_streams_with_oidn_inside_and_survives_a_restart(make_store):
+    # The fused family runs OIDN inside its step and carries history at the output resolution plus recurrent
+    # features at render resolution: all of it must go through the session and its Redis mirror unchanged.
+    from model.checkpoint import save_checkpoint
+    from model.methods.registry import build_method
+    from workers.tracking import MLflowTracker
+
+    registry = shared_registry()
+    torch.manual_seed(5)
+    method = build_method("fused:fast", scale=2)
+    for parameter in method.parameters():
+        parameter.data += 0.02 * torch.randn_like(parameter)
+    checkpoint = save_checkpoint(registry.folder / "fused.pt", method=method)
+    name = f"fused-fast-x2-{uuid.uuid4().hex[:6]}"
+    tracker = MLflowTracker(registry.uri, experiment="service-tests")
+    tracker.start({"method": "fused:fast"})
+    tracker.log_model(checkpoint, name, {"method": "fused", "preset": "fast", "scale": "2"})
+    tracker.finish("FINISHED")
+
+    frames = stream_frames(4)
+    expected = in_process_outputs(checkpoint, frames)
+    first = make_store()
+    session = first.create(name)
+    for frame, image in zip(frames[:2], expected):
+        assert_same_image(first.process_frame(session.id, frame).output, image)
+    assert first.flush(timeout=30)
+    restarted = make_store()
+    for frame, image in zip(frames[2:], expected[2:]):
+        result = restarted.process_frame(session.id, frame)
+        assert result.history == CONTINUED
+        assert_same_image(result.output, image)
