@@ -5,8 +5,15 @@ conversions, ``read.py`` reading one frame in a layout, ``checks.py`` warnings w
 """
 
 from model.layouts.builtin import BUILTIN_LAYOUTS
-from model.layouts.layout import Layout, LayoutError, load_layout, parse_layout
+from model.layouts.layout import (
+    Layout,
+    LayoutError,
+    layout_from_value,
+    load_layout,
+    parse_layout,
+    read_layout_file,
+)
 from model.layouts.read import LayoutFrame, read_layout_frame, read_layout_frame_bytes, read_layout_reference
 
-__all__ = ["BUILTIN_LAYOUTS", "Layout", "LayoutError", "LayoutFrame", "load_layout", "parse_layout",
-           "read_layout_frame", "read_layout_frame_bytes", "read_layout_reference"]
+__all__ = ["BUILTIN_LAYOUTS", "Layout", "LayoutError", "LayoutFrame", "layout_from_value", "load_layout", "parse_layout",
+           "read_layout_file", "read_layout_frame", "read_layout_frame_bytes", "read_layout_reference"]

@@ -50,9 +50,9 @@ def depth_to_bundle(depth: np.ndarray, convention: DepthConvention, fov_y_degree
     ``fov_y_degrees`` is needed (not None) for planar depth; the caller finds it (option, layout or header).
     """
     depth = depth.astype(np.float32, copy=True)
-    no_hit = np.isposinf(depth)
+    no_hit = np.zeros(depth.shape, bool)  # without a threshold, +Inf is a broken value (validator, sanitizer)
     if convention.no_hit_at_or_above is not None:
-        no_hit |= depth >= convention.no_hit_at_or_above
+        no_hit = depth >= convention.no_hit_at_or_above
     if convention.kind == "planar":
         assert fov_y_degrees is not None, "planar depth needs the field of view"
         with np.errstate(invalid="ignore", over="ignore"):

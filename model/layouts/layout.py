@@ -21,7 +21,7 @@ A layout is a mapping (a TOML or JSON file, or one of ``model.layouts.builtin``)
 
     [depth]
     kind = "ray"                # "ray": distance from the camera centre; "planar": along the view axis
-    no_hit_at_or_above = 1e9    # values this large (or +Inf) mean "nothing hit" (Cycles writes 1e10)
+    no_hit_at_or_above = 1e9    # values this large (+Inf too) mean "nothing hit" (Cycles writes 1e10)
     fov_y_degrees = 40.0        # planar depth needs the vertical field of view: here, in a header
     fov_y_attribute = "fovY"    # attribute (degrees), or an option of the import
 
@@ -189,11 +189,29 @@ def load_layout(name_or_path: str | Path) -> Layout:
     if path.suffix.lower() not in (".toml", ".json"):
         raise LayoutError(f"unknown layout {str(name_or_path)!r}: give a built-in layout "
                           f"({', '.join(BUILTIN_LAYOUTS)}) or a layout file ending in .toml or .json")
+    return parse_layout(read_layout_file(path), str(path))
+
+
+def read_layout_file(path: str | Path) -> dict:
+    """The mapping a layout file (.toml or .json) holds, unchecked (``parse_layout`` checks it)."""
+    path = Path(path)
     if not path.is_file():
         raise LayoutError(f"layout file {path} not found")
     try:
         text = path.read_text()
-        content = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+        return tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, json.JSONDecodeError) as error:
         raise LayoutError(f"layout file {path}: cannot be read ({error})") from None
-    return parse_layout(content, str(path))
+
+
+def layout_from_value(value: str | dict) -> Layout:
+    """A layout given over the network: a built-in name, or the layout itself as a mapping (never a file path:
+    files are the client's)."""
+    from model.layouts.builtin import BUILTIN_LAYOUTS
+
+    if isinstance(value, str):
+        if value not in BUILTIN_LAYOUTS:
+            raise LayoutError(f"unknown layout {value!r}: built-in layouts are {', '.join(BUILTIN_LAYOUTS)}; for "
+                              f"another, send the layout itself (the keys of a layout file) as an object")
+        return BUILTIN_LAYOUTS[value]
+    return parse_layout(value, "given in the request")

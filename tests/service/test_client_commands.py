@@ -275,8 +275,9 @@ def test_stream_prints_timings_and_writes_exrs(api, tmp_path, capsys):
 
 
 def test_stream_errors(api, tmp_path, capsys):
+    # A folder without manifest.json is a renderer's plain folder of EXRs; one without any is refused.
     assert main(["stream", str(tmp_path), "--model", "wskpn-xs", "--out", str(tmp_path / "out")]) == 2
-    assert "not a sequence folder" in capsys.readouterr().err
+    assert "holds no .exr files" in capsys.readouterr().err
     sequence = write_sequence(tmp_path / "data")
     assert main(["stream", str(sequence), "--model", "nope", "--out", str(tmp_path / "out")]) == 2
     assert "registered model 'nope' does not exist" in capsys.readouterr().err
