@@ -619,7 +619,7 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
     are taken from the first frame's request (a later different split is refused); ``scales``, when given,
     are the reference scales every frame must have. ``layout`` (default ``denoiser``): how the EXR's channels map
     to the frame bundle; values are checked strictly, channels it does not use are dropped, and a frame without a
-    frame index is the next one; ``notes`` collects the channels dropped.
+    frame index (or in another layout) is the next one; ``notes`` collects the channels dropped.
     """
     folder, state_file = _staged_paths(storage, dataset_id, sequence)
     if split is not None and split not in SPLITS:
@@ -645,7 +645,9 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
     with dataset_lock(storage, dataset_id):
         state = json.loads(state_file.read_text()) if state_file.is_file() else None
         expected = 0 if state is None else len(state["frames"])
-        if not read.frame_index_given:  # renderers that write no frame index send frames in order
+        # Renderers number frames their own way (Blender from its timeline's start) or not at all: in another
+        # layout, or without a frame index, the uploaded frame is the next one.
+        if not read.frame_index_given or layout.name != "denoiser":
             frame = dataclasses.replace(frame, frame_index=expected)
         if frame.frame_index != expected:
             raise UploadConflict("frame_out_of_order", f"{label}: frame_index is {frame.frame_index}, expected "
