@@ -144,9 +144,9 @@ def build_procedural_scene(kind: str, frames: int, seed: int) -> None:
             camera.location = (0.5, -6.5, 2.2)
         camera.keyframe_insert("location", frame=frame)
     if kind == "moving_object":
-        cube = _add(bpy.ops.mesh.primitive_cube_add, _material("mover", (0.8, 0.2, 0.1), 0.5), size=0.8)
+        cube = _add(bpy.ops.mesh.primitive_cube_add, _material("mover", (0.9, 0.3, 0.1), 0.5, checker=5.0), size=1.2)
         for frame in range(1, frames + 1):
-            cube.location = (-1.5 + 0.3 * (frame - 1), -1.5, 0.4)
+            cube.location = (-1.5 + 0.5 * (frame - 1), -1.5, 0.6)
             cube.keyframe_insert("location", frame=frame)
     # Linear interpolation: constant speed, so the motion between frames is the same everywhere in the clip.
     for action in bpy.data.actions:

@@ -39,7 +39,9 @@ _MOTION_VARIANTS = {
 }
 
 
-def _warp(image: np.ndarray, motion: np.ndarray, jitter=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+def warp_previous(image: np.ndarray, motion: np.ndarray, jitter=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """The previous frame's (H, W[, C]) image read at centre + jitter + motion (bilinear, ``model.ops.warp``), and
+    where that position lies inside the image."""
     tensor = torch.from_numpy(np.ascontiguousarray(image if image.ndim == 3 else image[..., None])).permute(2, 0, 1)
     flow = torch.from_numpy(np.ascontiguousarray(motion)).permute(2, 0, 1)[None]
     warped, inside = backward_warp(tensor[None].float(), flow.float(), jitter=jitter)
@@ -75,14 +77,14 @@ class SequenceChecks:
         current, before = _guide(frame), _guide(previous)
         for name, multiplier in _MOTION_VARIANTS.items():
             variant = motion * np.array(multiplier(frame.width, frame.height), np.float32)
-            warped, _ = _warp(before, variant)
+            warped, _ = warp_previous(before, variant)
             self._warped_error[name] += float(np.abs(warped - current).mean())
         self._unwarped_error += float(np.abs(before - current).mean())
         self._check_normals(previous, frame)
 
     def _check_normals(self, previous: FrameBundle, frame: FrameBundle) -> None:
-        warped_normal, inside = _warp(previous.normal, frame.motion, frame.jitter)
-        warped_depth, _ = _warp(previous.depth, frame.motion, frame.jitter)
+        warped_normal, inside = warp_previous(previous.normal, frame.motion, frame.jitter)
+        warped_depth, _ = warp_previous(previous.depth, frame.motion, frame.jitter)
         # Same surface: the depth the previous frame had there is close (not disoccluded, not an edge).
         same = inside & (frame.depth > 0) & (np.abs(warped_depth[..., 0] - frame.depth) < 0.05 * frame.depth)
         if same.sum() < 16:
@@ -139,7 +141,7 @@ def reprojection_psnr(previous: np.ndarray, current: np.ndarray, motion: np.ndar
     if motion is None:
         warped, inside = previous, np.ones(previous.shape[:2], bool)
     else:
-        warped, inside = _warp(previous, motion)
+        warped, inside = warp_previous(previous, motion)
     encode = lambda image: np.clip(image, 0, 1) ** (1 / 2.2)  # noqa: E731
     error = float(np.mean((encode(warped) - encode(current))[inside] ** 2))
     return math.inf if error == 0 else 10 * math.log10(1 / error)
