@@ -573,9 +573,8 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
             unpacked = import_renderer_folders(unpacked, _unwrap(unpacked), work / "imported", layout, split, notes)
         else:
             strip_unused_channels(unpacked, notes)
-    except (DatasetError, FrameError, FileExistsError) as error:
-        raise _invalid(error if not isinstance(error, FileExistsError) else DatasetError(str(error)),
-                       unpacked) from None
+    except (DatasetError, FrameError) as error:
+        raise _invalid(error, unpacked) from None
     sequences = find_sequences(unpacked, split)
     with dataset_lock(storage, dataset_id):
         if create:

@@ -17,7 +17,7 @@ from pathlib import Path
 import OpenEXR
 
 from model.dataset import MANIFEST, DatasetError
-from model.exr import CHANNEL_SLOTS, REFERENCE_PART_PATTERN, RENDER_PART, write_frame
+from model.exr import CHANNEL_SLOTS, REFERENCE_PART_PATTERN, write_frame
 from model.importer import import_sequence
 from model.layouts import BUILTIN_LAYOUTS, Layout, read_layout_frame
 
@@ -37,10 +37,7 @@ def _has_only_frame_channels(path: Path) -> bool:
     except Exception:  # unreadable: the validation that follows names the problem
         return True
     for index, part in enumerate(parts):
-        name = part.name()
-        if index and not REFERENCE_PART_PATTERN.fullmatch(name or ""):
-            return False
-        if index == 0 and name not in (None, "", RENDER_PART) and len(parts) > 1:
+        if index and not REFERENCE_PART_PATTERN.fullmatch(part.name() or ""):
             return False
         if any(channel.name not in CHANNEL_SLOTS for channel in part.header.get("channels", ())):
             return False
