@@ -35,6 +35,8 @@ DENOISER = {
 BLENDER_CYCLES = {
     "name": "blender-cycles",
     "description": "Blender 5 multilayer EXR from Cycles (view layer 'ViewLayer'), default pass names",
+    "hint": "in Blender, enable the passes Combined, Z, Normal, Vector and Diffuse Color (View Layer Properties > "
+            "Passes; Vector needs motion blur off) and save as OpenEXR MultiLayer, as scripts/render_blender.py does",
     "channels": {
         "color": ["ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B"],
         "albedo": ["ViewLayer.Diffuse Color.R", "ViewLayer.Diffuse Color.G", "ViewLayer.Diffuse Color.B"],

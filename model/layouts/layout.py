@@ -5,6 +5,7 @@ A layout is a mapping (a TOML or JSON file, or one of ``model.layouts.builtin``)
 
     name = "my-renderer"
     description = "what writes these files"
+    hint = "how to make the renderer write what is missing"   # added to missing-buffer errors
     ignore = ["*.A", "crypto*"]            # channels known to be unused: ignored without being reported
 
     [channels]                             # frame-bundle buffer -> EXR channel names, in component order
@@ -94,6 +95,7 @@ class Layout:
     normal: NormalConvention = field(default_factory=NormalConvention)
     sample: SampleConvention = field(default_factory=SampleConvention)
     ignore: tuple[str, ...] = ()
+    hint: str = ""  # how to make the renderer write a missing buffer, for error messages
 
     def is_ignored(self, channel: str) -> bool:
         return any(fnmatch.fnmatchcase(channel, pattern) for pattern in self.ignore)
@@ -113,7 +115,7 @@ _CHOICES = {
 }
 _SECTIONS = {"motion": MotionConvention, "depth": DepthConvention, "normal": NormalConvention,
              "sample": SampleConvention}
-_TOP_KEYS = {"name", "description", "channels", "ignore", *_SECTIONS}
+_TOP_KEYS = {"name", "description", "hint", "channels", "ignore", *_SECTIONS}
 
 
 def parse_layout(content: Any, origin: str) -> Layout:
@@ -127,15 +129,15 @@ def parse_layout(content: Any, origin: str) -> Layout:
     name = content.get("name")
     if not isinstance(name, str) or not name:
         raise LayoutError(f"layout {origin}: 'name' must be a non-empty string")
-    description = content.get("description", "")
-    if not isinstance(description, str):
-        raise LayoutError(f"layout {origin}: 'description' must be a string")
+    for key in ("description", "hint"):
+        if not isinstance(content.get(key, ""), str):
+            raise LayoutError(f"layout {origin}: '{key}' must be a string")
     ignore = content.get("ignore", [])
     if not isinstance(ignore, list) or not all(isinstance(pattern, str) for pattern in ignore):
         raise LayoutError(f"layout {origin}: 'ignore' must be a list of channel names or glob patterns")
     sections = {key: _section(content.get(key, {}), key, origin) for key in _SECTIONS}
-    return Layout(name=name, description=description, channels=_channels(content.get("channels"), origin),
-                  ignore=tuple(ignore), **sections)
+    return Layout(name=name, description=content.get("description", ""), hint=content.get("hint", ""),
+                  channels=_channels(content.get("channels"), origin), ignore=tuple(ignore), **sections)
 
 
 def _channels(table: Any, origin: str) -> dict[str, tuple[tuple[str, ...], ...]]:

@@ -25,7 +25,7 @@ import numpy as np
 import OpenEXR
 
 from model.exr import REFERENCE_PART_PATTERN, FrameFormatError, open_exr, open_exr_bytes, part_planes
-from model.frames import BUFFERS, RENDER_BUFFERS, TARGET_FIELDS, FrameBundle, validate_frame
+from model.frames import BUFFERS, RENDER_BUFFERS, TARGET_FIELDS, FrameBundle, FrameValidationError, validate_frame
 from model.layouts.convert import depth_to_bundle, motion_to_bundle, normals_to_world, renormalise_normals
 from model.layouts.layout import Layout
 
@@ -148,7 +148,7 @@ def _missing(buffer: str, layout: Layout, planes: dict, source: str, what: str =
         f"required buffer is missing{' (' + what + ')' if what else ''}: layout '{layout.name}' reads it from "
         f"{layout.channel_names(buffer) or 'no channels'}, and the file has none of them (it has: {listed or 'none'}); "
         f"choose the layout of the renderer that wrote it (built-in: denoiser, blender-cycles, generic) or map "
-        f"these channels in a layout file")
+        f"these channels in a layout file" + (f"; {layout.hint}" if layout.hint else ""))
 
 
 # --- header attributes -----------------------------------------------------------------------------------
@@ -265,11 +265,15 @@ def _read(exr: OpenEXR.File, source: str, layout: Layout, mode: Mode, fov_overri
     if jitter_repair:
         repairs.append(jitter_repair)
     buffers.update(_converted(buffers, layout, channels.headers, jitter, fov_override, source))
-    if mode != "strict":
-        normal, count, worst = renormalise_normals(buffers["normal"], buffers["depth"])
-        if count:
-            buffers["normal"] = normal
-            repairs.append(f"normal: {count} pixels renormalised (worst |n| = {worst:.3g}; lossy compression?)")
+    normal, count, worst = renormalise_normals(buffers["normal"], buffers["depth"])
+    if count and mode == "strict":  # stored data is not repaired, but the refusal says what to do
+        raise FrameValidationError(
+            source, "normal", f"{count} pixels are off unit length by up to {abs(worst - 1):.3g} (|n| = {worst:.3g}), "
+                              f"as lossy compression (DWAA, B44) leaves them; store normals losslessly (ZIP, PIZ) or "
+                              f"convert with denoiser import, which renormalises them")
+    if count:
+        buffers["normal"] = normal
+        repairs.append(f"normal: {count} pixels renormalised (worst |n| = {worst:.3g}; lossy compression?)")
 
     frame_index = _frame_index(channels.headers, layout, source)
     sequence = _attribute(channels.headers, "sequence")

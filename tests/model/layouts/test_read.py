@@ -68,6 +68,20 @@ def test_arnold_style_rgba_n_z_reads_with_the_generic_layout(tmp_path, frame):
         read_layout_frame(tmp_path / "f.exr", DENOISER)
 
 
+def test_a_blender_render_without_a_needed_pass_says_which_to_enable(tmp_path):
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT
+
+    channels = {}
+    for part in OpenEXR.File(str(BLENDER_ORBIT / "frame_0001.exr"), separate_channels=True).parts:
+        channels.update({name: channel.pixels for name, channel in part.channels.items()
+                         if not name.startswith("ViewLayer.Diffuse Color")})
+    path = write_channels(tmp_path / "f.exr", channels, {"Note": "fov_y_degrees=40"})
+    with pytest.raises(FrameFormatError, match=r"buffer 'albedo': required buffer is missing: layout 'blender-cycles' "
+                                               r"reads it from ViewLayer.Diffuse Color.R.*enable the passes Combined, "
+                                               r"Z, Normal, Vector and Diffuse Color"):
+        read_layout_frame(path, BUILTIN_LAYOUTS["blender-cycles"])
+
+
 def test_missing_jitter_is_zero_in_a_session_and_a_clear_error_for_stored_data(tmp_path, frame):
     path = write_channels(tmp_path / "f.exr", bundle_channels(frame), {"frame_index": 1})
     live = read_layout_frame(path, DENOISER, mode="live")
@@ -107,7 +121,8 @@ def test_lossy_compressed_normals_are_renormalised_and_reported_but_refused_as_s
     # Renormalising kept the direction the file gave.
     assert np.degrees(np.arccos(np.clip((stored.frame.normal * normal).sum(-1), -1, 1))).max() < 10
     assert read_layout_frame(path, GENERIC, mode="import").repairs == stored.repairs
-    with pytest.raises(FrameValidationError, match="not unit length"):
+    with pytest.raises(FrameValidationError, match=r"buffer 'normal': \d+ pixels are off unit length by up to .*store "
+                                                   r"normals losslessly \(ZIP, PIZ\) or convert with denoiser import"):
         read_layout_frame(path, GENERIC, mode="strict")
 
 
