@@ -12,6 +12,9 @@ looks at consecutive frames as they are imported and says what looks wrong and w
   quarter of tracked pixels that change most).
 - Depth: in most shots the ground recedes towards the horizon, so depth grows from the bottom of the image to the
   top; a depth that shrinks upward in most frames is likely inverted (1/z, or a 0..1 buffer whose far is 0).
+  And on a plane, 1 / planar depth is an exact affine function of the pixel position (for any field of view),
+  while 1 / ray distance is not: a depth that fits it exactly on the largest flat surface is planar depth read as
+  ray distance.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.ndimage
 import torch
 
 from model.frames import FrameBundle
@@ -27,6 +31,9 @@ from model.ops.warp import backward_warp
 
 MIN_MOTION_PIXELS = 0.25  # mean |motion| below this: too little movement to judge the motion's convention
 NORMAL_TURN_DEGREES = 1.5  # upper-quartile angle between tracked normals above this: they turn with the camera
+PLANAR_RESIDUAL = 1e-4  # relative RMS of the affine fit of 1/depth below this: planar depth (ray distance: ~1e-2)
+MIN_FLAT_PIXELS = 64
+WORSE_THAN_UNWARPED = 1.1  # warping must lose to not warping by this factor to be reported (moving lights tie them)
 BETTER_VARIANT_RATIO = 0.75  # another convention whose warp error is below this fraction of the imported one wins
 # Other conventions tried on the imported motion: name -> (x, y) multiplier for an image of (width, height).
 _MOTION_VARIANTS = {
@@ -49,8 +56,12 @@ def warp_previous(image: np.ndarray, motion: np.ndarray, jitter=(0.0, 0.0)) -> t
 
 
 def _guide(frame: FrameBundle) -> np.ndarray:
-    """What to compare across frames: the scale-1 reference, else the noise-free albedo."""
-    return frame.references.get(1, frame.albedo)
+    """What to compare across frames: the scale-1 reference, tone-mapped x / (1 + x) so that a few very bright pixels
+    (a lamp, a highlight) do not outweigh the rest, else the noise-free albedo."""
+    if 1 in frame.references:
+        reference = np.maximum(frame.references[1], 0.0)
+        return reference / (1.0 + reference)
+    return frame.albedo
 
 
 @dataclass
@@ -64,6 +75,7 @@ class SequenceChecks:
     _motion_frames: int = 0
     _normal_angles: list[float] = field(default_factory=list)
     _depth_votes: list[bool] = field(default_factory=list)
+    _planar_residuals: list[float] = field(default_factory=list)
 
     def add(self, frame: FrameBundle) -> None:
         self._check_depth(frame)
@@ -97,6 +109,9 @@ class SequenceChecks:
         self._normal_angles.append(float(np.percentile(angles, 75)))
 
     def _check_depth(self, frame: FrameBundle) -> None:
+        residual = flat_surface_residual(frame)
+        if residual is not None:
+            self._planar_residuals.append(residual)
         hit = frame.depth > 0
         third = frame.height // 3
         top, bottom = frame.depth[:third][hit[:third]], frame.depth[-third:][hit[-third:]]
@@ -113,7 +128,7 @@ class SequenceChecks:
             imported = errors["as imported"]
             best = min(errors, key=errors.get)
             suggestion = f"; with {best} it would be {errors[best]:.4g}" if best != "as imported" else ""
-            if imported >= unwarped:
+            if imported > WORSE_THAN_UNWARPED * unwarped:
                 found.append(f"motion: warping the previous frame by the motion vectors matches this frame worse "
                              f"than not warping at all (mean error {imported:.4g} against {unwarped:.4g}, over "
                              f"{frames} frames){suggestion}; check the motion conventions{hint} (points_to, y, "
@@ -132,7 +147,45 @@ class SequenceChecks:
                          f"of the image to the top, where the ground usually recedes; is it inverted (1/z, or a 0..1 "
                          f"depth buffer) or the image upside down? The frame bundle's depth is the distance to the "
                          f"hit point (depth.kind{hint})")
+        planar = [residual for residual in self._planar_residuals if residual < PLANAR_RESIDUAL]
+        if self._planar_residuals and len(planar) > len(self._planar_residuals) / 2:
+            found.append(f"depth: on the largest flat surface 1/depth is an exact affine function of the pixel position "
+                         f"(relative residual {np.median(planar):.2g} in {len(planar)} of "
+                         f"{len(self._planar_residuals)} frames), as for planar depth (along the view axis); the frame "
+                         f"bundle's depth is the distance along each ray, for which it is not: set depth.kind = "
+                         f"\"planar\"{hint} with the field of view (unless the lens is very long)")
         return found
+
+
+def flat_surface_residual(frame: FrameBundle) -> float | None:
+    """Relative RMS residual of the best affine fit of 1/depth to the sample positions over the largest connected
+    surface of one normal (None without one of MIN_FLAT_PIXELS pixels spanning a quarter of the image each way)."""
+    hit = frame.depth > 0
+    if hit.sum() < MIN_FLAT_PIXELS:
+        return None
+    keys = np.round(frame.normal * 500).astype(np.int64)
+    keys = (keys[..., 0] * 1_000_003 + keys[..., 1]) * 1_000_003 + keys[..., 2]
+    values, counts = np.unique(keys[hit], return_counts=True)
+    region = hit & (keys == values[np.argmax(counts)])
+    labels, count = scipy.ndimage.label(region)
+    if count == 0:
+        return None
+    largest = labels == 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
+    ys, xs = np.nonzero(largest)
+    if len(xs) < MIN_FLAT_PIXELS or np.ptp(xs) < frame.width / 4 or np.ptp(ys) < frame.height / 4:
+        return None
+    positions = np.stack([xs + 0.5 + frame.jitter[0], ys + 0.5 + frame.jitter[1], np.ones(len(xs))], axis=1)
+    depth = frame.depth[largest].astype(np.float64)
+    keep = np.ones(len(depth), bool)
+    # A few rounds dropping outliers: parallel surfaces touching in the image (a box top before the floor) share
+    # the normal but not the plane.
+    for _ in range(4):
+        coefficients, *_ = np.linalg.lstsq(positions[keep], 1.0 / depth[keep], rcond=None)
+        residual = np.abs(1.0 / (positions @ coefficients) - depth) / depth
+        keep = residual <= max(3 * float(np.median(residual[keep])), 1e-6)
+        if keep.sum() < MIN_FLAT_PIXELS:
+            return None
+    return float(np.sqrt(np.mean(residual[keep] ** 2)))
 
 
 def reprojection_psnr(previous: np.ndarray, current: np.ndarray, motion: np.ndarray | None) -> float:

@@ -70,3 +70,11 @@ def test_inverted_depth_is_reported():
                 for frame in frames]
     found = warnings_of(inverted)
     assert any(warning.startswith("depth: in 4 of 4 frames the depth shrinks") for warning in found), found
+
+
+def test_planar_depth_read_as_ray_distance_is_reported():
+    content = copy.deepcopy(BLENDER_CYCLES)
+    content["depth"] = {"kind": "ray", "no_hit_at_or_above": 1e9}  # Cycles' planar Depth pass taken as ray distance
+    found = warnings_of(orbit_frames(parse_layout(content, "test")))
+    assert any(warning.startswith("depth: on the largest flat surface 1/depth is an exact affine function")
+               and 'depth.kind = "planar"' in warning for warning in found), found
