@@ -39,3 +39,25 @@ def test_a_moving_object_render_imports_and_its_motion_reprojects(tmp_path):
     warped_error = np.median(np.abs(warped - current).mean(-1)[moving])
     unwarped_error = np.median(np.abs(previous - current).mean(-1)[moving])
     assert warped_error < 0.5 * unwarped_error  # measured 0.023 against 0.079
+
+
+def test_a_users_blend_file_renders_at_a_non_square_size_and_its_depth_lands_on_the_floor(tmp_path):
+    import json
+
+    from tests.model.layouts.test_blender_cycles import _floor_hits
+
+    blend = tmp_path / "user.blend"
+    make = (f"import sys, bpy; sys.path.insert(0, {str(SCRIPT.parent)!r}); import render_blender; "
+            f"render_blender.build_procedural_scene('pan', 2, 5); "
+            f"bpy.ops.wm.save_as_mainfile(filepath={str(blend)!r})")
+    subprocess.run([sys.executable, "-c", make], check=True, capture_output=True, timeout=300)
+    out = tmp_path / "user"
+    subprocess.run([sys.executable, str(SCRIPT), "--blend", str(blend), "--out", str(out), "--frames", "2",
+                    "--size", "24x16", "--ref-spp", "8"], check=True, capture_output=True, timeout=300)
+    cameras = json.loads((out / "cameras.json").read_text())
+    for index, camera in enumerate(cameras):
+        frame = read_layout_frame(out / f"frame_000{index}.exr", LAYOUT).frame
+        assert frame.resolution == (24, 16)
+        floor = frame.normal[..., 2] > 0.999
+        # The field of view in the metadata note, with Blender's sensor fit, turns planar depth into ray distance.
+        assert np.median(np.abs(_floor_hits(frame, camera, frame.depth)[floor])) < 1e-4
