@@ -15,5 +15,5 @@ from model.layouts.layout import (
 )
 from model.layouts.read import LayoutFrame, read_layout_frame, read_layout_frame_bytes, read_layout_reference
 
-__all__ = ["BUILTIN_LAYOUTS", "Layout", "LayoutError", "LayoutFrame", "layout_from_value", "load_layout", "parse_layout",
-           "read_layout_file", "read_layout_frame", "read_layout_frame_bytes", "read_layout_reference"]
+__all__ = ["BUILTIN_LAYOUTS", "Layout", "LayoutError", "LayoutFrame", "layout_from_value", "load_layout",
+           "parse_layout", "read_layout_file", "read_layout_frame", "read_layout_frame_bytes", "read_layout_reference"]

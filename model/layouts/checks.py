@@ -135,11 +135,12 @@ class SequenceChecks:
                              f"units)")
             elif errors[best] < BETTER_VARIANT_RATIO * imported:
                 found.append(f"motion: warping the previous frame by the motion vectors matches this frame with mean "
-                             f"error {imported:.4g} (not warping: {unwarped:.4g}, over {frames} frames), but with {best} "
-                             f"it would be {errors[best]:.4g}; check the motion conventions{hint}")
+                             f"error {imported:.4g} (not warping: {unwarped:.4g}, over {frames} frames), but with "
+                             f"{best} it would be {errors[best]:.4g}; check the motion conventions{hint}")
         if self._normal_angles and np.median(self._normal_angles) > NORMAL_TURN_DEGREES:
             found.append(f"normal: a quarter of the surfaces' normals turn by {np.median(self._normal_angles):.1f} "
-                         f"degrees or more from one frame to the next; world-space normals do not move with the camera, so "
+                         f"degrees or more from one frame to the next; world-space normals do not move with the "
+                         f"camera, so "
                          f"these look like view-space normals: set normal.space = \"view\"{hint}")
         if len(self._depth_votes) >= 1 and sum(self._depth_votes) > len(self._depth_votes) / 2:
             shrinking = sum(self._depth_votes)
@@ -149,8 +150,8 @@ class SequenceChecks:
                          f"hit point (depth.kind{hint})")
         planar = [residual for residual in self._planar_residuals if residual < PLANAR_RESIDUAL]
         if self._planar_residuals and len(planar) > len(self._planar_residuals) / 2:
-            found.append(f"depth: on the largest flat surface 1/depth is an exact affine function of the pixel position "
-                         f"(relative residual {np.median(planar):.2g} in {len(planar)} of "
+            found.append(f"depth: on the largest flat surface 1/depth is an exact affine function of the pixel "
+                         f"position (relative residual {np.median(planar):.2g} in {len(planar)} of "
                          f"{len(self._planar_residuals)} frames), as for planar depth (along the view axis); the frame "
                          f"bundle's depth is the distance along each ray, for which it is not: set depth.kind = "
                          f"\"planar\"{hint} with the field of view (unless the lens is very long)")

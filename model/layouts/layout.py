@@ -125,7 +125,8 @@ def parse_layout(content: Any, origin: str) -> Layout:
                           f"sample, ignore), got {type(content).__name__}")
     unknown = sorted(set(content) - _TOP_KEYS)
     if unknown:
-        raise LayoutError(f"layout {origin}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_TOP_KEYS))}")
+        raise LayoutError(f"layout {origin}: unknown key(s) {', '.join(unknown)}; allowed: "
+                          f"{', '.join(sorted(_TOP_KEYS))}")
     name = content.get("name")
     if not isinstance(name, str) or not name:
         raise LayoutError(f"layout {origin}: 'name' must be a non-empty string")
