@@ -102,6 +102,24 @@ def read_frame(path: str | os.PathLike, *, sanitizable: bool = False) -> FrameBu
     return _frame_from_exr(_open_exr(Path(path), source), source, sanitizable)
 
 
+def open_exr(path: str | os.PathLike) -> OpenEXR.File:
+    """Every part of an EXR file with its pixels (FrameFormatError naming the file if it cannot be read)."""
+    return _open_exr(Path(path), str(path))
+
+
+def open_exr_bytes(data: bytes, source: str = "<bytes>") -> OpenEXR.File:
+    """``open_exr`` for an EXR held in memory."""
+    if data[: len(EXR_MAGIC)] != EXR_MAGIC:
+        problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
+        raise FrameFormatError(source, None, problem)
+    return _read_exr(lambda: io.BytesIO(data), source)
+
+
+def part_planes(part: OpenEXR.Part) -> dict[str, np.ndarray]:
+    """Channel name -> (H, W) pixel plane of one part, whatever the channels are (other renderers' files)."""
+    return dict(_planes(part))
+
+
 # --- writing ---------------------------------------------------------------------------------------------
 
 

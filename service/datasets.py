@@ -52,10 +52,12 @@ from model.dataset import (
     frame_file_name,
     write_json_atomically,
 )
-from model.exr import CHANNEL_SLOTS, read_frame, write_frame
+from model.exr import CHANNEL_SLOTS, write_frame
 from model.frames import BUFFERS, FrameBundle, FrameError
+from model.layouts import BUILTIN_LAYOUTS, Layout, read_layout_frame
 from service.schemas import DatasetDetail, DatasetSummary, SequenceInfo, SplitSummary, StagedSequence
 from service.storage import Storage, checked_id
+from service.upload_layouts import UploadNotes, import_renderer_folders, strip_unused_channels
 
 log = logging.getLogger("denoiser.datasets")
 
@@ -550,17 +552,29 @@ def dataset_exists(storage: Storage, dataset_id: str) -> bool:
 
 
 def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str, *, create: bool,
-                   split: str = "train", replace: bool = False, max_unpacked_bytes: int) -> DatasetDetail:
+                   split: str = "train", replace: bool = False, max_unpacked_bytes: int,
+                   layout: Layout | None = None, notes: UploadNotes | None = None) -> DatasetDetail:
     """Unpack and validate an uploaded archive in ``work`` (a staging workspace), then store it.
 
     ``create``: make dataset ``dataset_id`` (UploadConflict if it exists), else add the archive's sequences
     to it (UnknownDataset if it does not exist; UploadConflict for taken names unless ``replace``).
+    ``layout`` (other than ``denoiser``): the archive holds a renderer's sequence folders, converted first
+    (``service.upload_layouts``). Channels the format does not use are dropped either way; ``notes`` collects them
+    and the conversion's warnings.
     """
     if split not in SPLITS:
         raise InvalidUpload("invalid_split", f"unknown split {split!r}; allowed: {', '.join(SPLITS)}")
+    notes = UploadNotes() if notes is None else notes
     unpacked = work / "unpacked"
     unpack_archive(archive, unpacked, max_unpacked_bytes)
     archive.unlink()  # the unpacked copy is all we need; free the space early
+    try:
+        if layout is not None and layout.name != "denoiser":
+            unpacked = import_renderer_folders(unpacked, _unwrap(unpacked), work / "imported", layout, split, notes)
+        else:
+            strip_unused_channels(unpacked, notes)
+    except (DatasetError, FrameError) as error:
+        raise _invalid(error, unpacked) from None
     sequences = find_sequences(unpacked, split)
     with dataset_lock(storage, dataset_id):
         if create:
@@ -595,23 +609,30 @@ def _staged_info(dataset_id: str, state: dict) -> StagedSequence:
 
 
 def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, *, split: str | None = None,
-                scene: str | None = None, scales: list[int] | None = None) -> StagedSequence:
+                scene: str | None = None, scales: list[int] | None = None,
+                layout: Layout | None = None, notes: UploadNotes | None = None) -> StagedSequence:
     """Validate one uploaded frame EXR and append it to the staged sequence (the first frame starts it).
 
     The frame's ``frame_index`` must be the next one (0 first); resolution, reference scales and buffers must
     match the first frame; its ``sequence`` header must be empty or the sequence name. ``split`` and ``scene``
     are taken from the first frame's request (a later different split is refused); ``scales``, when given,
-    are the reference scales every frame must have.
+    are the reference scales every frame must have. ``layout`` (default ``denoiser``): how the EXR's channels map
+    to the frame bundle; values are checked strictly, channels it does not use are dropped, and a frame without a
+    frame index (or in another layout) is the next one; ``notes`` collects the channels dropped.
     """
     folder, state_file = _staged_paths(storage, dataset_id, sequence)
     if split is not None and split not in SPLITS:
         raise InvalidUpload("invalid_split", f"unknown split {split!r}; allowed: {', '.join(SPLITS)}")
     label = f"frame upload to {dataset_id}/{sequence}"
+    layout = BUILTIN_LAYOUTS["denoiser"] if layout is None else layout
     try:
-        frame = read_frame(upload)
+        read = read_layout_frame(upload, layout, mode="strict")
     except FrameError as error:
         message = str(error).replace(str(upload), label)
         raise InvalidUpload("invalid_frame", message, {"buffer": error.buffer, "problem": error.problem}) from None
+    frame = read.frame
+    # The file as uploaded can be stored only when it is exactly the frame bundle the sequence needs.
+    as_uploaded = layout.name == "denoiser" and not read.ignored_channels and read.frame_index_given
     if frame.sequence not in ("", sequence):
         raise InvalidUpload("invalid_frame", f"{label}: the frame's 'sequence' header says {frame.sequence!r}, not "
                             f"{sequence!r}; upload it to sequence {frame.sequence!r} or write it with sequence "
@@ -623,6 +644,10 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
     with dataset_lock(storage, dataset_id):
         state = json.loads(state_file.read_text()) if state_file.is_file() else None
         expected = 0 if state is None else len(state["frames"])
+        # Renderers number frames their own way (Blender from its timeline's start) or not at all: in another
+        # layout, or without a frame index, the uploaded frame is the next one.
+        if not read.frame_index_given or layout.name != "denoiser":
+            frame = dataclasses.replace(frame, frame_index=expected)
         if frame.frame_index != expected:
             raise UploadConflict("frame_out_of_order", f"{label}: frame_index is {frame.frame_index}, expected "
                                                        f"{expected} (frames are uploaded in order from 0)",
@@ -634,13 +659,16 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
         else:
             _check_continues(state, frame, buffers, split, label)
         file = frame_file_name(expected)
-        if frame.sequence == sequence:
+        if frame.sequence == sequence and as_uploaded:
             os.replace(upload, folder / file)  # already exactly what the stored sequence needs
         else:
-            # The header must name the sequence (Sequence checks it): write the frame again with it filled in.
+            # The header must name the sequence (Sequence checks it), and the file hold the frame bundle only:
+            # write the frame again with it filled in.
             write_frame(folder / file, dataclasses.replace(frame, sequence=sequence))
         state["frames"].append({"index": expected, "file": file, "camera_cut": bool(frame.camera_cut)})
         write_json_atomically(state_file, state)
+    if notes is not None:
+        notes.ignored_channels.update(read.ignored_channels)
     return _staged_info(dataset_id, state)
 
 

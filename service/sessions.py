@@ -46,6 +46,7 @@ restart meanwhile.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -143,6 +144,7 @@ class Session:
     next_frame_index: int | None = None  # None: no history, the next frame starts one
     resolution: tuple[int, int] | None = None  # (width, height) at render resolution
     revision: int = 0
+    layout: str | dict[str, Any] = "denoiser"  # how posted frames are read (model.layouts.layout_from_value)
     # Runtime only (not in the metadata):
     state: State | None = field(default=None, repr=False)
     method: Method | None = field(default=None, repr=False)
@@ -159,14 +161,16 @@ class Session:
         return {"id": self.id, "model": self.model.__dict__, "on_gap": self.on_gap, "created_at": self.created_at,
                 "last_used_at": self.last_used_at, "frames_processed": self.frames_processed,
                 "next_frame_index": self.next_frame_index,
-                "resolution": list(self.resolution) if self.resolution else None, "revision": self.revision}
+                "resolution": list(self.resolution) if self.resolution else None, "revision": self.revision,
+                "layout": self.layout}
 
     @classmethod
     def from_metadata(cls, meta: dict[str, Any], ttl_seconds: int) -> Session:
         return cls(id=meta["id"], model=SessionModel(**meta["model"]), on_gap=meta["on_gap"],
                    created_at=meta["created_at"], last_used_at=meta["last_used_at"], ttl_seconds=ttl_seconds,
                    frames_processed=meta["frames_processed"], next_frame_index=meta["next_frame_index"],
-                   resolution=tuple(meta["resolution"]) if meta["resolution"] else None, revision=meta["revision"])
+                   resolution=tuple(meta["resolution"]) if meta["resolution"] else None, revision=meta["revision"],
+                   layout=meta.get("layout", "denoiser"))
 
 
 @dataclass(frozen=True)
@@ -341,7 +345,8 @@ class SessionStore:
     # ------------------------------------------------------------------------------------ public
 
     def create(self, model: str, version: str | None = None, alias: str | None = None,
-               on_gap: str = "reset", choice: dict[str, Any] | None = None) -> Session:
+               on_gap: str = "reset", choice: dict[str, Any] | None = None,
+               layout: str | dict[str, Any] = "denoiser") -> Session:
         """A new session of registered model ``model`` at ``version``, ``alias`` or (neither) its latest version;
         ``choice`` (model "auto": how the version was chosen) is kept with the session's model.
 
@@ -360,7 +365,8 @@ class SessionStore:
                 model=SessionModel(name=info.name, version=info.version, alias=alias, method=method.name,
                                    preset=method.preset, scale=method.scale, params=method.parameter_count(),
                                    choice=choice),
-                on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method)
+                on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method,
+                layout=layout)
             with self._lock:
                 self._sessions[session.id] = session
             self._mirror(session, wait=True)
@@ -420,8 +426,11 @@ class SessionStore:
         if writer is not None:
             writer.start()
 
-    def process_frame(self, session_id: str, frame: FrameBundle, *, start_mirror: bool = True) -> FrameResult:
+    def process_frame(self, session_id: str, frame: FrameBundle, *, start_mirror: bool = True,
+                      frame_index_given: bool = True) -> FrameResult:
         """Run one frame through the session's method; raises SessionNotFound or FrameRejected.
+
+        ``frame_index_given=False`` (the file had no frame index): the frame is the session's next one.
 
         The new revision's Redis mirror is written in the background, starting now or, with ``start_mirror=False``,
         at ``start_mirror(session_id)`` (or the session's next use, or ``flush``), whichever comes first.
@@ -432,6 +441,8 @@ class SessionStore:
             session = self._current(session_id, activate=True)
             if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
                 session.method = self._method(session.model.name, session.model.version)
+            if not frame_index_given:
+                frame = dataclasses.replace(frame, frame_index=session.next_frame_index or 0)
             resolution = (frame.width, frame.height)
             if session.resolution is not None and resolution != session.resolution:
                 raise FrameRejected(
