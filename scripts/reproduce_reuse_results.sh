@@ -11,7 +11,7 @@ DATA=${1:-data/reuse}
 STEPS_X1=${STEPS_X1:-2000}
 STEPS_X2=${STEPS_X2:-2000}
 [ -f "$DATA/manifest.json" ] || bash scripts/generate_reuse_data.sh "$DATA"
-train=(.venv/bin/denoiser train --data "$DATA" --method fused:balanced --crop 64 --frames-per-sample 8 --batch 4
+train=(.venv/bin/denoiser train --data "$DATA" --method fused:balanced --crop 64 --frames-per-sample 10 --batch 4
        --lr 2e-3 --threads 1 --validate-every 250 --checkpoint-every 250 --quiet)
 "${train[@]}" --scale 1 --steps "$STEPS_X1" --out runs/fused-balanced-x1 > runs-fused-balanced-x1.log 2>&1 &
 "${train[@]}" --scale 2 --steps "$STEPS_X2" --out runs/fused-balanced-x2 > runs-fused-balanced-x2.log 2>&1 &
