@@ -131,14 +131,18 @@ def _synchronize(device: torch.device) -> None:
 
 def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoVdp | None = None,
                  with_metrics: bool = True, warmup_frames: int = WARMUP_FRAMES,
-                 device: torch.device | str = "cpu") -> dict:
+                 device: torch.device | str = "cpu", keep_outputs: bool = False) -> dict:
     """Step ``method`` through ``sequence``: step times of the frames after warm-up, and (``with_metrics``)
     per-sequence means of the frame metrics, the temporal error and, when ``vdp`` is given, the JOD.
 
     Every input frame goes through ``sanitize_frame`` first (not timed). Returns {"frames", "step_seconds": [...],
-    "sanitized": the repaired-pixel counts (``SanitizeReport.to_dict``), and with metrics "metrics": {name: value
-    or None} and "per_frame": {frame metric: [value per frame]}}.
+    "sanitized": the repaired-pixel counts (``SanitizeReport.to_dict``), "keeps_history": whether any step
+    returned a non-empty state (a temporal method; per-frame methods return ``{}``), with metrics "metrics":
+    {name: value or None} and "per_frame": {frame metric: [value per frame]}, and with ``keep_outputs`` (which
+    needs the metrics) "outputs": the linear outputs as one (T, C, H, W) CPU tensor}.
     """
+    if keep_outputs and not with_metrics:
+        raise ValueError("keep_outputs needs with_metrics: outputs are checked and copied with the metrics")
     device = torch.device(device)
     method.eval()
     state = None
@@ -146,6 +150,8 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
     frame_values: dict[str, list[float]] = {name: [] for name in FRAME_METRICS}
     outputs_ldr: list[torch.Tensor] = []
     references_ldr: list[torch.Tensor] = []
+    kept: list[torch.Tensor] = []
+    keeps_history = False
     sanitized = SanitizeReport()
     with torch.inference_mode():
         for index, frame in enumerate(sequence.frames):
@@ -157,6 +163,7 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
             _synchronize(device)
             if index >= warmup_frames:
                 step_seconds.append(time.perf_counter() - start)
+            keeps_history = keeps_history or bool(state)
             if not with_metrics:
                 continue
             output = _checked_output(output, frame, method, sequence, index).cpu()
@@ -164,8 +171,13 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
                 frame_values[name].append(float(values[0]))
             outputs_ldr.append(display_encode(output[0]))
             references_ldr.append(display_encode(frame.reference[0]))
+            if keep_outputs:
+                kept.append(output[0])
 
-    result: dict = {"frames": len(sequence.frames), "step_seconds": step_seconds, "sanitized": sanitized.to_dict()}
+    result: dict = {"frames": len(sequence.frames), "step_seconds": step_seconds, "sanitized": sanitized.to_dict(),
+                    "keeps_history": keeps_history}
+    if keep_outputs:
+        result["outputs"] = torch.stack(kept)
     if with_metrics:
         result["per_frame"] = frame_values
         metrics: dict[str, float | None] = {name: statistics.fmean(v) for name, v in frame_values.items()}

@@ -76,9 +76,15 @@ class FrameTooLarge(FrameFormatError):
         return (type(self), (self.source, self.problem, self.pixels, self.limit))
 
 
-# Besides the render part, a frame may hold reference parts at a larger scale: a 2x reference has 4 times the
-# render pixels, so the whole file may declare up to this many times the render-pixel limit.
-ALL_PARTS_PIXEL_FACTOR = 5
+# Besides its render part, a frame's file may hold reference parts at a larger scale (a 2x reference has 4 times
+# the render pixels) and, from another renderer, one part per render pass (Blender writes 6 for the passes
+# blender-cycles reads): the whole file is bounded by the values it declares (pixels x channels over all parts), at
+# most this many per pixel of the limit. A frame bundle with every buffer and 1x and 2x references declares 61 per
+# render pixel, Blender's 6 passes 18.
+MAX_VALUES_PER_PIXEL = 128
+# A reference render of a frame in another renderer's layout (a references/ file, a high-sample render at the
+# target resolution) may be at 2x: 4 times the render-pixel limit.
+REFERENCE_RENDER_PIXEL_FACTOR = 4
 
 
 def reference_part_name(scale: int) -> str:
@@ -119,6 +125,27 @@ def read_frame(path: str | os.PathLike, *, sanitizable: bool = False, max_pixels
     ``check_declared_pixels``)."""
     source = str(path)
     return _frame_from_exr(_open_exr(Path(path), source, max_pixels), source, sanitizable)
+
+
+def open_exr(path: str | os.PathLike, *, max_pixels: int | None = None,
+             reference_render: bool = False) -> OpenEXR.File:
+    """Every part of an EXR file with its pixels (FrameFormatError naming the file if it cannot be read).
+    ``max_pixels``: FrameTooLarge from the headers first, before any pixel is decoded (``check_declared_pixels``,
+    whose ``reference_render`` this passes on)."""
+    return _open_exr(Path(path), str(path), max_pixels, reference_render)
+
+
+def open_exr_bytes(data: bytes, source: str = "<bytes>", *, max_pixels: int | None = None) -> OpenEXR.File:
+    """``open_exr`` for an EXR held in memory."""
+    if data[: len(EXR_MAGIC)] != EXR_MAGIC:
+        problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
+        raise FrameFormatError(source, None, problem)
+    return _read_exr(lambda: io.BytesIO(data), source, max_pixels)
+
+
+def part_planes(part: OpenEXR.Part) -> dict[str, np.ndarray]:
+    """Channel name -> (H, W) pixel plane of one part, whatever the channels are (other renderers' files)."""
+    return dict(_planes(part))
 
 
 # --- writing ---------------------------------------------------------------------------------------------
@@ -191,7 +218,7 @@ def _frame_parts(frame: FrameBundle, half: bool, compression=OpenEXR.ZIP_COMPRES
 # --- reading ---------------------------------------------------------------------------------------------
 
 
-def _open_exr(path: Path, source: str, max_pixels: int | None = None) -> OpenEXR.File:
+def _open_exr(path: Path, source: str, max_pixels: int | None = None, reference_render: bool = False) -> OpenEXR.File:
     if not path.is_file():
         problem = "is a directory, not a file" if path.is_dir() else "file not found"
         raise FrameFormatError(source, None, problem)
@@ -199,7 +226,7 @@ def _open_exr(path: Path, source: str, max_pixels: int | None = None) -> OpenEXR
         magic = file.read(len(EXR_MAGIC))
     if magic != EXR_MAGIC:
         raise FrameFormatError(source, None, "not an OpenEXR file (wrong magic number)")
-    return _read_exr(lambda: str(path), source, max_pixels)
+    return _read_exr(lambda: str(path), source, max_pixels, reference_render)
 
 
 def _read_headers(target: str | io.BytesIO, source: str) -> list:
@@ -220,37 +247,57 @@ def _part_pixels(part) -> tuple[int, int]:
         return 0, 0  # no usable data window: the full read reports what is wrong with the file
 
 
-def check_declared_pixels(parts: list, source: str, max_pixels: int) -> None:
-    """FrameTooLarge when the headers declare a render part (the first) of more than ``max_pixels`` pixels, or
-    all parts together more than ALL_PARTS_PIXEL_FACTOR times that. Compressed pixel data can declare any size
-    (an all-zero 2048x2048 frame compresses to about 200 KB), so this runs before anything is decoded."""
-    sizes = [_part_pixels(part) for part in parts]
-    if not sizes:
-        return
-    width, height = sizes[0]
-    if width * height > max_pixels:
-        raise FrameTooLarge(source, f"declares {width}x{height} = {width * height} pixels; the limit is "
-                                    f"{max_pixels} pixels per frame", width * height, max_pixels)
-    total = sum(w * h for w, h in sizes)
-    if total > ALL_PARTS_PIXEL_FACTOR * max_pixels:
-        raise FrameTooLarge(source, f"declares {total} pixels in its {len(sizes)} parts; the limit is "
-                                    f"{ALL_PARTS_PIXEL_FACTOR * max_pixels} (the render part plus a 2x reference at "
-                                    f"{max_pixels} pixels per frame)", total, ALL_PARTS_PIXEL_FACTOR * max_pixels)
+def _part_name(part) -> str:
+    try:
+        return part.name() or ""
+    except Exception:  # a header without a usable name: the full read reports what is wrong with the file
+        return ""
 
 
-def check_frame_file_pixels(path: str | os.PathLike, max_pixels: int, source: str | None = None) -> None:
+def check_declared_pixels(parts: list, source: str, max_pixels: int, *, reference_render: bool = False) -> None:
+    """FrameTooLarge when the headers declare a render part (the first part, and any other not named
+    ``reference_x<scale>``: another renderer's pass parts) of more than ``max_pixels`` pixels, or all parts
+    together more than MAX_VALUES_PER_PIXEL values (pixels x channels) per pixel of ``max_pixels``.
+    ``reference_render``: the file is a reference render at the target resolution, whose parts may have
+    REFERENCE_RENDER_PIXEL_FACTOR times the pixels. Compressed pixel data can declare any size (an all-zero
+    2048x2048 frame compresses to about 200 KB), so this runs before anything is decoded, whatever the layout."""
+    limit = max_pixels * (REFERENCE_RENDER_PIXEL_FACTOR if reference_render else 1)
+    values = 0
+    for index, part in enumerate(parts):
+        width, height = _part_pixels(part)
+        name = _part_name(part)
+        if (index == 0 or not REFERENCE_PART_PATTERN.fullmatch(name)) and width * height > limit:
+            where = f" in part '{name}'" if index else ""
+            raise FrameTooLarge(source, f"declares {width}x{height} = {width * height} pixels{where}; the limit is "
+                                        f"{limit} pixels per {'reference render' if reference_render else 'frame'}",
+                                width * height, limit)
+        try:
+            channels = len(part.header.get("channels", ()))
+        except (AttributeError, TypeError):
+            channels = 0
+        values += width * height * max(1, channels)
+    if values > MAX_VALUES_PER_PIXEL * max_pixels:
+        raise FrameTooLarge(source, f"declares {values} values (pixels x channels) in its {len(parts)} parts; the "
+                                    f"limit is {MAX_VALUES_PER_PIXEL * max_pixels} ({MAX_VALUES_PER_PIXEL} per pixel "
+                                    f"of the {max_pixels}-pixel frame limit)",
+                            values, MAX_VALUES_PER_PIXEL * max_pixels)
+
+
+def check_frame_file_pixels(path: str | os.PathLike, max_pixels: int, source: str | None = None, *,
+                            reference_render: bool = False) -> None:
     """``check_declared_pixels`` for an EXR file, reading its headers only."""
     source = source or str(path)
-    check_declared_pixels(_read_headers(str(path), source), source, max_pixels)
+    check_declared_pixels(_read_headers(str(path), source), source, max_pixels, reference_render=reference_render)
 
 
-def _read_exr(target: Callable[[], str | io.BytesIO], source: str, max_pixels: int | None = None) -> OpenEXR.File:
+def _read_exr(target: Callable[[], str | io.BytesIO], source: str, max_pixels: int | None = None,
+              reference_render: bool = False) -> OpenEXR.File:
     """Every part of the EXR at ``target()`` (a path, or a fresh stream per call) with its pixels; with
-    ``max_pixels``, the headers are checked against it first."""
+    ``max_pixels``, the headers are checked against it first (``check_declared_pixels``)."""
     parts = _read_headers(target(), source)
     part_count = len(parts)
     if max_pixels is not None:
-        check_declared_pixels(parts, source, max_pixels)
+        check_declared_pixels(parts, source, max_pixels, reference_render=reference_render)
     exr = _read_coalesced(target, part_count)
     if exr is None:  # an unusual channel layout, or a damaged file: the plain read reports what is wrong
         try:

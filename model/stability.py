@@ -4,7 +4,9 @@ Scenarios come from a dataset folder (sequences matched by their manifest's ``sc
 first with the Mitsuba generator (``generate_scenarios``):
 
 - scene scenarios, one sequence of each generator recipe: ``moving_object`` (disocclusion), ``moving_light``,
-  ``camera_cut``, ``fast_camera``, ``metals`` (glossy and mirror-like), ``glass``, ``dark_fireflies``;
+  ``camera_cut``, ``fast_camera``, ``metals`` (glossy and mirror-like), ``glass``, ``dark_fireflies``, and the
+  ghosting cases ``visible_emitter`` (a visible lamp crossing a textured wall), ``orbiting_light`` (a light
+  jumping 20-50 degrees a frame) and ``sliding_over_texture`` (objects sliding fast over fine texture);
 - derived scenarios, made in memory from one clean base sequence (``diffuse_room`` when present): ``clean`` (the
   base itself), ``first_frames`` (its frames 0-2: before history exists), ``exposure_bright`` / ``exposure_dark``
   (radiance and references x16 and x1/16; albedo, normals and the rest unchanged), ``nan_inf_color`` (NaN and
@@ -16,6 +18,11 @@ Every method is run as in evaluation (``model.evaluate.run_sequence``: inputs th
 history carried, cuts honoured) and scored per scenario: PSNR, SSIM, FLIP, SMAPE, the temporal error,
 optionally FovVideoVDP's JOD, and the PSNR of every frame (the curves). A method that raises or returns a
 non-finite output in a scenario is recorded as failing there; the suite itself never stops on it.
+
+Ghosting (``model.ghosting``), in every scenario whose trail region is non-empty: the error of the output inside
+the region where the reference changed in the last few frames, found from the references and the motion vectors
+(the clean base's motion in derived scenarios that corrupt it). A method is temporal when it carries a state from
+frame to frame; ``least_ghosting`` names the temporal method that ghosts least, per scenario and overall.
 
 "Fails worst" (``fails_worst``): a method's *gain* in a scenario is its PSNR minus the noisy input's PSNR on the
 same frames (the 1spp color, sanitized, bicubic-upscaled when the output is at scale 2): that removes how hard
@@ -38,13 +45,15 @@ import torch
 
 from model.dataset import Dataset, Sequence
 from model.evaluate import EvaluationSequence, _prepare, torch_threads, run_sequence
+from model.ghosting import CHANGE_THRESHOLD, GHOSTING_DEFINITION, TRAIL_FRAMES, ghosting_error, trail_masks
 from model.methods.base import FrameBatch, Method
 from model.metrics import VDP_DISPLAY, FovVideoVdp
 
 __all__ = [
     "SCENE_SCENARIOS", "DERIVED_SCENARIOS", "SCENARIOS", "BASE_SCENES", "Scenario", "scale_exposure",
     "inject_non_finite", "zero_motion", "garbage_motion", "drop_optional_buffers", "derive_scenarios",
-    "build_scenarios", "generate_scenarios", "run_suite", "fails_worst", "format_markdown", "write_report",
+    "build_scenarios", "generate_scenarios", "run_suite", "fails_worst", "least_ghosting", "format_markdown",
+    "write_report",
 ]
 
 SCENE_SCENARIOS: dict[str, str] = {
@@ -55,6 +64,12 @@ SCENE_SCENARIOS: dict[str, str] = {
     "metals": "smooth (mirror-like), glossy and rough metal",
     "glass": "smooth and frosted glass",
     "dark_fireflies": "a dark room lit by one tiny, very bright light: fireflies",
+    "visible_emitter": "a bright, directly visible lamp crosses a finely textured wall under a static camera: "
+                       "history leaves a bright trail",
+    "orbiting_light": "a small bright light orbits at 20-50 degrees a frame over a slow camera orbit: shading and "
+                      "shadows jump every frame",
+    "sliding_over_texture": "a sphere and a textured cube slide fast over fine checker, stripes or bricks under a "
+                            "static camera: ghost copies over texture",
 }
 EXPOSURE_BRIGHT = 16.0
 EXPOSURE_DARK = 1.0 / 16.0
@@ -99,10 +114,22 @@ class Scenario:
     sequence: EvaluationSequence
     source: str  # the dataset sequence the frames come from
     derived: bool = False  # made from the clean base (comparable with the 'clean' scenario)
+    # The motion the trail region is measured with: the frames' own unless a derived scenario corrupted them
+    # (zero_motion, garbage_motion, nan_inf_guides), where the clean base's motion still says what moved.
+    true_motion: list[torch.Tensor] | None = None
 
     @property
     def frames(self) -> list[FrameBatch]:
         return self.sequence.frames
+
+    def references(self) -> torch.Tensor:
+        """The references of every frame, (T, 3, H, W) at the suite's scale."""
+        return torch.cat([frame.reference for frame in self.frames])
+
+    def trails(self) -> torch.Tensor:
+        """The trail region of every frame (``model.ghosting.trail_masks``), (T, 1, H, W) bool."""
+        motion = torch.cat(self.true_motion if self.true_motion is not None else [f.motion for f in self.frames])
+        return trail_masks(self.references(), motion, self.sequence.camera_cuts)
 
 
 # -------------------------------------------------------------------------------------------- transforms
@@ -196,7 +223,7 @@ def derive_scenarios(clean: EvaluationSequence, names: tuple[str, ...] = tuple(D
                 description += " (the base sequence has none of them: the same frames as 'clean')"
             scenarios.append(Scenario(name, description,
                                       EvaluationSequence(name, made, made_cuts, clean.scale), clean.name,
-                                      derived=True))
+                                      derived=True, true_motion=[f.motion for f in frames[:len(made)]]))
     return scenarios
 
 
@@ -295,14 +322,20 @@ def generate_scenarios(root: str | os.PathLike, *, size: tuple[int, int] = (64, 
 
 # ----------------------------------------------------------------------------------------------- running
 
-def _run(method: Method, scenario: Scenario, metric: FovVideoVdp | None, device: torch.device) -> dict:
-    """One method on one scenario; any exception is the method failing there (recorded, not raised)."""
+def _run(method: Method, scenario: Scenario, metric: FovVideoVdp | None, device: torch.device,
+         trails: torch.Tensor) -> dict:
+    """One method on one scenario; any exception is the method failing there (recorded, not raised).
+    ``trails``: the scenario's trail region, where its ghosting is measured."""
     try:
-        run = run_sequence(method, scenario.sequence, vdp=metric, warmup_frames=0, device=device)
+        run = run_sequence(method, scenario.sequence, vdp=metric, warmup_frames=0, device=device, keep_outputs=True)
     except Exception as error:  # noqa: BLE001 - the suite's job is to record how methods fail
         return {"status": "failed", "error": f"{type(error).__name__}: {error}"}
+    ghosting = ghosting_error(run["outputs"], scenario.references(), trails)
     result = {"status": "ok", "error": None, **run["metrics"], "per_frame_psnr": run["per_frame"]["psnr"],
-              "sanitized": run["sanitized"]}
+              "sanitized": run["sanitized"], "keeps_history": run["keeps_history"],
+              "ghost_error": ghosting["error"] if ghosting else None,
+              "ghost_psnr": ghosting["psnr"] if ghosting else None,
+              "per_frame_ghost_error": ghosting["per_frame_error"] if ghosting else None}
     if "fvvdp_error" in run:
         result["fvvdp_error"] = run["fvvdp_error"]
     return result
@@ -327,19 +360,22 @@ def run_suite(scenarios: list[Scenario], methods: list[Method | str], scale: int
     with torch_threads(threads):
         metric = FovVideoVdp(device) if vdp else None
         usable = metric if metric is not None and metric.available else None
+        trails = {scenario.name: scenario.trails() for scenario in scenarios}
         inputs = {}
         for scenario in scenarios:
-            inputs[scenario.name] = _run(baseline.to(device), scenario, None, device)
+            inputs[scenario.name] = _run(baseline.to(device), scenario, None, device, trails[scenario.name])
         entries = []
         for method, source in entrants:
             method.to(device)
             runs = {}
             for scenario in scenarios:
                 say(f"{method.label}: {scenario.name} ({len(scenario.frames)} frames)")
-                runs[scenario.name] = _run(method, scenario, usable, device)
+                runs[scenario.name] = _run(method, scenario, usable, device, trails[scenario.name])
                 if runs[scenario.name]["status"] == "failed":
                     say(f"{method.label}: {scenario.name} FAILED: {runs[scenario.name]['error']}")
-            entries.append({"label": method.label, "source": source, "scenarios": runs})
+            # Temporal: it carried a state from one frame to the next (per-frame methods return {}).
+            temporal = any(run.get("keeps_history") for run in runs.values())
+            entries.append({"label": method.label, "source": source, "temporal": temporal, "scenarios": runs})
         threads_used = torch.get_num_threads()
     first = scenarios[0].sequence
     report = {
@@ -354,17 +390,29 @@ def run_suite(scenarios: list[Scenario], methods: list[Method | str], scale: int
         "definition": DEFINITION,
         "scenarios": [{"name": s.name, "description": s.description, "source": s.source, "derived": s.derived,
                        "frames": len(s.frames), "camera_cuts": [i for i, c in enumerate(s.sequence.camera_cuts) if c],
-                       "sanitized": inputs[s.name].get("sanitized")} for s in scenarios],
+                       "sanitized": inputs[s.name].get("sanitized"), "trail": _trail_summary(trails[s.name])}
+                      for s in scenarios],
         "missing_scenarios": list(missing or []),
         "fvvdp": {"enabled": metric is not None, "available": usable is not None,
                   "reason": None if metric is None else metric.unavailable_reason, "display": VDP_DISPLAY},
         "input": {name: {"label": INPUT_LABEL if scale == 1 else f"input (1spp, bicubic x{scale})",
                          "status": run["status"], "error": run["error"], "psnr": run.get("psnr"),
-                         "per_frame_psnr": run.get("per_frame_psnr")} for name, run in inputs.items()},
+                         "per_frame_psnr": run.get("per_frame_psnr"), "ghost_error": run.get("ghost_error"),
+                         "ghost_psnr": run.get("ghost_psnr"), "per_frame_ghost_error": run.get("per_frame_ghost_error")}
+                  for name, run in inputs.items()},
         "methods": entries,
     }
     score(report)
+    report["ghosting"] = least_ghosting(report)
     return report
+
+
+def _trail_summary(trails: torch.Tensor) -> dict:
+    """How much of a scenario its trail region covers: frames with a trail, and the mean fraction of their
+    pixels in it (None without any)."""
+    coverage = [float(trail.float().mean()) for trail in trails if bool(trail.any())]
+    return {"frames": len(coverage), "coverage": statistics.fmean(coverage) if coverage else None,
+            "per_frame_coverage": [float(trail.float().mean()) for trail in trails]}
 
 
 # ------------------------------------------------------------------------------------------------ scoring
@@ -418,6 +466,28 @@ def score(report: dict) -> None:
         entry["worst"] = {key: worst[key] for key in ("scenario", "failed", "reason", "drop_db", "gain_db")}
         if worst["scenario"] is not None and not worst["failed"]:
             entry["worst"]["psnr"] = psnr[worst["scenario"]]
+
+
+def least_ghosting(report: dict) -> dict:
+    """Which temporal method ghosts least (``model.ghosting``): per scenario with a trail, the temporal method with
+    the lowest ghost error; overall, the one with the lowest mean ghost error over the scenarios where every
+    temporal method has one (so each mean covers the same scenes). Per-frame methods cannot ghost and are left
+    out. Returns {"definition", "trail_frames", "threshold", "temporal": [labels], "by_scenario": {scenario:
+    label or None}, "mean_error": {label: mean}, "common_scenarios": [...], "least": label or None}."""
+    temporal = [entry for entry in report["methods"] if entry.get("temporal")]
+    with_trail = [s["name"] for s in report["scenarios"] if s["trail"]["frames"]]
+    by_scenario = {}
+    for name in with_trail:
+        scored = [(entry["scenarios"][name]["ghost_error"], entry["label"]) for entry in temporal
+                  if entry["scenarios"][name].get("ghost_error") is not None]
+        by_scenario[name] = min(scored)[1] if scored else None
+    common = [name for name in with_trail
+              if all(entry["scenarios"][name].get("ghost_error") is not None for entry in temporal)]
+    means = {entry["label"]: statistics.fmean(entry["scenarios"][name]["ghost_error"] for name in common)
+             for entry in temporal} if common else {}
+    return {"definition": GHOSTING_DEFINITION, "trail_frames": TRAIL_FRAMES, "threshold": CHANGE_THRESHOLD,
+            "temporal": [entry["label"] for entry in temporal], "by_scenario": by_scenario, "mean_error": means,
+            "common_scenarios": common, "least": min(means, key=means.get) if means else None}
 
 
 # ------------------------------------------------------------------------------------------------ report
@@ -482,6 +552,8 @@ def format_markdown(report: dict, charts: dict[str, str] | None = None) -> str:
         lines.append(f"| {name} | " + " | ".join(_cell(e["scenarios"][name], "drop_db", "{:+.2f}")
                                                 for e in methods) + " |")
 
+    lines += _ghosting_lines(report, charts)
+
     lines += ["", "## Every metric per scenario", "",
               "vs clean: PSNR minus the method's PSNR on `clean` (derived scenarios only; exposure and first frames "
               "compare other references or fewer frames, so read them with the gain)."]
@@ -490,17 +562,17 @@ def format_markdown(report: dict, charts: dict[str, str] | None = None) -> str:
         cuts = f", cut before frame {', '.join(map(str, scenario['camera_cuts']))}" if scenario["camera_cuts"] else ""
         lines += ["", f"### {name}", "",
                   f"{scenario['description']} (from `{scenario['source']}`, {scenario['frames']} frames{cuts})", "",
-                  "| method | PSNR ↑ | SSIM ↑ | FLIP ↓ | SMAPE ↓ | temporal ↓ | JOD ↑ | gain dB | vs clean dB |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| method | PSNR ↑ | SSIM ↑ | FLIP ↓ | SMAPE ↓ | temporal ↓ | ghost ↓ | JOD ↑ | gain dB "
+                  "| vs clean dB |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for entry in methods:
             run = entry["scenarios"][name]
             if run["status"] == "failed":
-                lines.append(f"| {entry['label']} | FAILED: {_text(run['error'])} |" + " |" * 8)
+                lines.append(f"| {entry['label']} | FAILED: {_text(run['error'])} |" + " |" * 9)
                 continue
             cells = [_number(run["psnr"]), _number(run["ssim"], "{:.4f}"), _number(run["flip"], "{:.4f}"),
                      _number(run["smape"], "{:.4f}"), _number(run["temporal_error"], "{:.5f}"),
-                     _number(run.get("fvvdp_jod")), _number(run["gain_db"], "{:+.2f}"),
-                     _number(run["vs_clean_db"], "{:+.2f}")]
+                     _number(run.get("ghost_error"), "{:.4f}"), _number(run.get("fvvdp_jod")),
+                     _number(run["gain_db"], "{:+.2f}"), _number(run["vs_clean_db"], "{:+.2f}")]
             lines.append(f"| {entry['label']} | " + " | ".join(cells) + " |")
 
     lines += ["", "## Sanitized inputs", "",
@@ -529,18 +601,72 @@ def format_markdown(report: dict, charts: dict[str, str] | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _plot_curves(axis, report: dict, scenario: dict) -> None:
+def _ghosting_lines(report: dict, charts: dict[str, str]) -> list[str]:
+    """The ghosting section: ghost error and ghost PSNR per scenario with a trail, who ghosts least, the chart."""
+    ghosting, methods = report["ghosting"], report["methods"]
+    with_trail = [s for s in report["scenarios"] if s["trail"]["frames"]]
+    lines = ["", "## Ghosting (error inside the trail region; lower is better)", "",
+             f"Definition: {ghosting['definition']}", ""]
+    if ghosting["temporal"]:
+        lines.append("Temporal methods (they carry history from frame to frame): "
+                     + ", ".join(ghosting["temporal"]) + ".")
+    else:
+        lines.append("No temporal method ran (per-frame methods cannot ghost).")
+    if ghosting["least"] is not None:
+        others = "; ".join(f"{label} {value:.4f}" for label, value in ghosting["mean_error"].items()
+                           if label != ghosting["least"])
+        lines.append(f"Ghosts least among them: **{ghosting['least']}** (mean ghost error "
+                     f"{ghosting['mean_error'][ghosting['least']]:.4f} over {len(ghosting['common_scenarios'])} "
+                     f"scenarios with a trail" + (f"; {others}" if others else "") + ").")
+    without = [s["name"] for s in report["scenarios"] if not s["trail"]["frames"]]
+    if without:
+        lines.append("No trail (nothing changed beyond what the motion explains): " + ", ".join(without) + ".")
+    if not with_trail:
+        return lines
+    labels = [report["input"][with_trail[0]["name"]]["label"]] + [e["label"] for e in methods]
+    lines += ["", "Ghost error (mean display-encoded absolute error in the trail, 0..1; lower is better):", "",
+              "| scenario | trail frames | trail pixels | " + " | ".join(labels) + " | least (temporal) |",
+              "|---|---:|---:|" + "---:|" * len(labels) + "---|"]
+    for scenario in with_trail:
+        name = scenario["name"]
+        cells = [_cell(report["input"][name], "ghost_error", "{:.4f}")]
+        cells += [_cell(e["scenarios"][name], "ghost_error", "{:.4f}") for e in methods]
+        trail = scenario["trail"]
+        lines.append(f"| {name} | {trail['frames']}/{scenario['frames']} | {trail['coverage']:.1%} | "
+                     + " | ".join(cells) + f" | {ghosting['by_scenario'].get(name) or '-'} |")
+    lines += ["", "Ghost PSNR (dB in the trail; higher is better):", "",
+              "| scenario | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
+    for scenario in with_trail:
+        name = scenario["name"]
+        cells = [_cell(report["input"][name], "ghost_psnr", "{:.2f}")]
+        cells += [_cell(e["scenarios"][name], "ghost_psnr", "{:.2f}") for e in methods]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    if "ghost_curves" in charts:
+        lines += ["", "Ghost error of every frame (gaps: no trail yet), one line per method, the noisy input dashed:",
+                  "", f"![ghost error per frame]({charts['ghost_curves']})"]
+    return lines
+
+
+# What a curves chart plots: the per-frame values' key in a run, and the y-axis label.
+CURVES = {"psnr": ("per_frame_psnr", "PSNR dB"),
+          "ghost_error": ("per_frame_ghost_error", "ghost error (lower is better)")}
+
+
+def _plot_curves(axis, report: dict, scenario: dict, key: str = "per_frame_psnr", ylabel: str = "PSNR dB") -> None:
     from matplotlib.ticker import MaxNLocator
+
+    def numbers(values: list[float | None]) -> list[float]:
+        return [math.nan if v is None else v for v in values]  # frames without a value (no trail) leave a gap
 
     name = scenario["name"]
     source = report["input"][name]
-    if source.get("per_frame_psnr"):
-        values = source["per_frame_psnr"]
+    if source.get(key):
+        values = numbers(source[key])
         axis.plot(range(len(values)), values, linestyle="--", color="gray", label=source["label"])
     for entry in report["methods"]:
         run = entry["scenarios"][name]
         if run["status"] == "ok":
-            values = run["per_frame_psnr"]
+            values = numbers(run[key])
             axis.plot(range(len(values)), values, marker="o", markersize=2.5, linewidth=1.2, label=entry["label"])
         else:
             axis.plot([], [], linestyle="none", label=f"{entry['label']} (failed)")
@@ -549,23 +675,28 @@ def _plot_curves(axis, report: dict, scenario: dict) -> None:
     axis.set_title(name, fontsize=9)
     axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     axis.set_xlabel("frame", fontsize=8)
-    axis.set_ylabel("PSNR dB", fontsize=8)
+    axis.set_ylabel(ylabel, fontsize=8)
     axis.tick_params(labelsize=7)
     axis.grid(True, alpha=0.3)
 
 
-def curves_chart(report: dict, path: Path, scenario: str | None = None) -> Path:
-    """Per-frame PSNR: one panel per scenario (or only ``scenario``), one line per method (matplotlib Figure)."""
+def curves_chart(report: dict, path: Path, scenario: str | None = None, metric: str = "psnr") -> Path:
+    """Per-frame PSNR (``metric`` "psnr") or ghost error ("ghost_error", scenarios with a trail only): one panel
+    per scenario (or only ``scenario``), one line per method (matplotlib Figure)."""
     from matplotlib.figure import Figure
 
-    scenarios = [s for s in report["scenarios"] if scenario is None or s["name"] == scenario]
+    key, ylabel = CURVES[metric]
+    scenarios = [s for s in report["scenarios"] if (scenario is None or s["name"] == scenario)
+                 and (metric != "ghost_error" or s["trail"]["frames"])]
+    if not scenarios:
+        raise ValueError(f"no scenario to chart {metric} for")
     columns = min(4, len(scenarios))
     rows = math.ceil(len(scenarios) / columns)
     legend_inches = 0.45
     figure = Figure(figsize=(3.6 * columns, 2.7 * rows + legend_inches))
     axes = figure.subplots(rows, columns, squeeze=False)
     for index, entry in enumerate(scenarios):
-        _plot_curves(axes[index // columns][index % columns], report, entry)
+        _plot_curves(axes[index // columns][index % columns], report, entry, key, ylabel)
     for index in range(len(scenarios), rows * columns):
         axes[index // columns][index % columns].set_axis_off()
     handles, labels = axes[0][0].get_legend_handles_labels()
@@ -616,13 +747,15 @@ REPORT_MARKDOWN = "stability.md"
 
 
 def write_report(report: dict, out: str | os.PathLike, per_scenario_charts: bool = True) -> dict[str, Path]:
-    """Write ``stability.json``, the charts (``psnr_curves.png``, ``psnr_drop.png``, ``curves/NAME.png``) and
-    ``stability.md`` into the folder ``out``; returns name -> path."""
+    """Write ``stability.json``, the charts (``psnr_curves.png``, ``psnr_drop.png``, ``ghost_curves.png`` when a
+    scenario has a trail, ``curves/NAME.png``) and ``stability.md`` into the folder ``out``; returns name -> path."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = {"json": out / REPORT_JSON, "markdown": out / REPORT_MARKDOWN,
              "psnr_curves": curves_chart(report, out / "psnr_curves.png"),
              "psnr_drop": drop_chart(report, out / "psnr_drop.png")}
+    if any(s["trail"]["frames"] for s in report["scenarios"]):
+        files["ghost_curves"] = curves_chart(report, out / "ghost_curves.png", metric="ghost_error")
     if per_scenario_charts:
         for scenario in report["scenarios"]:
             files["curve:" + scenario["name"]] = curves_chart(report, out / "curves" / f"{scenario['name']}.png",

@@ -50,6 +50,7 @@ from model.losses import TONEMAPS, SequenceLoss
 from model.methods.base import FrameBatch, Method
 from model.methods.registry import build_method, inference_cost
 from model.ops.tonemap import display_encode
+from model.spatial_cache import SpatialEstimateCache
 
 SCHEDULES = ("cosine", "step", "constant")
 DEVICES = ("auto", "cpu", "cuda")
@@ -277,11 +278,13 @@ def prepare(config: TrainConfig) -> tuple[SequenceCrops, list[FrameCache], Metho
     """
     config.check()
     dataset = Dataset(config.data)
-    crops = SequenceCrops(dataset, config.train_split, config.crop_size, config.frames_per_sample,
-                          scale=config.scale, seed=config.seed, augment=config.augment)
-    validation = [FrameCache(sequence, config.scale) for sequence in dataset.sequences(config.validation_split)]
     torch.manual_seed(config.seed)  # the same initial weights in every rank and every run
     method = build_method(config.method, config.scale)
+    spatial = SpatialEstimateCache(method.spatial_prior, dataset.root) if method.spatial_prior else None
+    crops = SequenceCrops(dataset, config.train_split, config.crop_size, config.frames_per_sample,
+                          scale=config.scale, seed=config.seed, augment=config.augment, spatial=spatial)
+    validation = [FrameCache(sequence, config.scale, spatial)
+                  for sequence in dataset.sequences(config.validation_split)]
     if not any(p.requires_grad for p in method.parameters()):
         raise ValueError(f"method {method.label!r} has no trainable parameters; only learned methods train")
     if config.init_from:

@@ -223,22 +223,28 @@ class DenoiserClient:
     # --- datasets ------------------------------------------------------------------------------------------
 
     def upload_dataset(self, source: str | os.PathLike, name: str | None = None, split: str = "train",
-                       skipped: list[str] | None = None) -> dict:
+                       skipped: list[str] | None = None, layout: str | None = None) -> dict:
         """Upload a dataset folder, a sequence folder, a folder of sequence folders, or a zip / tar(.gz).
 
         A folder is packed into a temporary uncompressed tar (frames are ZIP-compressed EXRs already) holding
         only what the manifests list, so stray files (previews, reports, half-written ``.partial`` folders)
         do not make the server refuse the upload; their paths are appended to ``skipped`` when given. The
         archive is streamed from disk, never held in memory. Returns the new dataset (201 body).
+
+        ``layout``: a built-in layout other than ``denoiser`` sends a renderer's sequence folder (frame EXRs and
+        ``references/``), or a folder of them, for the server to convert (``?layout=``).
         """
         source = Path(source)
         params = {"split": split}
         if name is not None:
             params["name"] = name
+        if layout is not None:
+            params["layout"] = layout
         if source.is_dir():
             with tempfile.TemporaryDirectory(prefix="denoiser-upload-") as work:
                 archive = Path(work) / f"{source.resolve().name or 'dataset'}.tar"
-                left_out = pack_folder(source, archive)
+                renderer_frames = layout not in (None, "denoiser")
+                left_out = pack_renderer_folder(source, archive) if renderer_frames else pack_folder(source, archive)
                 if skipped is not None:
                     skipped.extend(left_out)
                 return self._upload_archive(archive, "application/x-tar", params)
@@ -384,11 +390,14 @@ class DenoiserClient:
     # --- sessions ------------------------------------------------------------------------------------------
 
     def create_session(self, model: str, version: str | int | None = None, alias: str | None = None,
-                       on_gap: str = "reset") -> dict:
+                       on_gap: str = "reset", layout: str | dict | None = None) -> dict:
+        """``layout``: a built-in layout's name or a layout mapping (the keys of a layout file); default denoiser."""
         if version is not None and alias is not None:
             raise ValueError("give a model version or an alias, not both")
         body = {"model": model, "version": None if version is None else str(version), "alias": alias,
                 "on_gap": on_gap}
+        if layout is not None:
+            body["layout"] = layout
         session = self._json("POST", "/sessions", json=body)
         if session.get("token"):  # the server has owner tokens on: every later request on it sends this one
             self._session_tokens[session["id"]] = session["token"]
@@ -438,21 +447,30 @@ class DenoiserClient:
 
         The outputs are the server's EXRs byte for byte (written under a temporary name, then renamed). The
         server ignores references, so with ``strip_references`` (default) frames that carry them are re-encoded
-        without them first: a scale-2 reference alone is 4x the size of the noisy color.
+        without them first: a scale-2 reference alone is 4x the size of the noisy color. A folder without
+        manifest.json is a renderer's plain folder of EXRs: its files are sent as they are, in name order, for the
+        session to read in its layout.
         """
         from model.dataset import Sequence, frame_file_name
 
-        sequence = Sequence(sequence_dir)
         out_dir = Path(out_dir)
+        if (Path(sequence_dir) / MANIFEST).is_file():
+            sequence = Sequence(sequence_dir)
+            paths = [sequence.frame_path(index) for index in range(len(sequence))]
+            reencode = strip_references and bool(sequence.scales)
+        else:
+            from model.importer import frame_files
+
+            paths, reencode = frame_files(Path(sequence_dir)), False
         out_dir.mkdir(parents=True, exist_ok=True)
         infos: list[FrameInfo] = []
         files: list[Path] = []
         started = time.perf_counter()
-        for index in range(len(sequence)):
-            if strip_references and sequence.scales:
-                body = frame_bytes(sequence.frame_path(index))  # read leniently: the session repairs NaN / Inf
+        for index, frame_path in enumerate(paths):
+            if reencode:
+                body = frame_bytes(frame_path)  # read leniently: the session repairs NaN / Inf
             else:
-                body = sequence.frame_path(index).read_bytes()
+                body = frame_path.read_bytes()
             data, info = self.send_frame_raw(session_id, body)
             path = _write_atomically(out_dir / frame_file_name(index), data)
             infos.append(info)
@@ -590,6 +608,27 @@ def pack_folder(folder: str | os.PathLike, archive: str | os.PathLike) -> list[s
     """
     root = Path(folder)
     members, left_out = folder_members(root)
+    top = root.resolve().name or "upload"
+    with tarfile.open(archive, "w", format=tarfile.PAX_FORMAT) as tar:
+        for path in members:
+            tar.add(path, arcname=str(PurePosixPath(top, *path.relative_to(root).parts)), recursive=False)
+    return left_out
+
+
+def pack_renderer_folder(folder: str | os.PathLike, archive: str | os.PathLike) -> list[str]:
+    """``pack_folder`` for a renderer's frames (an upload with a layout): the folder is one sequence (its *.exr and
+    references/*.exr) or holds one per sub-folder. Returns the files left out (anything else)."""
+    root = Path(folder)
+
+    def exrs(path: Path) -> list[Path]:
+        return sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() == ".exr") if path.is_dir() else []
+
+    sequences = [root] if exrs(root) else [entry for entry in sorted(root.iterdir()) if exrs(entry)]
+    if not sequences:
+        raise FileNotFoundError(f"{root}: no frame EXRs, neither in the folder nor in its sub-folders")
+    members = [path for sequence in sequences for path in exrs(sequence) + exrs(sequence / "references")]
+    chosen = set(members)
+    left_out = sorted(str(path.relative_to(root)) for path in root.rglob("*") if path.is_file() and path not in chosen)
     top = root.resolve().name or "upload"
     with tarfile.open(archive, "w", format=tarfile.PAX_FORMAT) as tar:
         for path in members:

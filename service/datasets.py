@@ -54,10 +54,13 @@ from model.dataset import (
     json_problem,
     write_json_atomically,
 )
-from model.exr import CHANNEL_SLOTS, FrameTooLarge, check_frame_file_pixels, read_frame, write_frame
+from model.exr import CHANNEL_SLOTS, FrameTooLarge, check_frame_file_pixels, write_frame
 from model.frames import BUFFERS, FrameBundle, FrameError
+from model.importer import REFERENCES_FOLDER
+from model.layouts import BUILTIN_LAYOUTS, Layout, read_layout_frame
 from service.schemas import DatasetDetail, DatasetSummary, SequenceInfo, SplitSummary, StagedSequence
 from service.storage import Storage, checked_id
+from service.upload_layouts import UploadNotes, import_renderer_folders, strip_unused_channels
 
 log = logging.getLogger("denoiser.datasets")
 
@@ -570,20 +573,33 @@ def dataset_exists(storage: Storage, dataset_id: str) -> bool:
 
 def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str, *, create: bool,
                    split: str = "train", replace: bool = False, max_unpacked_bytes: int,
-                   max_pixels: int | None = None) -> DatasetDetail:
+                   max_pixels: int | None = None, layout: Layout | None = None,
+                   notes: UploadNotes | None = None) -> DatasetDetail:
     """Unpack and validate an uploaded archive in ``work`` (a staging workspace), then store it; ``max_pixels``:
-    every frame's header is checked against it before any frame is decoded (FrameTooLargeUpload).
+    every EXR's header is checked against it before any frame is decoded, in any layout (FrameTooLargeUpload).
 
     ``create``: make dataset ``dataset_id`` (UploadConflict if it exists), else add the archive's sequences
     to it (UnknownDataset if it does not exist; UploadConflict for taken names unless ``replace``).
+    ``layout`` (other than ``denoiser``): the archive holds a renderer's sequence folders, converted first
+    (``service.upload_layouts``). Channels the format does not use are dropped either way; ``notes`` collects them
+    and the conversion's warnings.
     """
     if split not in SPLITS:
         raise InvalidUpload("invalid_split", f"unknown split {split!r}; allowed: {', '.join(SPLITS)}")
+    notes = UploadNotes() if notes is None else notes
     unpacked = work / "unpacked"
     unpack_archive(archive, unpacked, max_unpacked_bytes)
     archive.unlink()  # the unpacked copy is all we need; free the space early
-    if max_pixels is not None:
-        check_unpacked_frame_pixels(unpacked, max_pixels)
+    renderer_frames = layout is not None and layout.name != "denoiser"
+    if max_pixels is not None:  # before the conversion or the stripping of unused channels decodes a frame
+        check_unpacked_frame_pixels(unpacked, max_pixels, renderer_frames=renderer_frames)
+    try:
+        if renderer_frames:
+            unpacked = import_renderer_folders(unpacked, _unwrap(unpacked), work / "imported", layout, split, notes)
+        else:
+            strip_unused_channels(unpacked, notes)
+    except (DatasetError, FrameError) as error:
+        raise _invalid(error, unpacked) from None
     sequences = find_sequences(unpacked, split)
     with dataset_lock(storage, dataset_id):
         if create:
@@ -595,12 +611,16 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
     return describe_dataset(storage, dataset_id)
 
 
-def check_unpacked_frame_pixels(root: Path, max_pixels: int) -> None:
-    """FrameTooLargeUpload for the first EXR under ``root`` whose header declares more than ``max_pixels``."""
+def check_unpacked_frame_pixels(root: Path, max_pixels: int, *, renderer_frames: bool = False) -> None:
+    """FrameTooLargeUpload for the first EXR under ``root`` whose header declares more than ``max_pixels``.
+
+    ``renderer_frames`` (an upload in another renderer's layout): files in a ``references/`` folder are reference
+    renders, at up to 2x the frames' resolution (``model.exr.check_declared_pixels``)."""
     for path in sorted(root.rglob("*.exr")):
         if path.is_file():
             try:
-                check_frame_file_pixels(path, max_pixels, _relative(path, root))
+                check_frame_file_pixels(path, max_pixels, _relative(path, root),
+                                        reference_render=renderer_frames and path.parent.name == REFERENCES_FOLDER)
             except FrameTooLarge as error:
                 raise _too_many_pixels(error) from None
             except FrameError:
@@ -636,25 +656,32 @@ def _staged_info(dataset_id: str, state: dict) -> StagedSequence:
 
 def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, *, split: str | None = None,
                 scene: str | None = None, scales: list[int] | None = None,
+                layout: Layout | None = None, notes: UploadNotes | None = None,
                 max_pixels: int | None = None) -> StagedSequence:
     """Validate one uploaded frame EXR and append it to the staged sequence (the first frame starts it).
 
     The frame's ``frame_index`` must be the next one (0 first); resolution, reference scales and buffers must
     match the first frame; its ``sequence`` header must be empty or the sequence name. ``split`` and ``scene``
     are taken from the first frame's request (a later different split is refused); ``scales``, when given,
-    are the reference scales every frame must have.
+    are the reference scales every frame must have. ``layout`` (default ``denoiser``): how the EXR's channels map
+    to the frame bundle; values are checked strictly, channels it does not use are dropped, and a frame without a
+    frame index (or in another layout) is the next one; ``notes`` collects the channels dropped.
     """
     folder, state_file = _staged_paths(storage, dataset_id, sequence)
     if split is not None and split not in SPLITS:
         raise InvalidUpload("invalid_split", f"unknown split {split!r}; allowed: {', '.join(SPLITS)}")
     label = f"frame upload to {dataset_id}/{sequence}"
+    layout = BUILTIN_LAYOUTS["denoiser"] if layout is None else layout
     try:
-        frame = read_frame(upload, max_pixels=max_pixels)
+        read = read_layout_frame(upload, layout, mode="strict", max_pixels=max_pixels)
     except FrameTooLarge as error:
         raise _too_many_pixels(FrameTooLarge(label, error.problem, error.pixels, error.limit)) from None
     except FrameError as error:
         message = str(error).replace(str(upload), label)
         raise InvalidUpload("invalid_frame", message, {"buffer": error.buffer, "problem": error.problem}) from None
+    frame = read.frame
+    # The file as uploaded can be stored only when it is exactly the frame bundle the sequence needs.
+    as_uploaded = layout.name == "denoiser" and not read.ignored_channels and read.frame_index_given
     if frame.sequence not in ("", sequence):
         raise InvalidUpload("invalid_frame", f"{label}: the frame's 'sequence' header says {frame.sequence!r}, not "
                             f"{sequence!r}; upload it to sequence {frame.sequence!r} or write it with sequence "
@@ -666,6 +693,10 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
     with dataset_lock(storage, dataset_id):
         state = json.loads(state_file.read_text()) if state_file.is_file() else None
         expected = 0 if state is None else len(state["frames"])
+        # Renderers number frames their own way (Blender from its timeline's start) or not at all: in another
+        # layout, or without a frame index, the uploaded frame is the next one.
+        if not read.frame_index_given or layout.name != "denoiser":
+            frame = dataclasses.replace(frame, frame_index=expected)
         if frame.frame_index != expected:
             raise UploadConflict("frame_out_of_order", f"{label}: frame_index is {frame.frame_index}, expected "
                                                        f"{expected} (frames are uploaded in order from 0)",
@@ -677,13 +708,16 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
         else:
             _check_continues(state, frame, buffers, split, label)
         file = frame_file_name(expected)
-        if frame.sequence == sequence:
+        if frame.sequence == sequence and as_uploaded:
             os.replace(upload, folder / file)  # already exactly what the stored sequence needs
         else:
-            # The header must name the sequence (Sequence checks it): write the frame again with it filled in.
+            # The header must name the sequence (Sequence checks it), and the file hold the frame bundle only:
+            # write the frame again with it filled in.
             write_frame(folder / file, dataclasses.replace(frame, sequence=sequence))
         state["frames"].append({"index": expected, "file": file, "camera_cut": bool(frame.camera_cut)})
         write_json_atomically(state_file, state)
+    if notes is not None:
+        notes.ignored_channels.update(read.ignored_channels)
     return _staged_info(dataset_id, state)
 
 

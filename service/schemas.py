@@ -288,6 +288,9 @@ class AliasOut(BaseModel):
 OnGap = Literal["reset", "reject"]
 
 
+from typing import Any  # noqa: E402  (this section's own import)
+
+from pydantic import field_validator as _session_field_validator  # noqa: E402  (this section's own import)
 from pydantic import model_validator as _session_validator  # noqa: E402  (this section's own import)
 
 
@@ -317,6 +320,21 @@ class SessionIn(BaseModel):
                                                "version wins (FLOPs per pixel)")
     family: str | None = Field(None, pattern=r"^[A-Za-z0-9_]+$", description="auto: only versions of this method")
     scale: Literal[1, 2] | None = Field(None, description="auto: only versions at this output scale")
+    layout: str | dict[str, Any] = Field(
+        "denoiser", description="how the posted frames' EXR channels map to the frame bundle: a built-in layout "
+                                "(denoiser, blender-cycles, generic) or a layout object (README, 'Bringing your "
+                                "renderer's frames')", examples=["blender-cycles"])
+
+    @_session_field_validator("layout")
+    @classmethod
+    def _known_layout(cls, value: str | dict[str, Any]) -> str | dict[str, Any]:
+        from model.layouts import LayoutError, layout_from_value
+
+        try:
+            layout_from_value(value)
+        except LayoutError as error:
+            raise ValueError(str(error)) from None
+        return value
 
     @_session_validator(mode="after")
     def _auto_fields(self) -> SessionIn:
@@ -400,6 +418,7 @@ class SessionOut(BaseModel):
     resolution: list[int] | None = Field(description="[width, height] every frame must have until a reset "
                                                       "(set by the first frame); null before it")
     choice: AutoChoiceOut | None = Field(None, description="model 'auto' only: the version chosen and why")
+    layout: str | dict[str, Any] = Field("denoiser", description="the layout posted frames are read in")
     token: str | None = Field(None, description="only in the answer to POST /sessions, and only where the server "
                                                 "has DENOISER_SESSION_OWNER_TOKENS on: send it as X-Session-Token "
                                                 "with every request on this session")

@@ -46,6 +46,7 @@ restart meanwhile.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 import json
@@ -152,6 +153,7 @@ class Session:
     revision: int = 0
     # SHA-256 of the owner token given at creation (DENOISER_SESSION_OWNER_TOKENS), None: any key holder drives it.
     owner_digest: str | None = None
+    layout: str | dict[str, Any] = "denoiser"  # how posted frames are read (model.layouts.layout_from_value)
     # Runtime only (not in the metadata):
     state: State | None = field(default=None, repr=False)
     method: Method | None = field(default=None, repr=False)
@@ -169,7 +171,7 @@ class Session:
                 "last_used_at": self.last_used_at, "frames_processed": self.frames_processed,
                 "next_frame_index": self.next_frame_index,
                 "resolution": list(self.resolution) if self.resolution else None, "revision": self.revision,
-                "owner_digest": self.owner_digest}
+                "owner_digest": self.owner_digest, "layout": self.layout}
 
     @classmethod
     def from_metadata(cls, meta: dict[str, Any], ttl_seconds: int) -> Session:
@@ -177,7 +179,7 @@ class Session:
                    created_at=meta["created_at"], last_used_at=meta["last_used_at"], ttl_seconds=ttl_seconds,
                    frames_processed=meta["frames_processed"], next_frame_index=meta["next_frame_index"],
                    resolution=tuple(meta["resolution"]) if meta["resolution"] else None, revision=meta["revision"],
-                   owner_digest=meta.get("owner_digest"))
+                   owner_digest=meta.get("owner_digest"), layout=meta.get("layout", "denoiser"))
 
 
 @dataclass(frozen=True)
@@ -354,10 +356,10 @@ class SessionStore:
 
     def create(self, model: str, version: str | None = None, alias: str | None = None,
                on_gap: str = "reset", choice: dict[str, Any] | None = None,
-               owner_digest: str | None = None) -> Session:
+               owner_digest: str | None = None, layout: str | dict[str, Any] = "denoiser") -> Session:
         """A new session of registered model ``model`` at ``version``, ``alias`` or (neither) its latest version;
         ``choice`` (model "auto": how the version was chosen) is kept with the session's model; ``owner_digest``:
-        see ``token_digest``.
+        see ``token_digest``; ``layout``: how its frames are read (``model.layouts.layout_from_value``).
 
         Raises UnknownModelError (KeyError) / ValueError from the registry, SessionLimitReached past the cap.
         """
@@ -375,7 +377,7 @@ class SessionStore:
                                    preset=method.preset, scale=method.scale, params=method.parameter_count(),
                                    choice=choice),
                 on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method,
-                owner_digest=owner_digest)
+                owner_digest=owner_digest, layout=layout)
             with self._lock:
                 self._sessions[session.id] = session
             self._mirror(session, wait=True)
@@ -424,11 +426,20 @@ class SessionStore:
 
     def owner_digest(self, session_id: str) -> str | None:
         """The session's owner digest: from memory when it is there (no Redis access), else as ``get``."""
+        return self._as_created(session_id).owner_digest
+
+    def layout(self, session_id: str) -> str | dict[str, Any]:
+        """The layout the session reads frames in: from memory when it is there (no Redis access), else as ``get``."""
+        return self._as_created(session_id).layout
+
+    def _as_created(self, session_id: str) -> Session:
+        """The session for what never changes after its creation (owner digest, layout): the copy in memory when
+        there is a live one, else ``get``'s."""
         with self._lock:
             session = self._sessions.get(session_id)
         if session is None or session.expired(self.clock()):
             session = self.get(session_id)
-        return session.owner_digest
+        return session
 
     def exists(self, session_id: str) -> bool:
         """Whether the session is live in this process's memory (no Redis access, so cheap enough to call from an
@@ -443,8 +454,11 @@ class SessionStore:
         if writer is not None:
             writer.start()
 
-    def process_frame(self, session_id: str, frame: FrameBundle, *, start_mirror: bool = True) -> FrameResult:
+    def process_frame(self, session_id: str, frame: FrameBundle, *, start_mirror: bool = True,
+                      frame_index_given: bool = True) -> FrameResult:
         """Run one frame through the session's method; raises SessionNotFound or FrameRejected.
+
+        ``frame_index_given=False`` (the file had no frame index): the frame is the session's next one.
 
         The new revision's Redis mirror is written in the background, starting now or, with ``start_mirror=False``,
         at ``start_mirror(session_id)`` (or the session's next use, or ``flush``), whichever comes first.
@@ -455,6 +469,8 @@ class SessionStore:
             session = self._current(session_id, activate=True)
             if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
                 session.method = self._method(session.model.name, session.model.version)
+            if not frame_index_given:
+                frame = dataclasses.replace(frame, frame_index=session.next_frame_index or 0)
             resolution = (frame.width, frame.height)
             if session.resolution is not None and resolution != session.resolution:
                 raise FrameRejected(

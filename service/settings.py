@@ -26,7 +26,8 @@ class Settings(BaseSettings):
     max_frame_bytes: int = Field(256 * 1024**2, gt=0, description="largest accepted single-frame EXR")
     max_frame_pixels: int = Field(
         2 * 1024**2, gt=0, description="largest render resolution (width x height) of any frame (sessions, frame "
-        "uploads, archives), checked from the EXR header before decoding; all parts together may hold 5 times it")
+        "uploads, archives, in any layout), checked from the EXR headers before decoding; all parts together may "
+        "declare 128 values (pixels x channels) per pixel of it")
     max_unpacked_bytes: int = Field(4 * 1024**3, gt=0, description="most bytes one archive may unpack to")
     max_archive_ratio: float = Field(
         20.0, gt=0, description="most bytes an archive may unpack to per byte uploaded, once past "

@@ -30,24 +30,29 @@ import torch
 from model.dataset import Dataset, Sequence
 from model.frames import TARGET_FIELDS
 from model.methods.base import FrameBatch
+from model.spatial_cache import SpatialEstimateCache
 
 # Radiance buffers scaled by the brightness augmentation. Albedos (the reference albedos too) are reflectances in
 # [0, 1] and do not change with the light's strength; motion, depth and normals are geometry.
-RADIANCE_BUFFERS = ("color", "diffuse", "specular", "reference")
+RADIANCE_BUFFERS = ("color", "diffuse", "specular", "reference", "spatial_estimate")
 # FrameBatch fields at the output resolution (s times the render resolution): cropped at s times the offset.
 TARGET_BUFFERS = tuple(TARGET_FIELDS)
 BRIGHTNESS_RANGE = (0.5, 2.0)  # brightness factor, drawn log-uniformly so 0.5x and 2x are equally likely
 
 
 class FrameCache:
-    """One sequence's frames as batch-1 CPU ``FrameBatch`` es (reference at ``scale``), decoded on first use, kept."""
+    """One sequence's frames as batch-1 CPU ``FrameBatch`` es (reference at ``scale``), decoded on first use, kept.
 
-    def __init__(self, sequence: Sequence, scale: int) -> None:
+    With a ``spatial`` cache, each frame also carries its ``spatial_estimate`` (OIDN of the whole stored frame).
+    """
+
+    def __init__(self, sequence: Sequence, scale: int, spatial: SpatialEstimateCache | None = None) -> None:
         if scale not in sequence.scales:
             raise ValueError(f"sequence '{sequence.name}' ({sequence.path}) has no reference at scale {scale} "
                              f"(scales present: {', '.join(str(s) for s in sequence.scales) or 'none'})")
         self.sequence = sequence
         self.scale = scale
+        self.spatial = spatial
         self._frames: dict[int, FrameBatch] = {}
 
     @property
@@ -59,7 +64,10 @@ class FrameCache:
 
     def __getitem__(self, index: int) -> FrameBatch:
         if index not in self._frames:
-            self._frames[index] = FrameBatch.from_bundles([self.sequence[index]], scale=self.scale)
+            frame = FrameBatch.from_bundles([self.sequence[index]], scale=self.scale)
+            if self.spatial is not None:
+                frame.spatial_estimate = self.spatial.estimate(frame)
+            self._frames[index] = frame
         return self._frames[index]
 
 
@@ -83,7 +91,8 @@ class SequenceCrops(torch.utils.data.Dataset):
     """
 
     def __init__(self, dataset: Dataset | str | os.PathLike, split: str, crop_size: int, frames: int,
-                 scale: int = 1, seed: int = 0, augment: bool = True) -> None:
+                 scale: int = 1, seed: int = 0, augment: bool = True,
+                 spatial: SpatialEstimateCache | None = None) -> None:
         if crop_size < 1 or frames < 1:
             raise ValueError(f"crop size ({crop_size}) and frames per sample ({frames}) must be positive")
         self.dataset = dataset if isinstance(dataset, Dataset) else Dataset(dataset)
@@ -102,7 +111,7 @@ class SequenceCrops(torch.utils.data.Dataset):
             if sequence.width < crop_size or sequence.height < crop_size:
                 raise ValueError(f"sequence '{sequence.name}' is {sequence.width}x{sequence.height}, smaller than "
                                  f"the {crop_size}x{crop_size} crop; use a smaller crop size")
-        self.caches = [FrameCache(sequence, scale) for sequence in sequences]
+        self.caches = [FrameCache(sequence, scale, spatial) for sequence in sequences]
         self.windows = [(position, start) for position, sequence in enumerate(sequences)
                         for start in sample_windows(sequence.cuts, len(sequence), frames)]
         if not self.windows:

@@ -45,6 +45,10 @@ class FrameBatch:
     reference: torch.Tensor | None = None  # (N, 3, H*s, W*s)
     reference_albedo: torch.Tensor | None = None  # (N, 3, H*s, W*s)
     reference_specular_albedo: torch.Tensor | None = None  # (N, 3, H*s, W*s)
+    # A per-frame spatial denoiser's output at render resolution, precomputed: training caches OIDN's per stored
+    # frame (model.spatial_cache) for methods built on it. Methods compute it themselves when it is None, which
+    # is always the case in evaluation and sessions, so their timings include it.
+    spatial_estimate: torch.Tensor | None = None  # (N, 3, H, W)
 
     @property
     def batch_size(self) -> int:
@@ -136,6 +140,9 @@ class Method(nn.Module, abc.ABC):
     #: True when the network works at render resolution only and the output is upscaled by interpolation, so
     #: its weights do not depend on `scale` (a 1x checkpoint runs at 2x as "method + bicubic").
     denoises_at_render_resolution: bool = False
+    #: OIDN quality of the spatial estimate the method starts every frame from (None: it uses none). Training
+    #: precomputes it per stored frame and passes it as ``FrameBatch.spatial_estimate``.
+    spatial_prior: str | None = None
     #: (spatial, temporal) loss weights the training engine uses unless the user sets them.
     loss_weights: tuple[float, float] = (1.0, 0.25)
 

@@ -21,6 +21,7 @@ from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.registry import MethodSpec, register
 from model.ops.accumulate import accumulate, accumulate_moments
 from model.ops.reproject import reproject_history
+from model.ops.rectify import variance_clip_hdr
 from model.ops.tonemap import luminance
 from model.ops.demodulate import demodulate
 
@@ -97,7 +98,10 @@ class TemporalAccumulation(RenderResolutionFilter):
     """
 
     name = "accumulation"
-    ALPHA_MIN = {"default": 0.1, "fast": 0.2}
+    ALPHA_MIN = {"default": 0.1, "fast": 0.2, "rectified": 0.1}
+    # "rectified": the warped history is variance-clipped (model.ops.rectify) against this frame's illumination,
+    # over a window wide enough that the 1 spp noise does not make the box meaningless.
+    RECTIFY_WINDOW, RECTIFY_GAMMA = 5, 1.5
 
     def __init__(self, preset: str = "default", scale: int = 1,
                  depth_rel_tol: float = 0.1, normal_cos_tol: float = 0.9):
@@ -119,7 +123,10 @@ class TemporalAccumulation(RenderResolutionFilter):
         else:
             warped, history_count, valid = reproject_state(frame, state, ("history",),
                                                              self.depth_rel_tol, self.normal_cos_tol)
-            accumulated, count = accumulate(illumination, warped["history"], history_count, valid,
+            history = warped["history"]
+            if self.preset == "rectified":
+                history = variance_clip_hdr(history, illumination, self.RECTIFY_WINDOW, self.RECTIFY_GAMMA)
+            accumulated, count = accumulate(illumination, history, history_count, valid,
                                             alpha_min=self.alpha_min)
         new_state = {"history": accumulated, "count": count, "depth": frame.depth, "normal": frame.normal,
                      "jitter": frame.jitter}
@@ -309,8 +316,12 @@ class SVGF(RenderResolutionFilter):
 
     name = "svgf"
 
+    PRESETS = ("default", "rectified")  # rectified: the illumination history clipped as accumulation's preset
+
     def __init__(self, preset: str = "default", scale: int = 1, params: SVGFParams | None = None):
         super().__init__(preset, scale)
+        if preset not in self.PRESETS:
+            raise KeyError(f"{self.name} has no preset {preset!r}; presets: {', '.join(self.PRESETS)}")
         self.params = params or SVGFParams()
 
     def filter_frame(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
@@ -324,7 +335,11 @@ class SVGF(RenderResolutionFilter):
         else:
             warped, history_count, valid = reproject_state(frame, state, ("history", "mean", "mean_sq"),
                                                              params.depth_rel_tol, params.normal_cos_tol)
-            accumulated, count = accumulate(illumination, warped["history"], history_count, valid,
+            history = warped["history"]
+            if self.preset == "rectified":
+                history = variance_clip_hdr(history, illumination, TemporalAccumulation.RECTIFY_WINDOW,
+                                            TemporalAccumulation.RECTIFY_GAMMA)
+            accumulated, count = accumulate(illumination, history, history_count, valid,
                                             alpha_min=params.alpha_color)
             mean, mean_sq, temporal_variance = accumulate_moments(
                 illumination, warped["mean"], warped["mean_sq"], history_count, valid,
@@ -364,5 +379,6 @@ register(MethodSpec(
     name=SVGF.name,
     description="SVGF-style filter (Schied et al. 2017): accumulation, variance, 5-level edge-stopped a-trous",
     factory=lambda preset, scale: SVGF(preset, scale),
+    presets=SVGF.PRESETS,
     scales=(1, 2),
 ))

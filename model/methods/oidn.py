@@ -16,7 +16,7 @@ from model.methods.base import FrameBatch, State
 from model.methods.baselines import RenderResolutionFilter
 from model.methods.registry import MethodSpec, register
 
-__all__ = ["OIDN", "QUALITIES", "oidn_albedo"]
+__all__ = ["OIDN", "QUALITIES", "oidn_albedo", "oidn_denoise"]
 
 QUALITIES = ("fast", "balanced", "high")
 
@@ -38,6 +38,23 @@ def _to_hwc(image: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(image.detach().to("cpu", torch.float32).permute(1, 2, 0).numpy())
 
 
+def oidn_denoise(frame: FrameBatch, quality: str) -> torch.Tensor:
+    """OIDN's RT filter on every frame of the batch (HDR, albedo + normal, clean aux), at render resolution.
+
+    The one place OIDN is called: the `oidn` peer, `oidn-taa` and the `fused` family's spatial estimate all
+    use it, so they denoise with exactly the same settings.
+    """
+    if quality not in QUALITIES:
+        raise KeyError(f"OIDN has no quality {quality!r}; qualities: {', '.join(QUALITIES)}")
+    albedo = oidn_albedo(frame)
+    outputs = []
+    for index in range(frame.batch_size):
+        denoised = pyoidn.denoise(_to_hwc(frame.color[index]), _to_hwc(albedo[index]),
+                                  _to_hwc(frame.normal[index]), hdr=True, clean_aux=True, quality=quality)
+        outputs.append(torch.from_numpy(denoised).permute(2, 0, 1))
+    return torch.stack(outputs).to(device=frame.device, dtype=frame.color.dtype)
+
+
 class OIDN(RenderResolutionFilter):
     """OIDN RT filter with albedo and normal guides (HDR, clean aux) at the preset's quality."""
 
@@ -49,14 +66,7 @@ class OIDN(RenderResolutionFilter):
             raise KeyError(f"{self.name} has no preset {preset!r}; presets: {', '.join(QUALITIES)}")
 
     def filter_frame(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
-        albedo = oidn_albedo(frame)
-        outputs = []
-        for index in range(frame.batch_size):
-            denoised = pyoidn.denoise(_to_hwc(frame.color[index]), _to_hwc(albedo[index]),
-                                      _to_hwc(frame.normal[index]), hdr=True, clean_aux=True, quality=self.preset)
-            outputs.append(torch.from_numpy(denoised).permute(2, 0, 1))
-        output = torch.stack(outputs).to(device=frame.device, dtype=frame.color.dtype)
-        return output, {}
+        return oidn_denoise(frame, self.preset), {}
 
 
 register(MethodSpec(

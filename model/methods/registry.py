@@ -19,6 +19,8 @@ from model.methods.base import FrameBatch, Method
 METHOD_MODULES = (
     "model.methods.baselines",
     "model.methods.oidn",
+    "model.methods.oidn_taa",
+    "model.methods.fused",
     "model.methods.wskpn",
     "model.methods.afn",
     "model.methods.jnds",

@@ -11,7 +11,9 @@ from service.cli import UsageError, device_option, positive_int
 
 SPLITS = ("train", "validation", "test")  # as model.dataset.SPLITS; repeated so --help stays import-light
 MODEL_REF_PREFIX = "models:/"
-ALWAYS_ALL_PRESETS = ("oidn",)  # OIDN fast / balanced / high are the reference points of every benchmark
+# OIDN fast / balanced / high, alone and with TAA, are the reference points of every benchmark: a method built on
+# OIDN is compared with both at its own OIDN quality.
+ALWAYS_ALL_PRESETS = ("oidn", "oidn-taa")
 
 LEARNED_RULE = """\
 learned methods:
@@ -52,7 +54,8 @@ def add_commands(commands) -> None:
                              "references at every scale run")
     parser.add_argument("--method", action="append", default=None, metavar="NAME[:PRESET]",
                         help="a non-learned registry method to run (repeatable; default: every non-learned "
-                             "method at its default preset, and OIDN's three presets); see 'denoiser methods'")
+                             "method at its default preset, and the three presets of oidn and oidn-taa); "
+                             "see 'denoiser methods'")
     parser.add_argument("--all-presets", action="store_true",
                         help="every preset of each non-learned method (of the --method ones when given)")
     parser.add_argument("--include-learned", nargs="+", action="extend", default=[], metavar="CHECKPOINT",

@@ -13,6 +13,7 @@ import functools
 import json
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 from service.cli import EXIT_FAILURE, UsageError, positive_int
@@ -90,6 +91,10 @@ def _add_upload(commands, common) -> None:
     parser.add_argument("--name", default=None, help="dataset id to ask for (409 if taken); default: server-made")
     parser.add_argument("--split", choices=SPLITS, default="train",
                         help="split of sequences the upload gives none (a dataset manifest's splits win)")
+    parser.add_argument("--layout", default=None, metavar="NAME|FILE",
+                        help="the frames' layout: a built-in one other than denoiser (blender-cycles, generic) sends "
+                             "a renderer's sequence folder (frame EXRs + references/) or a folder of them for the "
+                             "server to convert; a layout file converts them here first (as denoiser import)")
     parser.add_argument("--json", action="store_true", help="print the dataset record as JSON")
     parser.set_defaults(run=_talks_to_server(_run_upload))
 
@@ -98,8 +103,9 @@ def _run_upload(args) -> int:
     if not args.source.exists():
         raise UsageError(f"{args.source}: no such folder or archive")
     skipped: list[str] = []
-    with _client(args) as client:
-        dataset = client.upload_dataset(args.source, name=args.name, split=args.split, skipped=skipped)
+    with tempfile.TemporaryDirectory(prefix="denoiser-import-") as work, _client(args) as client:
+        source, layout = _converted_for_upload(args.source, args.layout, Path(work), args.split)
+        dataset = client.upload_dataset(source, name=args.name, split=args.split, skipped=skipped, layout=layout)
     if skipped:
         shown = ", ".join(skipped[:5]) + (f" and {len(skipped) - 5} more" if len(skipped) > 5 else "")
         print(f"left out {len(skipped)} file(s) no manifest lists: {shown}", file=sys.stderr)
@@ -108,6 +114,31 @@ def _run_upload(args) -> int:
     else:
         print(f"uploaded dataset {dataset.get('id')}: {_dataset_line(dataset)}")
     return 0
+
+
+def _converted_for_upload(source: Path, layout: str | None, work: Path, split: str) -> tuple[Path, str | None]:
+    """(what to upload, the layout to name to the server): a layout file is applied here (the server knows only
+    the built-in layouts), turning the renderer's folder(s) into a dataset folder in ``work``."""
+    from model.layouts import BUILTIN_LAYOUTS, LayoutError, load_layout
+
+    if layout is None or layout in BUILTIN_LAYOUTS:
+        return source, layout
+    try:
+        chosen = load_layout(layout)
+    except LayoutError as error:
+        raise UsageError(str(error)) from None
+    from model.importer import frame_files, import_sequence
+
+    if not source.is_dir():
+        raise UsageError(f"{source}: --layout FILE converts a folder of frame EXRs, not an archive")
+    has_frames = any(path.suffix.lower() == ".exr" for path in source.iterdir())
+    folders = [source] if has_frames else [entry for entry in sorted(source.iterdir()) if entry.is_dir()]
+    for folder in folders:
+        frame_files(folder)  # a folder without frames: a clear error before anything is converted
+        report = import_sequence(folder, chosen, work / "dataset", split=split)
+        for warning in report.warnings:
+            print(f"warning: {folder.name}: {warning}", file=sys.stderr)
+    return work / "dataset", None
 
 
 def _dataset_line(dataset: dict) -> str:
@@ -493,7 +524,11 @@ def _add_stream(commands, common) -> None:
                     "timings (server inference, whole server request, client round trip) and a summary. The "
                     "session is deleted at the end.")
     parser.add_argument("sequence_dir", type=Path, metavar="SEQUENCE_DIR",
-                        help="sequence folder (manifest.json + frame EXRs)")
+                        help="sequence folder (manifest.json + frame EXRs), or a plain folder of a renderer's frame "
+                             "EXRs (sent in name order)")
+    parser.add_argument("--layout", default=None, metavar="NAME|FILE",
+                        help="how the session reads the frames: a built-in layout (denoiser, blender-cycles, "
+                             "generic) or a layout file (.toml, .json); default denoiser")
     parser.add_argument("--model", required=True, metavar="NAME", help="registered model")
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--version", default=None, help="model version (default: the latest)")
@@ -511,11 +546,26 @@ def _add_stream(commands, common) -> None:
 def _run_stream(args) -> int:
     from model.dataset import Sequence
 
-    if not (args.sequence_dir / "manifest.json").is_file():
-        raise UsageError(f"{args.sequence_dir} is not a sequence folder (no manifest.json)")
+    from model.importer import frame_files
+    from model.layouts import BUILTIN_LAYOUTS, LayoutError, read_layout_file
+
+    if not args.sequence_dir.is_dir():
+        raise UsageError(f"{args.sequence_dir} is not a folder")
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder")
-    frames = len(Sequence(args.sequence_dir))
+    if (args.sequence_dir / "manifest.json").is_file():
+        frames = len(Sequence(args.sequence_dir))
+    else:
+        frames = len(frame_files(args.sequence_dir))  # DatasetError (exit 2) when there are none
+    layout = args.layout
+    if layout is not None and layout not in BUILTIN_LAYOUTS:
+        try:  # a file: the session gets the layout itself (the server cannot read the client's files)
+            layout = read_layout_file(layout) if layout.endswith((".toml", ".json")) else layout
+        except LayoutError as error:
+            raise UsageError(str(error)) from None
+        if isinstance(layout, str):
+            raise UsageError(f"--layout {layout}: not a built-in layout ({', '.join(BUILTIN_LAYOUTS)}) nor a "
+                             f"layout file (.toml, .json)")
 
     def report(info, path) -> None:
         if not args.quiet:
@@ -523,10 +573,15 @@ def _run_stream(args) -> int:
                   f"inference {_ms(info.inference_ms)}  server {_ms(info.server_ms)}  "
                   f"round trip {_ms(info.round_trip_ms)}  {info.history or '-':<16} {path.name}"
                   + (f"  (server repaired {info.sanitized_pixels} input pixels: "
-                     f"{info.headers.get('X-Sanitized', '')})" if info.sanitized_pixels else ""), flush=True)
+                     f"{info.headers.get('X-Sanitized', '')})" if info.sanitized_pixels else "")
+                  + (f"  (ignored channels: {info.headers['X-Ignored-Channels']})"
+                     if info.headers.get("X-Ignored-Channels") else "")
+                  + (f"  (repaired: {info.headers['X-Repairs']})" if info.headers.get("X-Repairs") else ""),
+                  flush=True)
 
     with _client(args) as client:
-        session = client.create_session(args.model, version=args.version, alias=args.alias, on_gap=args.on_gap)
+        session = client.create_session(args.model, version=args.version, alias=args.alias, on_gap=args.on_gap,
+                                        layout=layout)
         model = session.get("model") or {}
         print(f"session {session.get('id')}: {model.get('name', args.model)} version {model.get('version', '?')} "
               f"({model.get('method', '?')}{':' + model['preset'] if model.get('preset') else ''}, "

@@ -1,4 +1,4 @@
-"""`denoiser generate`, `scenes`, `summary` and `preview`: making and looking at datasets."""
+"""`denoiser generate`, `import`, `scenes`, `summary` and `preview`: making and looking at datasets."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from service.cli import UsageError, positive_int, scales_option, size_option
 
 def add_commands(commands) -> None:
     _add_generate(commands)
+    _add_import(commands)
     _add_scenes(commands)
     _add_summary(commands)
     _add_preview(commands)
@@ -85,6 +86,72 @@ def _run_generate(args) -> int:
                           split=args.split, name=args.name, half=args.half, overwrite=args.overwrite,
                           progress=not args.quiet)
     _print_summary(args.out)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- import
+
+def _add_import(commands) -> None:
+    parser = commands.add_parser(
+        "import", help="convert a folder of another renderer's EXR frames into a sequence of a dataset",
+        description="Read every .exr in SRC (name order) in the layout, convert it to the frame bundle (channels, "
+                    "motion, depth and normal conventions, jitter), and write one validated sequence into the "
+                    "dataset folder OUT (created if missing). References: same-named high-sample renders in "
+                    "SRC/references or --references. Channels the layout does not use are ignored and listed; "
+                    "normals off unit length by lossy compression are renormalised and listed; data that looks "
+                    "wrong (motion that reprojects worse than none, normals that turn with the camera, depth that "
+                    "shrinks towards the horizon) is reported as warnings.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("source", type=Path, metavar="SRC", help="folder of the renderer's frame EXRs")
+    parser.add_argument("--layout", required=True, metavar="NAME|FILE",
+                        help="built-in layout (denoiser, blender-cycles, generic) or a layout file (.toml, .json)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="dataset folder")
+    parser.add_argument("--references", type=Path, default=None, metavar="DIR",
+                        help="folder of high-sample renders named as the frames; default SRC/references if present")
+    parser.add_argument("--name", default=None, help="sequence name; default the name of SRC")
+    parser.add_argument("--scene", default=None, help="scene name recorded in the dataset (for held-out splits)")
+    parser.add_argument("--split", choices=("train", "validation", "test"), default="train",
+                        help="split the sequence belongs to")
+    parser.add_argument("--fov-y", type=_degrees, default=None, metavar="DEGREES",
+                        help="vertical field of view, for layouts with planar depth (overrides the layout and the "
+                             "header)")
+    parser.add_argument("--half", action="store_true", help="store EXR channels as half floats")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing sequence of the same name")
+    parser.set_defaults(run=_run_import)
+
+
+def _degrees(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of degrees") from None
+    if not 0 < value < 180:
+        raise argparse.ArgumentTypeError(f"{text} is not between 0 and 180 degrees")
+    return value
+
+
+def _run_import(args) -> int:
+    import sys
+
+    from model.importer import import_sequence
+    from model.layouts import LayoutError, load_layout
+
+    try:
+        layout = load_layout(args.layout)
+    except LayoutError as error:
+        raise UsageError(str(error)) from None
+    report = import_sequence(args.source, layout, args.out, name=args.name, references=args.references,
+                             scene=args.scene, split=args.split, fov_y_degrees=args.fov_y, half=args.half,
+                             overwrite=args.overwrite)
+    scales = ",".join(str(scale) for scale in report.scales) or "none"
+    print(f"imported {report.frames} frames from {args.source} ({layout.name}) into {report.sequence} "
+          f"(references at scales: {scales})")
+    if report.ignored_channels:
+        print(f"ignored channels: {', '.join(report.ignored_channels)}")
+    for repair in report.repairs:
+        print(f"repaired {repair}")
+    for warning in report.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     return 0
 
 

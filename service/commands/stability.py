@@ -9,7 +9,7 @@ from service.cli import UsageError, device_option, positive_int, size_option
 
 # As model.stability.SCENARIOS; repeated so --help stays import-light (a test checks they agree).
 SCENARIOS = ("moving_object", "moving_light", "camera_cut", "fast_camera", "metals", "glass", "dark_fireflies",
-             "clean", "first_frames", "exposure_bright", "exposure_dark", "nan_inf_color", "nan_inf_guides",
+             "visible_emitter", "orbiting_light", "sliding_over_texture", "clean", "first_frames", "exposure_bright", "exposure_dark", "nan_inf_color", "nan_inf_guides",
              "zero_motion", "garbage_motion", "missing_buffers")
 GENERATED_DATA = "data"  # folder inside --out that --generate renders into
 
@@ -18,13 +18,16 @@ def add_commands(commands) -> None:
     parser = commands.add_parser(
         "stability", help="run methods on hard scenarios and corrupted inputs; report where each fails worst",
         description="Scenarios: one sequence per generator scene (moving_object, moving_light, camera_cut, "
-                    "fast_camera, metals, glass, dark_fireflies), and scenarios made from one clean base sequence: "
+                    "fast_camera, metals, glass, dark_fireflies, and the ghosting cases visible_emitter, "
+                    "orbiting_light, sliding_over_texture), and scenarios made from one clean base sequence: "
                     "clean, first_frames (frames 0-2), exposure_bright / exposure_dark (radiance and references "
                     "x16, x1/16), nan_inf_color, nan_inf_guides, zero_motion, garbage_motion, missing_buffers. "
                     "Inputs are sanitized (NaN/Inf repaired and counted) before any method sees them; a method "
                     "that raises or returns non-finite output is recorded as failing. Writes stability.md, "
                     "stability.json and PNG charts (per-frame PSNR curves, drop heat map) into --out. A method "
-                    "fails worst where its PSNR gain over the noisy input falls furthest below its median gain.")
+                    "fails worst where its PSNR gain over the noisy input falls furthest below its median gain. "
+                    "Ghosting: the error inside the region whose reference changed in the last 4 frames (from the "
+                    "references and motion vectors), in every scenario that has one; lower is better.")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", type=Path, metavar="DIR",
                         help="dataset folder; scene scenarios use sequences whose manifest names that scene")
@@ -94,5 +97,9 @@ def _run_stability(args) -> int:
         else:
             what = f"{worst['scenario']} ({worst['drop_db']:.2f} dB below its median gain)"
         print(f"{entry['label']}: fails worst on {what}")
+    ghosting = report["ghosting"]
+    if ghosting["least"] is not None:
+        print(f"ghosts least among temporal methods: {ghosting['least']} (mean ghost error "
+              f"{ghosting['mean_error'][ghosting['least']]:.4f} over {len(ghosting['common_scenarios'])} scenarios)")
     print(f"wrote {files['markdown']}, {files['json'].name} and charts in {args.out}")
     return 0

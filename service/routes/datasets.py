@@ -14,12 +14,14 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
+from model.layouts import BUILTIN_LAYOUTS, Layout
 from service import datasets as store
 from service.errors import ApiError
 from service.request_limits import upload_slots
 from service.schemas import DatasetDetail, DatasetSummary, Split, StagedSequence
 from service.settings import Settings, get_settings
 from service.storage import Storage, get_storage
+from service.upload_layouts import UploadNotes
 
 router = APIRouter(prefix="/datasets", tags=["datasets"])
 
@@ -38,6 +40,11 @@ ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application
                  "application/x-gzip", "application/x-gtar", "application/x-compressed-tar",
                  "application/octet-stream")
 FRAME_TYPES = ("image/x-exr", "application/octet-stream")
+
+LayoutName = Annotated[str | None, Query(
+    description="how the uploaded EXRs map to the frame bundle: a built-in layout (denoiser, blender-cycles, "
+                "generic); other than denoiser, an archive holds one folder per sequence with the renderer's frame "
+                "EXRs and optionally references/ (as denoiser import reads them)", examples=["blender-cycles"])]
 
 _STATUS = {store.InvalidUpload: 400, store.UnknownDataset: 404, store.UploadConflict: 409,
            store.UploadTooLarge: 413, store.FrameTooLargeUpload: 413}
@@ -89,9 +96,32 @@ def _check_content_type(request: Request, accepted: tuple[str, ...]) -> None:
                                                       f"{', '.join(accepted)}", {"accepted": list(accepted)})
 
 
-async def _receive_archive(request: Request, storage: Storage, settings: Settings, dataset_id: str, *,
-                           create: bool, split: str, replace: bool) -> DatasetDetail:
+def _layout(name: str | None) -> Layout | None:
+    if name is None:
+        return None
+    if name not in BUILTIN_LAYOUTS:
+        raise store.InvalidUpload("invalid_layout", f"layout: unknown layout {name!r}; built-in layouts are "
+                                                    f"{', '.join(BUILTIN_LAYOUTS)} (for another, convert the frames "
+                                                    f"with denoiser import --layout FILE first)")
+    return BUILTIN_LAYOUTS[name]
+
+
+def _note_headers(response: Response, notes: UploadNotes) -> None:
+    """X-Ignored-Channels and X-Import-Warnings, when there is something to say (non-ASCII escaped)."""
+    headers = {"X-Ignored-Channels": ", ".join(sorted(notes.ignored_channels)),
+               "X-Import-Warnings": " | ".join(notes.warnings)}
+    for key, value in headers.items():
+        if value:
+            response.headers[key] = value.encode("ascii", "backslashreplace").decode()
+
+
+async def _receive_archive(request: Request, response: Response, storage: Storage, settings: Settings,
+                           dataset_id: str, *, create: bool, split: str, replace: bool,
+                           layout: str | None) -> DatasetDetail:
     _check_content_type(request, ARCHIVE_TYPES)
+    notes = UploadNotes()
+    with _api_errors():
+        chosen = _layout(layout)
     with upload_slots(settings.max_concurrent_uploads).take(), _api_errors(), \
             store.workspace(storage, "upload") as work:
         archive = work / "upload.bin"
@@ -100,9 +130,12 @@ async def _receive_archive(request: Request, storage: Storage, settings: Setting
         limit = store.unpacked_limit(archive.stat().st_size, max_bytes=settings.max_unpacked_bytes,
                                      max_ratio=settings.max_archive_ratio,
                                      exempt_bytes=settings.archive_ratio_exempt_bytes)
-        return await run_in_threadpool(
+        detail = await run_in_threadpool(
             store.ingest_archive, storage, archive, work, dataset_id, create=create, split=split,
-            replace=replace, max_unpacked_bytes=limit, max_pixels=settings.max_frame_pixels)
+            replace=replace, max_unpacked_bytes=limit, max_pixels=settings.max_frame_pixels, layout=chosen,
+            notes=notes)
+    _note_headers(response, notes)
+    return detail
 
 
 @router.post(
@@ -125,6 +158,7 @@ async def upload_dataset(
                                       examples=["kitchens"], json_schema_extra=ID_SCHEMA)] = None,
     split: Annotated[Split, Query(description="split for sequences the archive gives none (sequence folders)")]
     = "train",
+    layout: LayoutName = None,
 ) -> DatasetDetail:
     """The body is streamed to staging, unpacked (links, absolute paths and `..` refused), every frame is read
     and checked against its manifest, and only then is the dataset moved into place: a failure stores nothing."""
@@ -134,7 +168,8 @@ async def upload_dataset(
             raise store.UploadConflict("dataset_exists", f"dataset {dataset_id!r} already exists; add sequences "
                                                          f"with POST /datasets/{dataset_id}/sequences",
                                        {"dataset": dataset_id})
-    detail = await _receive_archive(request, storage, settings, dataset_id, create=True, split=split, replace=False)
+    detail = await _receive_archive(request, response, storage, settings, dataset_id, create=True, split=split,
+                                    replace=False, layout=layout)
     response.headers["Location"] = f"/datasets/{dataset_id}"
     return detail
 
@@ -179,13 +214,14 @@ async def add_sequences(
     settings: SettingsDep,
     split: Annotated[Split, Query(description="split for sequences the archive gives none")] = "train",
     replace: Annotated[bool, Query(description="replace sequences that already exist instead of 409")] = False,
+    layout: LayoutName = None,
 ) -> DatasetDetail:
     """Like POST /datasets, into an existing dataset: all of the archive's sequences are added, or none."""
     with _api_errors():
         if not store.dataset_exists(storage, dataset_id):
             raise store.UnknownDataset("not_found", f"dataset {dataset_id!r} does not exist")
-    detail = await _receive_archive(request, storage, settings, dataset_id, create=False, split=split,
-                                    replace=replace)
+    detail = await _receive_archive(request, response, storage, settings, dataset_id, create=False, split=split,
+                                    replace=replace, layout=layout)
     response.headers["Location"] = f"/datasets/{dataset_id}"
     return detail
 
@@ -206,6 +242,7 @@ async def upload_frame(
     dataset_id: DatasetId,
     sequence: SequenceName,
     request: Request,
+    response: Response,
     storage: StorageDep,
     settings: SettingsDep,
     split: Annotated[Split | None, Query(description="split of the sequence (first frame; default train)")]
@@ -213,6 +250,7 @@ async def upload_frame(
     scene: Annotated[str | None, Query(description="scene name recorded in the manifest (first frame)")] = None,
     scales: Annotated[list[str] | None, Query(description="reference scales every frame must have, e.g. 1,2")]
     = None,
+    layout: LayoutName = None,
 ) -> StagedSequence:
     """Frames must come in order from frame_index 0; the sequence is held in staging until
     POST .../commit moves it into the dataset (which is created then if it does not exist yet)."""
@@ -221,14 +259,18 @@ async def upload_frame(
         store.checked_dataset_id(dataset_id)
         store.checked_sequence_name(sequence)
         expected_scales = _parse_scales(scales)
+        chosen = _layout(layout)
+        notes = UploadNotes()
         await run_in_threadpool(store.expire_staged_uploads, storage, settings.staged_upload_ttl_seconds)
         with upload_slots(settings.max_concurrent_uploads).take(), store.workspace(storage, "frame") as work:
             upload = work / "frame.exr"
             await store.save_stream(request.stream(), upload, settings.max_frame_bytes, "frame",
                                     request.headers.get("content-length"))
-            return await run_in_threadpool(store.stage_frame, storage, dataset_id, sequence, upload, split=split,
-                                           scene=scene, scales=expected_scales,
-                                           max_pixels=settings.max_frame_pixels)
+            staged = await run_in_threadpool(store.stage_frame, storage, dataset_id, sequence, upload, split=split,
+                                             scene=scene, scales=expected_scales, layout=chosen, notes=notes,
+                                             max_pixels=settings.max_frame_pixels)
+    _note_headers(response, notes)
+    return staged
 
 
 def _parse_scales(values: list[str] | None) -> list[int] | None:

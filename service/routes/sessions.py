@@ -21,8 +21,9 @@ from fastapi import APIRouter, Depends, Header, Path, Request, Response
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
-from model.exr import FrameTooLarge, encode_image_exr, read_frame_bytes
-from model.frames import FrameBundle, FrameError
+from model.exr import FrameTooLarge, encode_image_exr
+from model.frames import FrameError
+from model.layouts import LayoutFrame, layout_from_value, read_layout_frame_bytes
 from service.errors import ApiError
 from service.registry import AUTO_MODEL
 from service.request_limits import frame_budget
@@ -113,7 +114,7 @@ def session_out(session: Session) -> SessionOut:
                       created_at=_time(session.created_at), last_used_at=_time(session.last_used_at),
                       expires_at=_time(session.expires_at), frames_processed=session.frames_processed,
                       next_frame_index=session.next_frame_index, on_gap=session.on_gap,
-                      resolution=list(session.resolution) if session.resolution else None)
+                      resolution=list(session.resolution) if session.resolution else None, layout=session.layout)
 
 
 def _session_link(path: str, method: str) -> dict:
@@ -165,10 +166,10 @@ def create_session(body: SessionIn, response: Response, store: StoreDep, setting
     with session_errors():
         if choice is None:
             session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap,
-                                   owner_digest=owner)
+                                   owner_digest=owner, layout=body.layout)
         else:
             session = store.create(choice.info.name, version=choice.info.version, on_gap=body.on_gap,
-                                   choice=choice.to_dict(), owner_digest=owner)
+                                   choice=choice.to_dict(), owner_digest=owner, layout=body.layout)
     response.headers["Location"] = f"/sessions/{session.id}"
     out = session_out(session)
     out.token = token
@@ -234,6 +235,11 @@ _FRAME_HEADERS = {
                            "schema": {"type": "integer"}},
     "X-Sanitized": {"description": "only when X-Sanitized-Pixels > 0: what was repaired, per buffer, e.g. "
                                    "'color: 12 non-finite; depth: 3 out of range'", "schema": {"type": "string"}},
+    "X-Ignored-Channels": {"description": "only when the frame had some: channels the session's layout does not use "
+                                          "(ignored)", "schema": {"type": "string"}},
+    "X-Repairs": {"description": "only when there were some: what reading the frame in the session's layout "
+                                 "repaired, e.g. 'normal: 12 pixels renormalised (worst |n| = 0.97; lossy "
+                                 "compression?)' or a missing jitter read as 0", "schema": {"type": "string"}},
 }
 
 
@@ -292,12 +298,14 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
     with frame_budget(settings.max_buffered_frame_bytes).hold() as hold:
         body = await _read_body(request, settings.max_frame_bytes, hold)
         with session_errors():
-            result, data = await run_in_threadpool(_run_frame, store, session_id, body, settings.max_frame_pixels)
+            result, data, read = await run_in_threadpool(_run_frame, store, session_id, body,
+                                                         settings.max_frame_pixels)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
                "X-Inference-Ms": f"{result.inference_ms:.3f}", "X-Sanitized-Pixels": str(result.sanitized.total),
                "X-Server-Ms": f"{(time.perf_counter() - started) * 1000:.3f}"}
     if not result.sanitized.clean:
         headers["X-Sanitized"] = result.sanitized.describe()
+    headers.update(layout_headers(read))
     # The session's Redis mirror is written once the response is out (see service.sessions: at most the frame
     # in flight is missing from Redis, and the session's next request waits for the write).
     return Response(content=data, media_type=EXR_MEDIA_TYPE, headers=headers,
@@ -305,25 +313,40 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
 
 
 def _run_frame(store: SessionStore, session_id: str, body: bytes, max_pixels: int):
-    frame = _parse_frame(body, max_pixels)
-    result = store.process_frame(session_id, frame, start_mirror=False)
+    read = _parse_frame(body, store.layout(session_id), max_pixels)
+    frame = read.frame
+    result = store.process_frame(session_id, frame, start_mirror=False, frame_index_given=read.frame_index_given)
     try:
         data = encode_image_exr(result.output, {"frame_index": result.frame_index, "sequence": frame.sequence,
                                                 "scale": result.session.model.scale})
     except BaseException:
         store.start_mirror(session_id)  # no response will start it
         raise
-    return result, data
+    return result, data, read
+
+
+def layout_headers(read: LayoutFrame) -> dict[str, str]:
+    """X-Ignored-Channels (channels the layout does not use) and X-Repairs (renormalised normals, a missing jitter),
+    each only when there is something to say; non-ASCII channel names escaped (headers are Latin-1)."""
+    headers = {}
+    if read.ignored_channels:
+        headers["X-Ignored-Channels"] = ", ".join(read.ignored_channels)
+    if read.repairs:
+        headers["X-Repairs"] = "; ".join(read.repairs)
+    return {key: value.encode("ascii", "backslashreplace").decode() for key, value in headers.items()}
 
 
 async def _start_mirror(store: SessionStore, session_id: str) -> None:
     store.start_mirror(session_id)  # never blocks: hands the write to the store's writer threads
 
 
-def _parse_frame(body: bytes, max_pixels: int) -> FrameBundle:
+def _parse_frame(body: bytes, layout: str | dict, max_pixels: int) -> LayoutFrame:
     try:
-        # NaN / Inf / out-of-range values pass here and are repaired before the step (X-Sanitized-Pixels).
-        return read_frame_bytes(body, FRAME_SOURCE, sanitizable=True, max_pixels=max_pixels)
+        # NaN / Inf / out-of-range values pass here and are repaired before the step (X-Sanitized-Pixels); "live"
+        # also renormalises lossy-compressed normals and reads a missing jitter as 0 (X-Repairs). The header's
+        # pixel count is checked against ``max_pixels`` before anything is decoded, whatever the layout.
+        return read_layout_frame_bytes(body, layout_from_value(layout), FRAME_SOURCE, mode="live",
+                                       max_pixels=max_pixels)
     except FrameTooLarge as error:
         raise ApiError(413, "frame_too_large", str(error), {"pixels": error.pixels, "limit_pixels": error.limit}) \
             from None

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from model.dataset import Dataset, DatasetError, SequenceWriter
-from model.evaluate import EvaluationSequence, evaluate, evaluate_method, format_table
+from model.evaluate import EvaluationSequence, evaluate, evaluate_method, format_table, run_sequence
 from model.frames import FrameBundle, box_downsample
 from model.methods.base import FrameBatch, Method, State, drop_history
 from model.metrics import frame_metrics
@@ -168,6 +168,18 @@ def test_evaluate_method_on_sequences_in_memory(dataset_dir):
     entry = evaluate_method(NoisyInput(), sequences, vdp=False, reference_ms=1e6)
     assert entry["timing"]["frames_timed"] == 0 and entry["ms_per_frame"] is None
     assert entry["time_ratio_to_oidn"] is None and math.isfinite(entry["metrics"]["ssim"])
+
+
+def test_run_sequence_keeps_the_outputs_and_says_whether_the_method_keeps_history(dataset_dir):
+    sequence = EvaluationSequence.from_sequence(Dataset(dataset_dir).sequence("a"), 2)
+    run = run_sequence(NoisyInput(scale=2), sequence, keep_outputs=True)
+    expected = torch.cat([f.color.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3) for f in sequence.frames])
+    assert torch.equal(run["outputs"], expected) and run["keeps_history"]  # its state holds a count
+    per_frame = run_sequence(NaNOutput(), EvaluationSequence.from_sequence(Dataset(dataset_dir).sequence("a"), 1),
+                             with_metrics=False)
+    assert not per_frame["keeps_history"] and "outputs" not in per_frame  # it returns an empty state
+    with pytest.raises(ValueError, match="keep_outputs needs with_metrics"):
+        run_sequence(NoisyInput(), sequence, with_metrics=False, keep_outputs=True)
 
 
 def test_an_existing_file_is_loaded_as_a_checkpoint(dataset_dir, tmp_path, monkeypatch):

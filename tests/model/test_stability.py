@@ -13,10 +13,13 @@ import torch
 
 from model.dataset import Dataset, SequenceWriter
 from model.evaluate import EvaluationSequence
+from model.frames import FrameBundle
+from model.metrics import PSNR_CAP_DB
 from model.methods.base import FrameBatch, Method, State
 from model.methods.registry import build_method
-from model.stability import (DERIVED_SCENARIOS, EXPOSURE_BRIGHT, MIN_DROP_DB, SCENARIOS, build_scenarios,
-                             derive_scenarios, fails_worst, run_suite, scale_exposure, write_report)
+from model.stability import (DERIVED_SCENARIOS, EXPOSURE_BRIGHT, MIN_DROP_DB, SCENARIOS, SCENE_SCENARIOS, Scenario,
+                             build_scenarios, derive_scenarios, fails_worst, run_suite, scale_exposure,
+                             write_report)
 from service.cli import main
 from tests.model.test_evaluate import FRAMES, SIZE, synthetic_frame
 
@@ -74,6 +77,19 @@ class NaNOnFastMotion(Method):
         return frame.color, {}
 
 
+class BlendWithPrevious(Method):
+    """Trusts its history blindly: output = w * previous output + (1 - w) * color (nearest-upscaled to the
+    output scale), w = the preset. It ghosts."""
+
+    name = "blend"
+
+    def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
+        weight = float(self.preset)
+        color = frame.color.repeat_interleave(self.scale, dim=2).repeat_interleave(self.scale, dim=3)
+        output = color if state is None else weight * state["previous"] + (1 - weight) * color
+        return output, {"previous": output}
+
+
 def finite(tensor: torch.Tensor) -> bool:
     return bool(torch.isfinite(tensor).all())
 
@@ -112,6 +128,11 @@ def test_derived_scenarios_corrupt_only_what_they_name(clean):
     assert missing.diffuse is None and missing.specular is None and missing.roughness is None
     assert missing.specular_albedo is None and missing.color is clean.frames[0].color
     assert all(torch.equal(a, f.color) for a, f in zip(before, clean.frames))  # the clean frames are not modified
+    # Ghost trails are measured with the motion that is true: the base's, not the corrupted one.
+    for name in ("zero_motion", "garbage_motion", "nan_inf_guides", "first_frames"):
+        assert all(m is f.motion for m, f in zip(scenarios[name].true_motion, clean.frames)), name
+        assert len(scenarios[name].true_motion) == len(scenarios[name].frames)
+    torch.testing.assert_close(scenarios["garbage_motion"].trails(), scenarios["clean"].trails())
 
 
 def test_build_scenarios_matches_scenes_picks_the_base_and_reports_what_is_missing(data_dir):
@@ -121,7 +142,8 @@ def test_build_scenarios_matches_scenes_picks_the_base_and_reports_what_is_missi
     by_name = {s.name: s for s in scenarios}
     assert by_name["moving_object"].source == "mover" and by_name["clean"].source == "room"
     assert by_name["camera_cut"].sequence.camera_cuts == [False, False, True, False]
-    assert {m["name"] for m in missing} == {"moving_light", "fast_camera", "metals", "glass", "dark_fireflies"}
+    assert {m["name"] for m in missing} == {"moving_light", "fast_camera", "metals", "glass", "dark_fireflies",
+                                            "visible_emitter", "orbiting_light", "sliding_over_texture"}
     assert all("no sequence of scene" in m["reason"] for m in missing)
     chosen, _ = build_scenarios(data_dir, names=("clean", "zero_motion"), base="cut", frame_limit=2)
     assert [s.source for s in chosen] == ["cut", "cut"] and len(chosen[0].frames) == 2
@@ -216,6 +238,87 @@ def test_report_files_json_markdown_and_charts(suite):
     assert "![per-frame PSNR](psnr_curves.png)" in markdown and "(curves/garbage_motion.png)" in markdown
     assert "- glass: no sequence of scene 'glass' in the dataset" in markdown
     assert "| nan_inf_color |" in markdown
+
+
+# --------------------------------------------------------------------------------------------- ghosting
+
+def emitter_frame(index: int, moving: bool = True) -> FrameBundle:
+    """A bright 3x3 lamp moving 3 px a frame over a flat dim wall (static camera); the noise-free color is the
+    reference, so a per-frame method is exact and any error is history."""
+    wall = np.full((SIZE, SIZE, 3), 0.05, np.float32)
+    left = 1 + 3 * index if moving else 1
+    wall[6:9, left:left + 3] = 4.0
+    return FrameBundle(color=wall, albedo=np.full((SIZE, SIZE, 3), 0.5, np.float32),
+                       normal=np.broadcast_to(np.array([0, 0, 1], np.float32), (SIZE, SIZE, 3)).copy(),
+                       depth=np.ones((SIZE, SIZE), np.float32), motion=np.zeros((SIZE, SIZE, 2), np.float32),
+                       jitter=(0.0, 0.0), frame_index=index, references={1: wall.copy()})
+
+
+def in_memory(name: str, bundles: list[FrameBundle], scale: int = 1) -> Scenario:
+    frames = [FrameBatch.from_bundles([b], scale) for b in bundles]
+    sequence = EvaluationSequence(name, frames, [False] * len(frames), scale)
+    return Scenario(name, SCENE_SCENARIOS.get(name, name), sequence, "memory")
+
+
+@pytest.fixture(scope="module")
+def ghost_suite(tmp_path_factory):
+    scenarios = [in_memory("visible_emitter", [emitter_frame(i) for i in range(5)]),
+                 in_memory("glass", [emitter_frame(i, moving=False) for i in range(5)])]
+    methods = ["identity", BlendWithPrevious("0.5"), BlendWithPrevious("0.2")]
+    report = run_suite(scenarios, methods, threads=1)
+    out = tmp_path_factory.mktemp("ghosting")
+    write_report(report, out)
+    return report, out
+
+
+def test_ghosting_is_measured_where_a_trail_exists_and_names_the_temporal_method_that_ghosts_least(ghost_suite):
+    report, _ = ghost_suite
+    trails = {s["name"]: s["trail"] for s in report["scenarios"]}
+    assert trails["visible_emitter"]["frames"] == 4 and 0 < trails["visible_emitter"]["coverage"] < 1
+    assert trails["glass"] == {"frames": 0, "coverage": None, "per_frame_coverage": [0.0] * 5}
+    entries = {e["label"]: e for e in report["methods"]}
+    identity, half, fifth = entries["identity"], entries["blend:0.5"], entries["blend:0.2"]
+    assert not identity["temporal"] and half["temporal"] and fifth["temporal"]
+    emitter = {label: entry["scenarios"]["visible_emitter"] for label, entry in entries.items()}
+    assert emitter["identity"]["ghost_error"] == 0.0 and emitter["identity"]["ghost_psnr"] == pytest.approx(PSNR_CAP_DB)
+    assert emitter["blend:0.5"]["ghost_error"] > emitter["blend:0.2"]["ghost_error"] > 0.01
+    assert emitter["blend:0.5"]["per_frame_ghost_error"][0] is None
+    assert all(e["scenarios"]["glass"]["ghost_error"] is None for e in entries.values())
+    assert report["input"]["visible_emitter"]["ghost_error"] == 0.0  # the noise-free input has no error at all
+    ghosting = report["ghosting"]
+    assert ghosting["temporal"] == ["blend:0.5", "blend:0.2"] and ghosting["least"] == "blend:0.2"
+    assert ghosting["by_scenario"] == {"visible_emitter": "blend:0.2"}
+    assert ghosting["common_scenarios"] == ["visible_emitter"]
+    assert ghosting["mean_error"]["blend:0.5"] == emitter["blend:0.5"]["ghost_error"]
+
+
+def test_ghosting_at_scale_two_measures_the_trail_at_the_reference_resolution():
+    bundles = []
+    for index in range(5):
+        frame = emitter_frame(index)
+        double = frame.color.repeat(2, axis=0).repeat(2, axis=1)
+        bundles.append(dataclasses.replace(frame, references={2: double}))
+    report = run_suite([in_memory("visible_emitter", bundles, scale=2)], [BlendWithPrevious("0.5", scale=2)],
+                       scale=2, threads=1)
+    trail = report["scenarios"][0]["trail"]
+    assert trail["frames"] == 4 and len(report["input"]["visible_emitter"]["per_frame_ghost_error"]) == 5
+    assert report["methods"][0]["scenarios"]["visible_emitter"]["ghost_error"] > 0.01
+
+
+def test_the_report_has_a_ghosting_table(ghost_suite):
+    report, out = ghost_suite
+    assert json.loads((out / "stability.json").read_text())["ghosting"]["least"] == "blend:0.2"
+    markdown = (out / "stability.md").read_text()
+    assert "## Ghosting (error inside the trail region; lower is better)" in markdown
+    assert report["ghosting"]["definition"] in markdown
+    assert "Ghosts least among them: **blend:0.2**" in markdown
+    assert "No trail (nothing changed beyond what the motion explains): glass." in markdown
+    assert "![ghost error per frame](ghost_curves.png)" in markdown
+    assert (out / "ghost_curves.png").read_bytes()[:4] == b"\x89PNG"
+    emitter = {e["label"]: e["scenarios"]["visible_emitter"]["ghost_error"] for e in report["methods"]}
+    row = (f"| visible_emitter | 4/5 | {report['scenarios'][0]['trail']['coverage']:.1%} | 0.0000 | 0.0000 | "
+           f"{emitter['blend:0.5']:.4f} | {emitter['blend:0.2']:.4f} | blend:0.2 |")
+    assert row in markdown
 
 
 # -------------------------------------------------------------------------------------------------- CLI

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 import httpx
 import numpy as np
 
-from model.exr import encode_image_exr, read_frame_bytes
+from model.exr import encode_image_exr
+from model.layouts import layout_from_value, read_layout_frame_bytes
 from service.client import DenoiserClient
 
 JOB_KINDS = ("generate", "train", "evaluate", "benchmark", "infer")
@@ -35,12 +36,13 @@ class FakeSession:
     on_gap: str
     next_frame_index: int | None = None
     frames_processed: int = 0
+    layout: str | dict = "denoiser"
 
     def record(self) -> dict:
         return {"id": self.id, "model": self.model, "created_at": "2026-01-01T00:00:00Z",
                 "last_used_at": "2026-01-01T00:00:00Z", "expires_at": "2026-01-01T00:30:00Z",
                 "frames_processed": self.frames_processed, "next_frame_index": self.next_frame_index,
-                "on_gap": self.on_gap}
+                "on_gap": self.on_gap, "layout": self.layout}
 
 
 @dataclass
@@ -273,7 +275,7 @@ class FakeApi:
         session = FakeSession(f"s{len(self.sessions) + 1}", {"name": model["name"], "version": version,
                                                              "method": "wskpn", "preset": "xs",
                                                              "scale": self.output_scale, "params": 1000},
-                              body.get("on_gap", "reset"))
+                              body.get("on_gap", "reset"), layout=body.get("layout", "denoiser"))
         self.sessions[session.id] = session
         return httpx.Response(201, json=session.record(), headers={"Location": f"/sessions/{session.id}"})
 
@@ -292,11 +294,13 @@ class FakeApi:
         session = self.sessions.get(request.extensions["match"]["id"])
         if session is None:
             return error(404, "not_found", "session does not exist or expired")
-        try:
-            frame = read_frame_bytes(request.content, "request body")
+        try:  # as the server reads it: in the session's layout
+            read = read_layout_frame_bytes(request.content, layout_from_value(session.layout), "request body",
+                                           mode="live")
         except ValueError as problem:
             return error(400, "invalid_frame", str(problem))
-        index = frame.frame_index
+        frame = read.frame
+        index = frame.frame_index if read.frame_index_given else (session.next_frame_index or 0)
         if session.next_frame_index is None:
             history = "started"
         elif frame.camera_cut and index == session.next_frame_index:
@@ -317,4 +321,6 @@ class FakeApi:
         data = encode_image_exr(rgb)
         headers = {"Content-Type": "image/x-exr", "X-Frame-Index": str(index), "X-Inference-Ms": "1.5",
                    "X-Server-Ms": "2.25", "X-History": history}
+        if read.ignored_channels:
+            headers["X-Ignored-Channels"] = ", ".join(read.ignored_channels)
         return httpx.Response(200, content=data, headers=headers)

@@ -274,9 +274,51 @@ def test_stream_prints_timings_and_writes_exrs(api, tmp_path, capsys):
     assert api.sessions == {}  # deleted at the end
 
 
+def test_stream_takes_a_plain_folder_of_a_renderers_frames_with_its_layout(api, tmp_path, capsys):
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT
+
+    assert main(["stream", str(BLENDER_ORBIT), "--layout", "blender-cycles", "--model", "wskpn-xs", "--out",
+                 str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].endswith(", 4 frames")
+    assert [line.split()[1] for line in out[1:5]] == ["1", "2", "3", "4"]  # Blender's frame numbers
+    assert "continued" in out[4]
+    assert len(list((tmp_path / "out").glob("frame_*.exr"))) == 4
+    # A layout file goes to the server as the layout itself; the session reads the frames in it.
+    layout = tmp_path / "cycles.json"
+    from model.layouts.builtin import BLENDER_CYCLES
+
+    layout.write_text(json.dumps(dict(BLENDER_CYCLES, name="mine")))
+    assert main(["stream", str(BLENDER_ORBIT), "--layout", str(layout), "--model", "wskpn-xs", "--out",
+                 str(tmp_path / "out2"), "--keep-session"]) == 0
+    assert next(iter(api.sessions.values())).layout["name"] == "mine"
+    assert main(["stream", str(BLENDER_ORBIT), "--layout", "arnold", "--model", "wskpn-xs", "--out",
+                 str(tmp_path / "out3")]) == 2
+    assert "not a built-in layout" in capsys.readouterr().err
+
+
+def test_upload_with_a_layout_sends_the_render_folder_or_converts_it_with_a_layout_file(api, tmp_path, capsys):
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT
+
+    assert main(["upload", str(BLENDER_ORBIT), "--name", "blender", "--layout", "blender-cycles"]) == 0
+    params, _, _, members = api.uploads[-1]
+    assert params["layout"] == "blender-cycles"
+    assert "blender_orbit/frame_0000.exr" in members and "blender_orbit/references/frame_0003.exr" in members
+    assert "left out 1 file(s)" in capsys.readouterr().err  # cameras.json
+    layout = tmp_path / "cycles.json"
+    from model.layouts.builtin import BLENDER_CYCLES
+
+    layout.write_text(json.dumps(dict(BLENDER_CYCLES, name="mine")))
+    assert main(["upload", str(BLENDER_ORBIT), "--name", "converted", "--layout", str(layout)]) == 0
+    params, _, _, members = api.uploads[-1]
+    assert "layout" not in params  # converted here into our format: a dataset folder with manifests
+    assert "dataset/manifest.json" in members and "dataset/blender_orbit/manifest.json" in members
+
+
 def test_stream_errors(api, tmp_path, capsys):
+    # A folder without manifest.json is a renderer's plain folder of EXRs; one without any is refused.
     assert main(["stream", str(tmp_path), "--model", "wskpn-xs", "--out", str(tmp_path / "out")]) == 2
-    assert "not a sequence folder" in capsys.readouterr().err
+    assert "holds no .exr files" in capsys.readouterr().err
     sequence = write_sequence(tmp_path / "data")
     assert main(["stream", str(sequence), "--model", "nope", "--out", str(tmp_path / "out")]) == 2
     assert "registered model 'nope' does not exist" in capsys.readouterr().err

@@ -6,6 +6,7 @@ import json
 import os
 import threading
 import time
+import uuid
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -388,3 +389,36 @@ def test_the_session_thread_budget(registry_settings):
     workers, threads = session_thread_budget(registry_settings.model_copy(update={"session_workers": 2,
                                                                                   "session_threads": None}))
     assert workers == 2 and threads == max(1, (os.cpu_count() or 1) // 2)
+
+
+def test_a_fused_model_streams_with_oidn_inside_and_survives_a_restart(make_store):
+    # The fused family runs OIDN inside its step and carries history at the output resolution plus recurrent
+    # features at render resolution: all of it must go through the session and its Redis mirror unchanged.
+    from model.checkpoint import save_checkpoint
+    from model.methods.registry import build_method
+    from workers.tracking import MLflowTracker
+
+    registry = shared_registry()
+    torch.manual_seed(5)
+    method = build_method("fused:fast", scale=2)
+    for parameter in method.parameters():
+        parameter.data += 0.02 * torch.randn_like(parameter)
+    checkpoint = save_checkpoint(registry.folder / "fused.pt", method=method)
+    name = f"fused-fast-x2-{uuid.uuid4().hex[:6]}"
+    tracker = MLflowTracker(registry.uri, experiment="service-tests")
+    tracker.start({"method": "fused:fast"})
+    tracker.log_model(checkpoint, name, {"method": "fused", "preset": "fast", "scale": "2"})
+    tracker.finish("FINISHED")
+
+    frames = stream_frames(4)
+    expected = in_process_outputs(checkpoint, frames)
+    first = make_store()
+    session = first.create(name)
+    for frame, image in zip(frames[:2], expected):
+        assert_same_image(first.process_frame(session.id, frame).output, image)
+    assert first.flush(timeout=30)
+    restarted = make_store()
+    for frame, image in zip(frames[2:], expected[2:]):
+        result = restarted.process_frame(session.id, frame)
+        assert result.history == CONTINUED
+        assert_same_image(result.output, image)

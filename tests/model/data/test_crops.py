@@ -235,3 +235,20 @@ def test_reference_albedos_are_left_out_when_a_sequence_lacks_them(albedo_datase
     Dataset(root).add_sequence_dir("plain", "train")
     sample = SequenceCrops(root, "train", crop_size=6, frames=2, scale=2).sample(0, 0)
     assert "reference" in sample and not set(ALBEDO_TARGETS) & set(sample)
+
+
+def test_a_cached_spatial_estimate_is_cropped_flipped_and_brightened_like_the_color(dataset_root):
+    from model.methods.oidn import oidn_denoise
+    from model.spatial_cache import SpatialEstimateCache
+
+    spatial = SpatialEstimateCache("fast")
+    plain = SequenceCrops(dataset_root, "train", crop_size=8, frames=2, seed=3, augment=False, spatial=spatial)
+    augmented = SequenceCrops(dataset_root, "train", crop_size=8, frames=2, seed=3, augment=True, spatial=spatial)
+    full = plain.caches[0][0]
+    torch.testing.assert_close(full.spatial_estimate, oidn_denoise(full, "fast"))  # OIDN of the whole frame
+    sample, other = plain.sample(0, 0), augmented.sample(0, 0)
+    assert sample["spatial_estimate"].shape == sample["color"].shape
+    flips = [f for f in itertools.product((False, True), repeat=2)
+             if torch.equal(_flip(sample["albedo"], *f), other["albedo"])]
+    factor = float(other["color"].sum() / _flip(sample["color"], *flips[0]).sum())
+    torch.testing.assert_close(other["spatial_estimate"], _flip(sample["spatial_estimate"], *flips[0]) * factor)

@@ -100,7 +100,7 @@ def test_accumulation_error_falls_with_frames_on_a_static_scene(device):
 def test_accumulation_presets_set_the_minimum_blend_weight():
     assert build_method("accumulation").alpha_min == 0.1
     assert build_method("accumulation:fast").alpha_min == 0.2
-    assert method_spec("accumulation").presets == ("default", "fast")
+    assert method_spec("accumulation").presets == ("default", "fast", "rectified")
     with pytest.raises(KeyError):
         TemporalAccumulation("slow")
 
@@ -264,3 +264,22 @@ def test_flops_per_pixel_and_parameter_count(name):
     assert math.isfinite(flops) and flops >= 0
     assert method.parameter_count() == 0
     assert method_spec(name.split(":")[0]).scales == (1, 2)
+
+
+@pytest.mark.parametrize("name", ["accumulation", "svgf"])
+def test_the_rectified_preset_clips_a_stale_bright_history(name):
+    # A light that was here and is gone: the plain history keeps it for many frames, the rectified one drops it.
+    bright = plane_frame(torch.full((1, 3, HEIGHT, WIDTH), 40.0))
+    dark_color = noisy_constant(torch.full((1, 3, HEIGHT, WIDTH), 0.2), torch.Generator().manual_seed(5))
+    results = {}
+    for preset in ("default", "rectified"):
+        method = build_method(f"{name}:{preset}" if preset != "default" else name)
+        _, state = method.step(bright, None)
+        for _ in range(3):
+            _, state = method.step(bright, state)
+        output, _ = method.step(plane_frame(dark_color), state)
+        results[preset] = float(output.mean())
+    assert results["default"] > 2.0  # the ghost of the light
+    assert results["rectified"] < 0.3 * results["default"]
+    with pytest.raises(KeyError, match="presets"):
+        build_method("svgf:slow")

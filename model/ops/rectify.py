@@ -1,0 +1,92 @@
+"""History rectification: pull a reprojected history back into what the current frame says is plausible.
+
+Reprojection cannot know that the lighting changed (a light moved, a highlight slid): motion vectors describe
+geometry, so the warped history of such a pixel is wrong although the depth test passes. TAA's answer
+(Salvi 2016, "An excursion in temporal supersampling") is to look at the current frame's neighbourhood: a
+history colour far outside the colours around the pixel now is stale, so it is clipped to their range.
+
+Both variants work per channel in YCoCg (luma and two chroma axes, decorrelated, so a box in that space fits
+the neighbourhood's colours more tightly than one in RGB), over a k x k window, edges replicated:
+
+- ``neighbourhood_clamp``: the box [min, max] of the window;
+- ``variance_clip``: the box mean +- gamma * standard deviation of the window (gamma 1 is the classic recipe):
+  tighter than min/max where the window holds an outlier, which noisy or spatially denoised input often does.
+
+The guide should be low-noise (a spatially denoised frame, or the tone-mapped input of a converged method): on a
+1 spp frame the window's spread is mostly noise and the box lets everything through.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip",
+           "variance_clip_hdr"]
+
+
+def rgb_to_ycocg(rgb: torch.Tensor) -> torch.Tensor:
+    """(N, 3, H, W) RGB to YCoCg (Y = R/4 + G/2 + B/4, Co = R/2 - B/2, Cg = -R/4 + G/2 - B/4)."""
+    r, g, b = rgb[:, 0:1], rgb[:, 1:2], rgb[:, 2:3]
+    return torch.cat([0.25 * r + 0.5 * g + 0.25 * b, 0.5 * r - 0.5 * b, -0.25 * r + 0.5 * g - 0.25 * b], dim=1)
+
+
+def ycocg_to_rgb(ycocg: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`rgb_to_ycocg` (exact: R = Y + Co - Cg, G = Y + Cg, B = Y - Co - Cg)."""
+    y, co, cg = ycocg[:, 0:1], ycocg[:, 1:2], ycocg[:, 2:3]
+    return torch.cat([y + co - cg, y + cg, y - co - cg], dim=1)
+
+
+def _check(history: torch.Tensor, guide: torch.Tensor, size: int) -> None:
+    if history.dim() != 4 or history.shape[1] != 3 or history.shape != guide.shape:
+        raise ValueError(f"history and guide must both be (N, 3, H, W) of one shape, got {tuple(history.shape)} "
+                         f"and {tuple(guide.shape)}")
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"window size must be odd and positive, got {size}")
+
+
+def _windows(image: torch.Tensor, size: int) -> torch.Tensor:
+    """(N, C, size*size, H, W): every pixel's size x size neighbourhood, border replicated."""
+    n, c, h, w = image.shape
+    radius = size // 2
+    padded = F.pad(image, (radius, radius, radius, radius), mode="replicate")
+    return F.unfold(padded, size).view(n, c, size * size, h, w)
+
+
+def neighbourhood_moments(guide: torch.Tensor, size: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and standard deviation of the guide's YCoCg over each pixel's size x size window, (N, 3, H, W) each.
+
+    Box sums via average pooling of the values and their squares (no k*k tensor): this runs on every frame.
+    """
+    ycocg = rgb_to_ycocg(guide)
+    radius = size // 2
+    stacked = F.pad(torch.cat([ycocg, ycocg.square()], dim=1), (radius,) * 4, mode="replicate")
+    moments = F.avg_pool2d(stacked, size, stride=1)
+    mean, mean_sq = moments[:, :3], moments[:, 3:]
+    return mean, (mean_sq - mean.square()).clamp_min(0.0).sqrt()
+
+
+def neighbourhood_clamp(history: torch.Tensor, guide: torch.Tensor, size: int = 3) -> torch.Tensor:
+    """Clamp the history, per YCoCg channel, to the min/max of the guide's size x size window; RGB out."""
+    _check(history, guide, size)
+    windows = _windows(rgb_to_ycocg(guide), size)
+    low, high = windows.amin(dim=2), windows.amax(dim=2)
+    return ycocg_to_rgb(torch.maximum(torch.minimum(rgb_to_ycocg(history), high), low))
+
+
+def variance_clip(history: torch.Tensor, guide: torch.Tensor, size: int = 3, gamma: float = 1.0) -> torch.Tensor:
+    """Clamp the history, per YCoCg channel, to mean +- gamma * std of the guide's size x size window; RGB out."""
+    _check(history, guide, size)
+    if gamma < 0:
+        raise ValueError(f"gamma must be >= 0, got {gamma}")
+    mean, std = neighbourhood_moments(guide, size)
+    spread = gamma * std
+    return ycocg_to_rgb(torch.maximum(torch.minimum(rgb_to_ycocg(history), mean + spread), mean - spread))
+
+
+def variance_clip_hdr(history: torch.Tensor, guide: torch.Tensor, size: int = 3, gamma: float = 1.0) -> torch.Tensor:
+    """:func:`variance_clip` for linear HDR radiance: clipped in x / (1 + x) space, where one firefly or a bright
+    light does not blow the window's sigma up to cover everything; linear radiance out."""
+    tonemapped = variance_clip(history / (1.0 + history), guide / (1.0 + guide), size, gamma)
+    tonemapped = tonemapped.clamp(0.0, 1.0 - 1e-6)
+    return tonemapped / (1.0 - tonemapped)

@@ -1,0 +1,139 @@
+"""The fused family: OIDN's estimate as the fallback, TAA as the starting point, history reuse that can learn."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from model.methods.fused import Fused, unjittered_resample
+from model.methods.oidn import oidn_denoise
+from model.methods.oidn_taa import reinhard, reinhard_inverse
+from model.methods.registry import build_method, inference_cost, method_spec
+from model.ops.rectify import variance_clip
+from tests.model.methods.test_baselines import noisy_constant, plane_frame
+
+SIZE = 16
+
+
+def truth() -> torch.Tensor:
+    ramp = torch.linspace(0.2, 0.8, SIZE).view(1, 1, 1, SIZE).expand(1, 1, SIZE, SIZE)
+    return (ramp * torch.tensor([1.0, 0.8, 0.6]).view(1, 3, 1, 1)).contiguous()
+
+
+def frame_with_estimate(estimate: torch.Tensor, **kwargs):
+    frame = plane_frame(noisy_constant(truth(), torch.Generator().manual_seed(0)), **kwargs)
+    frame.spatial_estimate = estimate
+    return frame
+
+
+def test_registered_as_learned_with_oidn_quality_presets_at_both_scales():
+    spec = method_spec("fused")
+    assert spec.presets == ("fast", "balanced", "high") and spec.default_preset == "balanced" and spec.learned
+    for scale in (1, 2):
+        method = build_method("fused:fast", scale)
+        assert method.spatial_prior == "fast"
+        output, state = method.step(plane_frame(truth()), None)
+        assert output.shape == (1, 3, SIZE * scale, SIZE * scale) and torch.isfinite(output).all()
+        assert state["history"].shape[-1] == SIZE * scale and state["hidden"].shape[-1] == SIZE
+    parameters, flops = inference_cost(build_method("fused"))
+    assert 10_000 < parameters < 100_000 and flops > 0
+    with pytest.raises(KeyError, match="presets"):
+        Fused("ultra")
+
+
+def test_without_history_the_output_is_the_spatial_estimate():
+    estimate = truth() * 1.1
+    output, _ = build_method("fused").step(frame_with_estimate(estimate), None)
+    # The kernel starts as (almost) the identity and there is nothing else to fuse with.
+    torch.testing.assert_close(output, estimate, atol=0.01, rtol=0.01)
+
+
+def test_without_a_precomputed_estimate_it_runs_oidn_itself():
+    frame = plane_frame(noisy_constant(truth(), torch.Generator().manual_seed(1)))
+    output, _ = build_method("fused:fast").step(frame, None)
+    # The near-identity kernel (0.993 on the centre) leaks a little of OIDN's neighbours: compare on average.
+    assert float((output - oidn_denoise(frame, "fast")).abs().mean()) < 0.005
+
+
+def test_an_untrained_model_starts_from_taa_weights():
+    first = frame_with_estimate(truth())
+    second = frame_with_estimate(truth() * 0.9)
+    method = build_method("fused")
+    out1, state = method.step(first, None)
+    out2, _ = method.step(second, state)
+    current = reinhard(truth() * 0.9)
+    taa = 0.2 * current + 0.8 * variance_clip(reinhard(out1), current)
+    torch.testing.assert_close(out2, reinhard_inverse(taa), atol=0.01, rtol=0.02)
+
+
+def test_history_is_dropped_on_a_cut_and_where_depth_fails():
+    method = build_method("fused")
+    _, state = method.step(frame_with_estimate(truth() * 3), None)
+    for frame in (frame_with_estimate(truth(), camera_cut=[True]),
+                  frame_with_estimate(truth(), depth=torch.full((1, 1, SIZE, SIZE), 4.0))):
+        output, _ = method.step(frame, state)
+        torch.testing.assert_close(output, truth(), atol=0.01, rtol=0.01)
+
+
+def test_unjittered_resample_puts_a_jittered_sample_back_at_its_position():
+    # A linear ramp sampled at x + 0.5 + jx: reading it back at P - jx gives the ramp at the target centres P.
+    jitter = torch.tensor([[0.3, -0.2]])
+    xs = torch.arange(8, dtype=torch.float64) + 0.5 + 0.3
+    image = (0.05 * xs).view(1, 1, 1, 8).expand(1, 3, 8, 8).contiguous()
+    resampled = unjittered_resample(image, jitter.double(), 2)
+    centres = (torch.arange(16, dtype=torch.float64) + 0.5) / 2
+    # torch's bicubic (A = -0.75) reproduces a ramp to within 0.03 px; ignoring the jitter would be 0.3 px off.
+    error_px = (resampled[0, 0, 4, 4:-4] / 0.05 - centres[4:-4]).abs()
+    assert float(error_px.max()) < 0.03
+    ignored = unjittered_resample(image, torch.zeros(1, 2, dtype=torch.float64), 2)
+    assert float((ignored[0, 0, 4, 4:-4] / 0.05 - centres[4:-4]).abs().min()) > 0.25
+
+
+def test_training_teaches_it_to_trust_a_static_history():
+    # A static scene whose spatial estimate is wrong by a different random amount every frame (like OIDN's
+    # blotches): averaging over time is the answer, which the TAA start only partly does.
+    generator = torch.Generator().manual_seed(2)
+    frames = [frame_with_estimate(truth() * (1 + 0.3 * (torch.rand(1, 1, SIZE, SIZE, generator=generator) - 0.5)))
+              for _ in range(6)]
+    torch.manual_seed(0)
+    method = build_method("fused")
+    optimizer = torch.optim.Adam(method.parameters(), lr=3e-3)
+
+    def last_frame_error() -> torch.Tensor:
+        state = None
+        for frame in frames:
+            output, state = method.step(frame, state)
+        return (output - truth()).abs().mean()
+
+    with torch.no_grad():
+        initial = last_frame_error().item()
+    for _ in range(40):
+        optimizer.zero_grad()
+        last_frame_error().backward()
+        optimizer.step()
+    with torch.no_grad():
+        final = last_frame_error().item()
+    assert final < 0.8 * initial, (initial, final)
+
+
+def test_the_inference_form_gives_the_training_forms_output():
+    torch.manual_seed(3)
+    trained = build_method("fused", 2)
+    for parameter in trained.parameters():  # away from the initial head, so every path matters
+        parameter.data += 0.05 * torch.randn_like(parameter)
+    import copy
+    fast = copy.deepcopy(trained).for_inference()
+    frames = [frame_with_estimate(truth() * (1 + 0.1 * k)) for k in range(3)]
+    state_a = state_b = None
+    with torch.no_grad():
+        for frame in frames:
+            out_a, state_a = trained.eval().step(frame, state_a)
+            out_b, state_b = fast.step(frame, state_b)
+    torch.testing.assert_close(out_b, out_a, atol=1e-5, rtol=1e-4)
+
+
+def test_resampling_next_to_a_bright_emitter_does_not_overshoot():
+    image = torch.full((1, 3, 8, 8), 0.02)
+    image[..., 3:5, 3:5] = 0.98  # x / (1 + x) of radiance 49: a visible light
+    resampled = unjittered_resample(image, torch.tensor([[0.37, -0.41]]), 2)
+    assert float(resampled.max()) <= 0.98 + 1e-6 and float(resampled.min()) >= 0.02 - 1e-6
