@@ -422,3 +422,37 @@ def test_a_fused_model_streams_with_oidn_inside_and_survives_a_restart(make_stor
         result = restarted.process_frame(session.id, frame)
         assert result.history == CONTINUED
         assert_same_image(result.output, image)
+
+
+def test_a_session_keeps_its_layout_and_owner_and_its_steps_run_on_the_session_workers(make_store):
+    # Both sides of a session's creation (how its frames are read, who owns it) live in its metadata: a restarted
+    # store restores them from Redis, and frames without a frame index (read in a layout) still run on the session
+    # worker threads, one after the other.
+    import dataclasses
+
+    from service.sessions import token_digest
+
+    store = make_store(session_workers=2, session_threads=1)
+    session = store.create(MODEL_NAME, version="2", layout="blender-cycles", owner_digest=token_digest("secret"))
+    threads, original = [], session.method.step
+
+    def recorded_step(batch, state):
+        threads.append(threading.current_thread().name)
+        return original(batch, state)
+
+    session.method.step = recorded_step
+    # Files without a frame index read as index 0: each is the session's next frame, not a repeat of frame 0.
+    frames = [dataclasses.replace(frame, frame_index=0) for frame in stream_frames(3)]
+    try:
+        results = [store.process_frame(session.id, frame, frame_index_given=False) for frame in frames[:2]]
+    finally:
+        del session.method.step
+    assert [(r.frame_index, r.history) for r in results] == [(0, STARTED), (1, CONTINUED)]
+    assert len(threads) == 2 and all(name.startswith("session-torch") for name in threads)
+    assert (store.layout(session.id), store.owner_digest(session.id)) == ("blender-cycles", token_digest("secret"))
+    restarted = make_store(session_workers=2, session_threads=1)
+    assert restarted.get(session.id).layout == "blender-cycles"
+    assert (restarted.layout(session.id), restarted.owner_digest(session.id)) == ("blender-cycles",
+                                                                                  token_digest("secret"))
+    result = restarted.process_frame(session.id, frames[2], frame_index_given=False)
+    assert (result.frame_index, result.history) == (2, CONTINUED)
