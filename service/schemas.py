@@ -194,7 +194,7 @@ class StagedSequence(BaseModel):
 
 
 # =========================================================================================================
-# Models (/models): the MLflow registry (helper "sessions")
+# Models (/models): the MLflow registry
 # =========================================================================================================
 
 from datetime import datetime  # noqa: E402  (this section's own import; may move to the top of the file)
@@ -282,7 +282,7 @@ class AliasOut(BaseModel):
 
 
 # =========================================================================================================
-# Sessions (/sessions): streaming inference with server-side history (helper "sessions")
+# Sessions (/sessions): streaming inference with server-side history
 # =========================================================================================================
 
 OnGap = Literal["reset", "reject"]
@@ -425,7 +425,7 @@ class SessionOut(BaseModel):
 
 
 # =========================================================================================================
-# Jobs (/jobs): generate, train, evaluate, benchmark and infer jobs run by Celery workers (helper "jobs")
+# Jobs (/jobs): generate, train, evaluate, benchmark and infer jobs run by Celery workers
 # =========================================================================================================
 
 # This section's own imports (kept here so the section stays self-contained; they may move to the top).
