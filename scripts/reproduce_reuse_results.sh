@@ -24,3 +24,14 @@ for scale in 1 2; do
     --method accumulation --method accumulation:rectified --method svgf --method svgf:rectified \
     --out "docs/results/reuse_x$scale.json" | tee "docs/results/reuse_x$scale.md"
 done
+# The hard frames, side by side: input, OIDN-high, OIDN + TAA, ours, reference.
+picture() {  # SEQUENCE FRAME SCALE ZOOM OUT
+  .venv/bin/denoiser compare --data "$DATA" --sequence "$1" --frame "$2" --scale "$3" --zoom "$4" \
+    --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced \
+    --method "runs/fused-balanced-x$3/best.pt=fused-balanced" --out "$5"
+}
+picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png
+picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png
+picture moving_light_s4 -1 1 30,50,56 docs/reuse_moving_light_x1.png
+picture visible_emitter_s4 10 2 80,60,112 docs/reuse_visible_emitter_x2.png
+picture moving_object_s4 -1 2 60,80,112 docs/reuse_moving_object_x2.png
