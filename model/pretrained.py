@@ -35,7 +35,9 @@ import torch
 from model.methods.base import Method
 
 PRETRAINED_FORMAT = "denoiser-pretrained/1"
-PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
+# The repository's folder; an installed (not editable) package finds it through $DENOISER_PRETRAINED_DIR, which the
+# Docker image sets.
+PRETRAINED_DIR = Path(os.environ.get("DENOISER_PRETRAINED_DIR") or Path(__file__).resolve().parent.parent / "pretrained")
 MANIFEST = "manifest.json"
 WEIGHTS = "model.pt"
 NAME = re.compile(r"^[a-z0-9][a-z0-9.-]*$")

@@ -2,7 +2,9 @@
 # Reproduces the README's temporal-reuse results: the fused family (OIDN + learned temporal reuse) trained on
 # the dataset of scripts/generate_reuse_data.sh (rendered first if missing), then evaluated on its held-out test
 # recipes at 1x and 2x against OIDN (fast, balanced, high) and OIDN + TAA at the same qualities, timed in the same
-# run, with side-by-side pictures of the moving-light and moving-object cases.
+# run, with side-by-side pictures of the moving-light and moving-object cases; then it ships both checkpoints as
+# the repository's pretrained models (pretrained/fused-balanced-x{1,2}: weights,
+# recipe and the held-out rows of these reports; scripts/ship_pretrained.py).
 # On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side.
 # Usage: scripts/reproduce_reuse_results.sh [DATA_DIR]
 set -euo pipefail
@@ -23,4 +25,9 @@ for scale in 1 2; do
     --method oidn-taa:high --method oidn:fast --method oidn:balanced --method oidn:high \
     --method accumulation --method accumulation:rectified --method svgf --method svgf:rectified \
     --out "docs/results/reuse_x$scale.json" | tee "docs/results/reuse_x$scale.md"
+done
+for scale in 1 2; do
+  .venv/bin/python scripts/ship_pretrained.py "runs/fused-balanced-x$scale/best.pt" --name "fused-balanced-x$scale" \
+    --data "$DATA" --dataset-script scripts/generate_reuse_data.sh --training-script scripts/reproduce_reuse_results.sh \
+    --report "docs/results/reuse_x$scale.json"
 done

@@ -233,3 +233,62 @@ def save_image_grid(columns: dict[str, list[np.ndarray]], path: str | os.PathLik
     path = Path(path)
     figure.savefig(path, dpi=100)
     return path
+
+
+PRETRAINED_ALIAS = "pretrained"
+PRETRAINED_EXPERIMENT = "pretrained"
+
+
+def pretrained_tags(model) -> dict[str, str]:
+    """Version tags of a shipped model (``model.pretrained.PretrainedModel``): what training tags, its sha256, and
+    its held-out PSNR / FLIP with OIDN-high's of the same evaluation run when measured."""
+    manifest, training = model.manifest, model.manifest.get("training") or {}
+    tags = {"method": model.method, "preset": model.preset, "scale": str(model.scale),
+            "params": str(manifest.get("params", "")), "flops_per_pixel": str(manifest.get("flops_per_pixel", "")),
+            "sha256": model.sha256, "pretrained": "true", "held_out": model.held_out.get("status", "pending"),
+            "steps": str(training.get("step", ""))}
+    best = training.get("best_metric") or {}
+    if best.get("name") == "validation/psnr" and best.get("value") is not None:
+        tags["validation_psnr"] = f"{best['value']:.4f}"
+    row = model.held_out_row()
+    if row is not None:
+        for key in ("psnr", "flip"):
+            if row.get(key) is not None:
+                tags[f"metric.held_out_{key}"] = f"{row[key]:.6g}"
+        for peer in model.held_out.get("peers") or []:
+            if peer.get("label") == "oidn:high" and peer.get("psnr") is not None:
+                tags["metric.held_out_oidn_high_psnr"] = f"{peer['psnr']:.6g}"
+    return {key: value for key, value in tags.items() if value != ""}
+
+
+def register_pretrained(model, tracking_uri: str | None = None, alias: str = PRETRAINED_ALIAS) -> dict[str, Any]:
+    """Register a shipped model once and point ``alias`` at it: a version of ``model.name`` tagged with the same
+    sha256 is reused (so running this again changes nothing), else the file is checked and logged as a new version
+    from a run of the ``pretrained`` experiment. Returns name, version, uri and whether it was created."""
+    from model.pretrained import verify
+
+    tracker = MLflowTracker(tracking_uri, experiment=PRETRAINED_EXPERIMENT, run_name=model.name)
+    client = tracker.client
+    if "'" in model.name:
+        raise ValueError(f"model name {model.name!r} contains a quote")
+    same = [version for version in client.search_model_versions(f"name = '{model.name}'")
+            if (version.tags or {}).get("sha256") == model.sha256]
+    created = not same
+    if same:
+        version = str(min(int(v.version) for v in same))
+    else:
+        path = verify(model)
+        training = model.manifest.get("training") or {}
+        dataset = training.get("dataset") or {}
+        tracker.start({"method": f"{model.method}:{model.preset}", "scale": model.scale, "pretrained": model.name,
+                       "sha256": model.sha256, "steps": training.get("steps"), "step": training.get("step"),
+                       "seed": training.get("seed"), "training_script": training.get("script"),
+                       "dataset_script": dataset.get("script"), "dataset_digest": dataset.get("digest")})
+        try:
+            version = tracker.log_model(path, model.name, pretrained_tags(model))["version"]
+        except BaseException:
+            tracker.finish("FAILED")
+            raise
+        tracker.finish("FINISHED")
+    client.set_registered_model_alias(model.name, alias, version)
+    return {"name": model.name, "version": version, "uri": f"models:/{model.name}@{alias}", "created": created}

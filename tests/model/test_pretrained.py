@@ -120,3 +120,13 @@ def test_every_model_in_the_repository_matches_its_manifest_and_runs(name):
     assert held_out["status"] in ("measured", "pending")
     if held_out["status"] == "measured":
         assert held_out["model"]["psnr"] is not None and held_out["peers"]
+
+
+def test_evaluate_takes_a_pretrained_name(tmp_path, monkeypatch):
+    import model.pretrained as pretrained
+    from model.evaluate import resolve_method
+
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    ship_tiny(tmp_path / "pretrained")
+    method, source = resolve_method("wskpn-xs-x1", 1)
+    assert (method.label, source) == ("wskpn:xs", "pretrained:wskpn-xs-x1")
