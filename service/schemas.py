@@ -521,6 +521,13 @@ class TrainParams(BaseModel):
     threads: int | None = Field(None, ge=1, le=1024, description="torch threads per rank")
     experiment: str = Field("denoiser", min_length=1, max_length=200, description="MLflow experiment")
     track: bool = Field(True, description="log to MLflow and register the model")
+    init_from: str | None = Field(None, min_length=1, max_length=500,
+                                  description="start from these weights instead of random ones (fine-tuning): a "
+                                              "registered model (models:/NAME@ALIAS, models:/NAME/VERSION, "
+                                              "models:/NAME), a pretrained model's name (denoiser pretrained), or a "
+                                              "checkpoint under the data folder's jobs/ or models/; same method "
+                                              "and scale (a float32 JNDS may start its -int8 preset)",
+                                  examples=["fused-balanced-x1", "models:/fused-balanced-x1@pretrained"])
 
 
 class EvaluateParams(BaseModel):
