@@ -170,7 +170,7 @@ def load_pretrained(name: str, device: str | torch.device = "cpu", scale: int | 
 def dataset_summary(dataset_dir: str | os.PathLike) -> dict[str, Any]:
     """A dataset's recipe as its manifest records it: per split the sequences and scene recipes, and the sha256 of
     the dataset manifest plus every sequence manifest (the same digest the training run's lineage records)."""
-    from model.dataset import Dataset
+    from model.dataset import Dataset, dataset_digest
 
     dataset = Dataset(dataset_dir)
     splits = {}
@@ -179,20 +179,6 @@ def dataset_summary(dataset_dir: str | os.PathLike) -> dict[str, Any]:
         splits[split] = {"sequences": len(sequences),
                          "scenes": sorted({s.scene for s in sequences if s.scene is not None})}
     return {"digest": dataset_digest(dataset_dir), "splits": splits}
-
-
-def dataset_digest(dataset_dir: str | os.PathLike) -> str:
-    """sha256 over the dataset manifest and its sequences' manifests (names, frames, renderer settings)."""
-    from model.dataset import Dataset
-
-    root = Path(dataset_dir)
-    digest = hashlib.sha256((root / MANIFEST).read_bytes())
-    dataset = Dataset(root)
-    for split in ("train", "validation", "test"):
-        for sequence in dataset.sequences(split):
-            digest.update(f"{split}/{sequence.name}\n".encode())
-            digest.update((Path(sequence.path) / MANIFEST).read_bytes())
-    return digest.hexdigest()
 
 
 def held_out_from_report(report: dict[str, Any], row_source: str, method: str, preset: str,

@@ -44,6 +44,14 @@ def test_registration_is_idempotent_and_sets_the_alias(shipped, tmp_path, capsys
 
     local = download_registered_checkpoint("wskpn-xs-x1", 1, tmp_path / "download", tracking_uri=uri)
     assert pretrained.file_sha256(local) == shipped.sha256
+    # ... and the registered version is a pyfunc model with a signature.
+    import mlflow
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("MLFLOW_TRACKING_URI", uri)
+        patch.setenv("MLFLOW_REGISTRY_URI", uri)
+        model = mlflow.pyfunc.load_model("models:/wskpn-xs-x1@pretrained")
+    assert "jitter" in model.metadata.get_input_schema().input_names()
 
 
 def test_a_damaged_model_is_reported_and_exits_2(shipped, capsys):

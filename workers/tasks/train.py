@@ -141,6 +141,9 @@ class _JobTracker:
     def log_image_grid(self, name: str, columns, step: int) -> None:
         self.inner.log_image_grid(name, columns, step)
 
+    def log_dataset(self, path: str, context: str) -> None:
+        self.inner.log_dataset(path, context)
+
     def log_model(self, checkpoint: Path, registered_name: str, tags: dict[str, str]):
         return self.inner.log_model(checkpoint, registered_name, tags)
 
