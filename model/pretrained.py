@@ -40,7 +40,7 @@ PRETRAINED_FORMAT = "denoiser-pretrained/1"
 PRETRAINED_DIR = Path(os.environ.get("DENOISER_PRETRAINED_DIR") or Path(__file__).resolve().parent.parent / "pretrained")
 MANIFEST = "manifest.json"
 WEIGHTS = "model.pt"
-NAME = re.compile(r"^[a-z0-9][a-z0-9.-]*$")
+NAME = re.compile(r"^[a-z0-9][a-z0-9.-]{0,99}$")
 # Rows of an evaluation report copied next to the shipped model's: the outside peer at each quality.
 PEER_METHODS = ("oidn", "oidn-taa")
 METRICS = ("psnr", "ssim", "flip", "smape", "temporal_error", "fvvdp_jod")
@@ -105,7 +105,12 @@ def pretrained_names(root: str | os.PathLike | None = None) -> list[str]:
 
 
 def is_pretrained(name: str, root: str | os.PathLike | None = None) -> bool:
-    return bool(NAME.match(name)) and (_root(root) / name / MANIFEST).is_file()
+    if not NAME.match(name):
+        return False
+    try:
+        return (_root(root) / name / MANIFEST).is_file()
+    except OSError:  # a name the file system refuses cannot be a shipped model
+        return False
 
 
 def get_pretrained(name: str, root: str | os.PathLike | None = None) -> PretrainedModel:

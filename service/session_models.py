@@ -95,11 +95,21 @@ def available_models(registry: Registry | None) -> dict[str, list[str]]:
     return {"registered": registered, "pretrained": pretrained_names(), "methods": methods}
 
 
-def _not_found(name: str, registry: Registry | None, why: str = "") -> SessionModelNotFound:
+def _not_found(name: str, registry: Registry | None) -> SessionModelNotFound:
     known = available_models(registry)
     listing = "; ".join(f"{kind}: {', '.join(names) or 'none'}" for kind, names in known.items())
-    return SessionModelNotFound(f"model {name!r} does not exist{why}: it is no registered model, pretrained model "
-                                f"or method. Available: {listing}", details=known)
+    return SessionModelNotFound(f"model {name!r} does not exist: it is no registered model, pretrained model or "
+                                f"method. Available: {listing}", details=known)
+
+
+def _is_method(name: str) -> bool:
+    from model.methods.registry import method_spec
+
+    try:
+        method_spec(name)
+    except KeyError:
+        return False
+    return True
 
 
 def _method_source(text: str, scale: int | None, registry: Registry | None) -> SessionModelSource:
@@ -149,10 +159,13 @@ def resolve_session_model(name: str, registry: Registry, version: str | None = N
         if registry.has_model(name):
             raise  # the model exists; its version or alias does not (the message says which)
         if version is not None or alias is not None:
-            hint = (f" in the registry (it is a pretrained model: register the pretrained models with 'denoiser "
-                    f"pretrained --register', or give no version and alias)") if is_pretrained(name) else ""
-            if hint:
-                raise UnknownModelError(f"model {name!r} does not exist{hint}") from None
+            if is_pretrained(name):
+                raise UnknownModelError(f"model {name!r} does not exist in the registry (it is a pretrained model: "
+                                        f"register the pretrained models with 'denoiser pretrained --register', or "
+                                        f"give no version and alias)") from None
+            if _is_method(name):
+                raise SessionModelInvalid(f"{name!r} is a method: version and alias go with registered models only",
+                                          code="invalid_request") from None
             raise _not_found(name, registry) from None
         if is_pretrained(name):
             pretrained = get_pretrained(name)

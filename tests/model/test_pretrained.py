@@ -130,3 +130,12 @@ def test_evaluate_takes_a_pretrained_name(tmp_path, monkeypatch):
     ship_tiny(tmp_path / "pretrained")
     method, source = resolve_method("wskpn-xs-x1", 1)
     assert (method.label, source) == ("wskpn:xs", "pretrained:wskpn-xs-x1")
+
+
+def test_names_no_model_can_have_are_simply_not_pretrained(tmp_path):
+    from model.pretrained import is_pretrained
+
+    ship_tiny(tmp_path / "pretrained")
+    for name in ("0" * 600, "../pretrained", "Wskpn-XS-x1", "", "a/b"):
+        assert not is_pretrained(name, tmp_path / "pretrained")
+    assert is_pretrained("wskpn-xs-x1", tmp_path / "pretrained")

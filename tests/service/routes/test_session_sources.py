@@ -112,6 +112,7 @@ def test_an_unknown_name_is_404_listing_what_exists(api):
     ({"model": "oidn:ultra"}, "unknown_preset", "presets: fast, balanced, high"),
     ({"model": "wskpn:s"}, "untrained_method", "would run untrained"),
     ({"model": "oidn:high", "alias": "champion"}, "invalid_request", "version and alias go with registered"),
+    ({"model": "svgf", "version": "2"}, "invalid_request", "version and alias go with registered"),
     ({"model": "svgf", "scale": 3}, "invalid_request", "scale"),
     ({"model": MODEL_NAME, "scale": 1}, "unsupported_scale", "runs at scale 2"),
 ])
@@ -120,3 +121,12 @@ def test_malformed_or_unfit_names_are_422_in_our_words(api, body, code, words):
     message = error_of(client.post("/sessions", json=body), 422, code)
     assert words in message
     assert "MLflow" not in message and "INVALID_PARAMETER" not in message
+
+
+def test_a_pretrained_name_with_an_alias_before_registration_says_how_to_register(api, tmp_path, monkeypatch):
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    ship_tiny(tmp_path / "pretrained", "wskpn-xs-x1")
+    client, _ = api()
+    message = error_of(client.post("/sessions", json={"model": "wskpn-xs-x1", "alias": "pretrained"}), 404,
+                       "not_found")
+    assert "denoiser pretrained --register" in message
