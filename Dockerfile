@@ -53,5 +53,7 @@ RUN useradd --create-home --uid 10001 denoiser \
 USER denoiser
 
 EXPOSE 8000
+# The API listens on every interface here: it refuses to start without a real DENOISER_API_KEY.
+ENV DENOISER_REQUIRE_API_KEY=true
 # One uvicorn process: inference sessions keep their models and history in its memory (mirrored to Redis).
 CMD ["uvicorn", "service.main:app", "--host", "0.0.0.0", "--port", "8000"]

@@ -71,13 +71,25 @@ def write_json_atomically(path: Path, content: dict) -> None:
         temporary.unlink(missing_ok=True)
 
 
+def json_problem(error: ValueError | RecursionError) -> str:
+    """What is wrong with JSON text that ``json.loads`` refused, in words. Besides syntax errors it raises
+    RecursionError for deep nesting (``[`` x 100000) and ValueError for integers past Python's 4300 digits."""
+    if isinstance(error, RecursionError):
+        return "not valid JSON here (nested too deeply)"
+    if isinstance(error, json.JSONDecodeError):
+        return f"not valid JSON ({error})"
+    if isinstance(error, UnicodeDecodeError):
+        return f"not UTF-8 text ({error})"
+    return f"not valid JSON here ({error})"  # e.g. an integer with too many digits
+
+
 def _read_json(path: Path, what: str) -> dict:
     if not path.is_file():
         raise DatasetError(f"{path}: not found (is {path.parent} a {what} folder?)")
     try:
         content = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise DatasetError(f"{path}: not valid JSON ({error})") from None
+    except (ValueError, RecursionError) as error:
+        raise DatasetError(f"{path}: {json_problem(error)}") from None
     if not isinstance(content, dict):
         raise DatasetError(f"{path}: top level is a {type(content).__name__}, not an object")
     return content

@@ -64,6 +64,29 @@ class FrameFormatError(FrameError):
     """The file is not a readable frame bundle EXR (missing, not EXR, truncated, wrong channels or header)."""
 
 
+class FrameTooLarge(FrameFormatError):
+    """The header declares more pixels than the reader's limit (found before any pixel is decoded)."""
+
+    def __init__(self, source: str, problem: str, pixels: int, limit: int) -> None:
+        super().__init__(source, None, problem)
+        self.pixels = pixels
+        self.limit = limit
+
+    def __reduce__(self):  # picklable with the extra fields (Celery ships errors across processes)
+        return (type(self), (self.source, self.problem, self.pixels, self.limit))
+
+
+# Besides its render part, a frame's file may hold reference parts at a larger scale (a 2x reference has 4 times
+# the render pixels) and, from another renderer, one part per render pass (Blender writes 6 for the passes
+# blender-cycles reads): the whole file is bounded by the values it declares (pixels x channels over all parts), at
+# most this many per pixel of the limit. A frame bundle with every buffer and 1x and 2x references declares 61 per
+# render pixel, Blender's 6 passes 18.
+MAX_VALUES_PER_PIXEL = 128
+# A reference render of a frame in another renderer's layout (a references/ file, a high-sample render at the
+# target resolution) may be at 2x: 4 times the render-pixel limit.
+REFERENCE_RENDER_PIXEL_FACTOR = 4
+
+
 def reference_part_name(scale: int) -> str:
     return f"reference_x{scale}"
 
@@ -95,24 +118,29 @@ def write_frame(path: str | os.PathLike, frame: FrameBundle, *, half: bool = Fal
     return path
 
 
-def read_frame(path: str | os.PathLike, *, sanitizable: bool = False) -> FrameBundle:
+def read_frame(path: str | os.PathLike, *, sanitizable: bool = False, max_pixels: int | None = None) -> FrameBundle:
     """Read and validate one frame bundle; every error is a FrameError naming the file. ``sanitizable``: let NaN,
-    Inf and out-of-range values through (``model.frames.validate_frame``), for frames a session repairs."""
+    Inf and out-of-range values through (``model.frames.validate_frame``), for frames a session repairs.
+    ``max_pixels``: FrameTooLarge, from the header alone, for a render part above that many pixels (see
+    ``check_declared_pixels``)."""
     source = str(path)
-    return _frame_from_exr(_open_exr(Path(path), source), source, sanitizable)
+    return _frame_from_exr(_open_exr(Path(path), source, max_pixels), source, sanitizable)
 
 
-def open_exr(path: str | os.PathLike) -> OpenEXR.File:
-    """Every part of an EXR file with its pixels (FrameFormatError naming the file if it cannot be read)."""
-    return _open_exr(Path(path), str(path))
+def open_exr(path: str | os.PathLike, *, max_pixels: int | None = None,
+             reference_render: bool = False) -> OpenEXR.File:
+    """Every part of an EXR file with its pixels (FrameFormatError naming the file if it cannot be read).
+    ``max_pixels``: FrameTooLarge from the headers first, before any pixel is decoded (``check_declared_pixels``,
+    whose ``reference_render`` this passes on)."""
+    return _open_exr(Path(path), str(path), max_pixels, reference_render)
 
 
-def open_exr_bytes(data: bytes, source: str = "<bytes>") -> OpenEXR.File:
+def open_exr_bytes(data: bytes, source: str = "<bytes>", *, max_pixels: int | None = None) -> OpenEXR.File:
     """``open_exr`` for an EXR held in memory."""
     if data[: len(EXR_MAGIC)] != EXR_MAGIC:
         problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
         raise FrameFormatError(source, None, problem)
-    return _read_exr(lambda: io.BytesIO(data), source)
+    return _read_exr(lambda: io.BytesIO(data), source, max_pixels)
 
 
 def part_planes(part: OpenEXR.Part) -> dict[str, np.ndarray]:
@@ -190,7 +218,7 @@ def _frame_parts(frame: FrameBundle, half: bool, compression=OpenEXR.ZIP_COMPRES
 # --- reading ---------------------------------------------------------------------------------------------
 
 
-def _open_exr(path: Path, source: str) -> OpenEXR.File:
+def _open_exr(path: Path, source: str, max_pixels: int | None = None, reference_render: bool = False) -> OpenEXR.File:
     if not path.is_file():
         problem = "is a directory, not a file" if path.is_dir() else "file not found"
         raise FrameFormatError(source, None, problem)
@@ -198,17 +226,78 @@ def _open_exr(path: Path, source: str) -> OpenEXR.File:
         magic = file.read(len(EXR_MAGIC))
     if magic != EXR_MAGIC:
         raise FrameFormatError(source, None, "not an OpenEXR file (wrong magic number)")
-    return _read_exr(lambda: str(path), source)
+    return _read_exr(lambda: str(path), source, max_pixels, reference_render)
 
 
-def _read_exr(target: Callable[[], str | io.BytesIO], source: str) -> OpenEXR.File:
-    """Every part of the EXR at ``target()`` (a path, or a fresh stream per call) with its pixels."""
+def _read_headers(target: str | io.BytesIO, source: str) -> list:
     # The bindings raise RuntimeError for unreadable headers and document nothing else: any failure of
-    # these calls means the file cannot be read.
+    # this call means the file cannot be read.
     try:
-        part_count = len(OpenEXR.File(target(), header_only=True).parts)
+        return OpenEXR.File(target, header_only=True).parts
     except Exception as error:
         raise FrameFormatError(source, None, f"unreadable or truncated EXR ({error})") from None
+
+
+def _part_pixels(part) -> tuple[int, int]:
+    """(width, height) of a part's data window, as its header declares it."""
+    try:
+        low, high = part.header["dataWindow"]
+        return int(high[0]) - int(low[0]) + 1, int(high[1]) - int(low[1]) + 1
+    except (KeyError, TypeError, ValueError, IndexError):
+        return 0, 0  # no usable data window: the full read reports what is wrong with the file
+
+
+def _part_name(part) -> str:
+    try:
+        return part.name() or ""
+    except Exception:  # a header without a usable name: the full read reports what is wrong with the file
+        return ""
+
+
+def check_declared_pixels(parts: list, source: str, max_pixels: int, *, reference_render: bool = False) -> None:
+    """FrameTooLarge when the headers declare a render part (the first part, and any other not named
+    ``reference_x<scale>``: another renderer's pass parts) of more than ``max_pixels`` pixels, or all parts
+    together more than MAX_VALUES_PER_PIXEL values (pixels x channels) per pixel of ``max_pixels``.
+    ``reference_render``: the file is a reference render at the target resolution, whose parts may have
+    REFERENCE_RENDER_PIXEL_FACTOR times the pixels. Compressed pixel data can declare any size (an all-zero
+    2048x2048 frame compresses to about 200 KB), so this runs before anything is decoded, whatever the layout."""
+    limit = max_pixels * (REFERENCE_RENDER_PIXEL_FACTOR if reference_render else 1)
+    values = 0
+    for index, part in enumerate(parts):
+        width, height = _part_pixels(part)
+        name = _part_name(part)
+        if (index == 0 or not REFERENCE_PART_PATTERN.fullmatch(name)) and width * height > limit:
+            where = f" in part '{name}'" if index else ""
+            raise FrameTooLarge(source, f"declares {width}x{height} = {width * height} pixels{where}; the limit is "
+                                        f"{limit} pixels per {'reference render' if reference_render else 'frame'}",
+                                width * height, limit)
+        try:
+            channels = len(part.header.get("channels", ()))
+        except (AttributeError, TypeError):
+            channels = 0
+        values += width * height * max(1, channels)
+    if values > MAX_VALUES_PER_PIXEL * max_pixels:
+        raise FrameTooLarge(source, f"declares {values} values (pixels x channels) in its {len(parts)} parts; the "
+                                    f"limit is {MAX_VALUES_PER_PIXEL * max_pixels} ({MAX_VALUES_PER_PIXEL} per pixel "
+                                    f"of the {max_pixels}-pixel frame limit)",
+                            values, MAX_VALUES_PER_PIXEL * max_pixels)
+
+
+def check_frame_file_pixels(path: str | os.PathLike, max_pixels: int, source: str | None = None, *,
+                            reference_render: bool = False) -> None:
+    """``check_declared_pixels`` for an EXR file, reading its headers only."""
+    source = source or str(path)
+    check_declared_pixels(_read_headers(str(path), source), source, max_pixels, reference_render=reference_render)
+
+
+def _read_exr(target: Callable[[], str | io.BytesIO], source: str, max_pixels: int | None = None,
+              reference_render: bool = False) -> OpenEXR.File:
+    """Every part of the EXR at ``target()`` (a path, or a fresh stream per call) with its pixels; with
+    ``max_pixels``, the headers are checked against it first (``check_declared_pixels``)."""
+    parts = _read_headers(target(), source)
+    part_count = len(parts)
+    if max_pixels is not None:
+        check_declared_pixels(parts, source, max_pixels, reference_render=reference_render)
     exr = _read_coalesced(target, part_count)
     if exr is None:  # an unusual channel layout, or a damaged file: the plain read reports what is wrong
         try:
@@ -454,15 +543,16 @@ def encode_frame_exr(frame: FrameBundle, *, half: bool = False, compression=Open
     return stream.getvalue()
 
 
-def read_frame_bytes(data: bytes, source: str = "<bytes>", *, sanitizable: bool = False) -> FrameBundle:
+def read_frame_bytes(data: bytes, source: str = "<bytes>", *, sanitizable: bool = False,
+                     max_pixels: int | None = None) -> FrameBundle:
     """``read_frame`` for a frame bundle held in memory; errors are FrameErrors naming ``source``.
 
     ``sanitizable``: let NaN, Inf and out-of-range values through (``model.frames.validate_frame``), for input that
-    ``model.sanitize.sanitize_frame`` repairs next."""
+    ``model.sanitize.sanitize_frame`` repairs next. ``max_pixels``: as ``read_frame``."""
     if data[: len(EXR_MAGIC)] != EXR_MAGIC:
         problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
         raise FrameFormatError(source, None, problem)
-    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source), source, sanitizable)
+    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source, max_pixels), source, sanitizable)
 
 
 def _image_file(rgb: np.ndarray, attributes: dict | None, compression) -> OpenEXR.File:

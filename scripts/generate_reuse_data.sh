@@ -18,5 +18,6 @@ for seed in 1 2 3; do
       --scene sliding_over_texture --scene moving_highlights
 done
 gen --split validation --frames 8 --seed 5 --scene diffuse_room --scene orbiting_light
+gen --split validation --frames 16 --seed 5 --scene sliding_over_texture --scene moving_highlights --scene textured_detail
 gen --split test --frames 16 --seed 4 --scene glass --scene moving_light --scene camera_cut --scene moving_object \
     --scene visible_emitter

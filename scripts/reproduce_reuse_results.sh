@@ -2,32 +2,63 @@
 # Reproduces the README's temporal-reuse results: the fused family (OIDN + learned temporal reuse) trained on
 # the dataset of scripts/generate_reuse_data.sh (rendered first if missing), then evaluated on its held-out test
 # recipes at 1x and 2x against OIDN (fast, balanced, high) and OIDN + TAA at the same qualities, timed in the same
-# run, with side-by-side pictures of the moving-light and moving-object cases; then it ships both checkpoints as
-# the repository's pretrained models (pretrained/fused-balanced-x{1,2}: weights,
-# recipe and the held-out rows of these reports; scripts/ship_pretrained.py).
-# On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side.
+# run, with side-by-side pictures of the moving-light and moving-object cases; then it ships the default
+# preset at both scales as the repository's pretrained models (pretrained/fused-balanced-x{1,2}: weights, recipe
+# and the held-out rows of these reports; scripts/ship_pretrained.py).
+# On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side (13 and
+# 25 minutes), then 600 steps with longer histories at 1x and the fast / high presets fine-tuned from it (6 min).
 # Usage: scripts/reproduce_reuse_results.sh [DATA_DIR]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${1:-data/reuse}
 STEPS_X1=${STEPS_X1:-2000}
-STEPS_X2=${STEPS_X2:-2000}
+STEPS_X2=${STEPS_X2:-1500}
 [ -f "$DATA/manifest.json" ] || bash scripts/generate_reuse_data.sh "$DATA"
-train=(.venv/bin/denoiser train --data "$DATA" --method fused:balanced --crop 64 --frames-per-sample 8 --batch 4
+train=(.venv/bin/denoiser train --data "$DATA" --method fused:balanced --frames-per-sample 10 --batch 4
        --lr 2e-3 --threads 1 --validate-every 250 --checkpoint-every 250 --quiet)
-"${train[@]}" --scale 1 --steps "$STEPS_X1" --out runs/fused-balanced-x1 > runs-fused-balanced-x1.log 2>&1 &
-"${train[@]}" --scale 2 --steps "$STEPS_X2" --out runs/fused-balanced-x2 > runs-fused-balanced-x2.log 2>&1 &
+"${train[@]}" --scale 1 --crop 64 --steps "$STEPS_X1" --out runs/fused-balanced-x1 > runs-fused-balanced-x1.log 2>&1 &
+"${train[@]}" --scale 2 --crop 48 --steps "$STEPS_X2" --out runs/fused-balanced-x2 > runs-fused-balanced-x2.log 2>&1 &
+wait
+# Then longer histories at 1x (12 frames per sample, the whole training sequence), and the two other OIDN qualities
+# fine-tuned from it (the network is the same; it adapts to the other preset's OIDN output).
+tune=(.venv/bin/denoiser train --data "$DATA" --frames-per-sample 12 --batch 4 --lr 5e-4 --warmup 10 --threads 1
+      --crop 64 --quiet --scale 1)
+"${tune[@]}" --method fused:balanced --init-from runs/fused-balanced-x1/best.pt --steps 600 --validate-every 150 \
+  --checkpoint-every 150 --out runs/fused-balanced-x1-long > runs-fused-balanced-x1-long.log 2>&1
+for quality in fast high; do
+  "${tune[@]}" --method "fused:$quality" --init-from runs/fused-balanced-x1-long/best.pt --steps 200 \
+    --validate-every 100 --checkpoint-every 100 --out "runs/fused-$quality-x1" > "runs-fused-$quality-x1.log" 2>&1 &
+done
 wait
 mkdir -p docs/results
 for scale in 1 2; do
+  if [ "$scale" = 1 ]; then
+    ours=(--method runs/fused-balanced-x1-long/best.pt --method runs/fused-fast-x1/best.pt
+          --method runs/fused-high-x1/best.pt)
+  else
+    ours=(--method runs/fused-balanced-x2/best.pt)
+  fi
   .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 \
-    --method "runs/fused-balanced-x$scale/best.pt" --method oidn-taa:fast --method oidn-taa:balanced \
+    "${ours[@]}" --method oidn-taa:fast --method oidn-taa:balanced \
     --method oidn-taa:high --method oidn:fast --method oidn:balanced --method oidn:high \
     --method accumulation --method accumulation:rectified --method svgf --method svgf:rectified \
     --out "docs/results/reuse_x$scale.json" | tee "docs/results/reuse_x$scale.md"
 done
-for scale in 1 2; do
-  .venv/bin/python scripts/ship_pretrained.py "runs/fused-balanced-x$scale/best.pt" --name "fused-balanced-x$scale" \
-    --data "$DATA" --dataset-script scripts/generate_reuse_data.sh --training-script scripts/reproduce_reuse_results.sh \
-    --report "docs/results/reuse_x$scale.json"
-done
+# The hard frames, side by side: input, OIDN-high, OIDN + TAA, ours, reference.
+picture() {  # SEQUENCE FRAME SCALE ZOOM OUT CHECKPOINT
+  .venv/bin/denoiser compare --data "$DATA" --sequence "$1" --frame "$2" --scale "$3" --zoom "$4" \
+    --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced \
+    --method "$6=fused-balanced" --out "$5"
+}
+picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png runs/fused-balanced-x1-long/best.pt
+picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png runs/fused-balanced-x1-long/best.pt
+picture moving_light_s4 -1 1 30,50,56 docs/reuse_moving_light_x1.png runs/fused-balanced-x1-long/best.pt
+picture visible_emitter_s4 10 2 80,60,112 docs/reuse_visible_emitter_x2.png runs/fused-balanced-x2/best.pt
+picture moving_object_s4 -1 2 60,80,112 docs/reuse_moving_object_x2.png runs/fused-balanced-x2/best.pt
+# The default preset at both scales as the repository's pretrained models (1x: the longer-history fine-tune, its
+# first stage recorded too).
+ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-script scripts/generate_reuse_data.sh
+      --training-script scripts/reproduce_reuse_results.sh)
+"${ship[@]}" runs/fused-balanced-x1-long/best.pt --name fused-balanced-x1 --stage runs/fused-balanced-x1/best.pt \
+  --report docs/results/reuse_x1.json
+"${ship[@]}" runs/fused-balanced-x2/best.pt --name fused-balanced-x2 --report docs/results/reuse_x2.json

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
-# Starts, stops or reports the local stack (no Docker): Redis (if nothing listens on its port), the REST API,
+# Starts, stops or reports the local stack (no Docker): Redis (if nothing listens on the host and port of
+# DENOISER_REDIS_URL, and that host is this one; append-only, its files in var/redis), the REST API,
 # one Celery worker (queues cpu, solo pool) and the MLflow UI. Settings: DENOISER_* variables (defaults:
 # data and the MLflow SQLite store under ./var). Logs: var/logs/<name>.log; process ids: var/run/<name>.pid.
 #   bash scripts/services.sh start|stop|restart|status [api|worker|mlflow]
+#   bash scripts/services.sh redis-command      prints Redis's host and port, then the command that would start it
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA_DIR=${DENOISER_DATA_DIR:-var}
@@ -16,15 +18,33 @@ RUN=$DATA_DIR/run
 mkdir -p "$LOGS" "$RUN"
 DENOISER=.venv/bin/denoiser
 
-port_open() { .venv/bin/python -c "import socket,sys; socket.create_connection(('127.0.0.1', $1), timeout=1).close()" 2>/dev/null; }
+port_open() { .venv/bin/python -c "import socket,sys; socket.create_connection(('$1', $2), timeout=1).close()" 2>/dev/null; }
 running() { [ -f "$RUN/$1.pid" ] && kill -0 "$(cat "$RUN/$1.pid")" 2>/dev/null; }
 
+# Redis's host and port from DENOISER_REDIS_URL (redis://[user:password@]host[:port][/db]).
+REDIS_URL=${DENOISER_REDIS_URL:-redis://127.0.0.1:6379/0}
+redis_rest=${REDIS_URL#*://}; redis_rest=${redis_rest##*@}; redis_hostport=${redis_rest%%/*}
+REDIS_HOST=${redis_hostport%:*}; REDIS_PORT=${redis_hostport##*:}
+if [ "$REDIS_HOST" = "$redis_hostport" ]; then REDIS_PORT=6379; fi
+REDIS_DIR=$DATA_DIR/redis
+
+# Append-only persistence (as in docker-compose): queued jobs, job records and session mirrors survive a restart.
+redis_command() {
+  echo redis-server --daemonize yes --bind 127.0.0.1 --port "$REDIS_PORT" --dir "$(cd "$REDIS_DIR" && pwd)" \
+    --appendonly yes --appendfsync everysec
+}
+
 ensure_redis() {
-  if port_open 6379; then return; fi
-  echo "[services] Redis is not running on 127.0.0.1:6379: starting it"
+  mkdir -p "$REDIS_DIR"
+  if port_open "$REDIS_HOST" "$REDIS_PORT"; then return; fi
+  case "$REDIS_HOST" in
+    127.0.0.1|localhost) ;;
+    *) echo "[services] Redis at $REDIS_HOST:$REDIS_PORT (DENOISER_REDIS_URL) does not answer; start it there" >&2; exit 1 ;;
+  esac
+  echo "[services] Redis is not running on 127.0.0.1:$REDIS_PORT: starting it (append-only, in $REDIS_DIR)"
   command -v redis-server >/dev/null 2>&1 || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server; }
-  redis-server --daemonize yes --bind 127.0.0.1 --port 6379 --save "" --appendonly no
-  for _ in $(seq 50); do port_open 6379 && return; sleep 0.2; done
+  $(redis_command)
+  for _ in $(seq 50); do port_open "$REDIS_HOST" "$REDIS_PORT" && return; sleep 0.2; done
   echo "[services] Redis did not start" >&2; exit 1
 }
 
@@ -90,5 +110,6 @@ case "${1:-}" in
   stop) stop "${2:-all}" ;;
   restart) stop "${2:-all}"; start "${2:-all}" ;;
   status) status ;;
+  redis-command) mkdir -p "$REDIS_DIR"; echo "$REDIS_HOST $REDIS_PORT"; redis_command ;;
   *) echo "usage: scripts/services.sh start|stop|restart|status [api|worker|mlflow]" >&2; exit 2 ;;
 esac

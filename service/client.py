@@ -43,6 +43,7 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 URL_ENV = "DENOISER_URL"
 API_KEY_ENV = "DENOISER_API_KEY"
 API_KEY_HEADER = "X-API-Key"
+SESSION_TOKEN_HEADER = "X-Session-Token"  # owner tokens of sessions (service.routes.sessions)
 FINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
 EXR_MEDIA_TYPE = "image/x-exr"
 MANIFEST = "manifest.json"
@@ -153,6 +154,7 @@ class DenoiserClient:
                                   follow_redirects=True)
         self._sleep = sleep
         self._clock = clock
+        self._session_tokens: dict[str, str] = {}  # session id -> owner token, for the sessions it created
 
     # --- plumbing ------------------------------------------------------------------------------------------
 
@@ -400,19 +402,26 @@ class DenoiserClient:
             body["layout"] = layout
         if scale is not None:
             body["scale"] = scale
-        return self._json("POST", "/sessions", json=body)
+        session = self._json("POST", "/sessions", json=body)
+        if session.get("token"):  # the server has owner tokens on: every later request on it sends this one
+            self._session_tokens[session["id"]] = session["token"]
+        return session
+
+    def _owner(self, session_id: str) -> dict[str, str]:
+        token = self._session_tokens.get(session_id)
+        return {SESSION_TOKEN_HEADER: token} if token else {}
 
     def list_sessions(self) -> list[dict]:
         return _items(self._json("GET", "/sessions"))
 
     def get_session(self, session_id: str) -> dict:
-        return self._json("GET", f"/sessions/{_segment(session_id)}")
+        return self._json("GET", f"/sessions/{_segment(session_id)}", headers=self._owner(session_id))
 
     def reset_session(self, session_id: str) -> dict | None:
-        return self._json("POST", f"/sessions/{_segment(session_id)}/reset")
+        return self._json("POST", f"/sessions/{_segment(session_id)}/reset", headers=self._owner(session_id))
 
     def delete_session(self, session_id: str) -> None:
-        self.request("DELETE", f"/sessions/{_segment(session_id)}")
+        self.request("DELETE", f"/sessions/{_segment(session_id)}", headers=self._owner(session_id))
 
     def send_frame_raw(self, session_id: str,
                        frame: bytes | FrameBundle | str | os.PathLike) -> tuple[bytes, FrameInfo]:
@@ -420,7 +429,8 @@ class DenoiserClient:
         body = frame if isinstance(frame, (bytes, bytearray, memoryview)) else frame_bytes(frame)
         started = time.perf_counter()
         response = self.request("POST", f"/sessions/{_segment(session_id)}/frames", content=bytes(body),
-                                headers={"Content-Type": EXR_MEDIA_TYPE, "Accept": EXR_MEDIA_TYPE})
+                                headers={"Content-Type": EXR_MEDIA_TYPE, "Accept": EXR_MEDIA_TYPE,
+                                         **self._owner(session_id)})
         round_trip_ms = (time.perf_counter() - started) * 1000.0
         return response.content, FrameInfo.from_response(response, round_trip_ms)
 

@@ -30,6 +30,7 @@ import re
 import shutil
 import stat
 import tarfile
+import time
 import uuid
 import zipfile
 import zlib
@@ -50,10 +51,12 @@ from model.dataset import (
     DatasetError,
     Sequence,
     frame_file_name,
+    json_problem,
     write_json_atomically,
 )
-from model.exr import CHANNEL_SLOTS, write_frame
+from model.exr import CHANNEL_SLOTS, FrameTooLarge, check_frame_file_pixels, write_frame
 from model.frames import BUFFERS, FrameBundle, FrameError
+from model.importer import REFERENCES_FOLDER
 from model.layouts import BUILTIN_LAYOUTS, Layout, read_layout_frame
 from service.schemas import DatasetDetail, DatasetSummary, SequenceInfo, SplitSummary, StagedSequence
 from service.storage import Storage, checked_id
@@ -64,9 +67,6 @@ log = logging.getLogger("denoiser.datasets")
 ArchiveKind = Literal["zip", "tar", "tar.gz"]
 
 CHUNK_BYTES = 1024 * 1024
-# Unpacked contents may be this many times the upload limit: EXRs barely compress further, so a legitimate
-# archive stays far below it while a zip bomb hits it early.
-UNPACKED_FACTOR = 4
 MAX_ARCHIVE_MEMBERS = 100_000
 # Files that archivers on macOS add; they are dropped rather than refused.
 _IGNORED_FOLDERS = {"__MACOSX"}
@@ -92,6 +92,10 @@ class InvalidUpload(UploadError):
 
 class UploadTooLarge(UploadError):
     """The upload, or what it unpacks to, exceeds the configured limit."""
+
+
+class FrameTooLargeUpload(UploadError):
+    """A frame's header declares more pixels than the limit (refused before its pixels are decoded)."""
 
 
 class UnknownDataset(UploadError):
@@ -204,6 +208,13 @@ def sniff_archive(path: Path) -> ArchiveKind:
                                            f"(first bytes {head[:8].hex(' ')})")
 
 
+def unpacked_limit(archive_bytes: int, *, max_bytes: int, max_ratio: float, exempt_bytes: int) -> int:
+    """The most bytes an archive of ``archive_bytes`` may unpack to: ``max_ratio`` times its size (at least
+    ``exempt_bytes``), and never more than ``max_bytes``. Frame EXRs barely compress further, so a legitimate
+    archive stays near 1:1 while a zip bomb (1000:1 and more) is stopped after a few megabytes."""
+    return min(max_bytes, max(exempt_bytes, int(max_ratio * archive_bytes)))
+
+
 def unpack_archive(archive: Path, destination: Path, max_bytes: int) -> ArchiveKind:
     """Extract ``archive`` into ``destination`` member by member, refusing anything unsafe; return its kind."""
     kind = sniff_archive(archive)
@@ -276,10 +287,14 @@ class _Extractor:
             while chunk := source.read(CHUNK_BYTES):
                 self.written += len(chunk)
                 if self.written > self.max_bytes:
-                    raise UploadTooLarge("payload_too_large", f"the archive unpacks to more than {self.max_bytes} "
-                                                              f"bytes", {"limit_bytes": self.max_bytes})
+                    raise self.too_large("unpacks to more")  # "... than N bytes"
                 out.write(chunk)
         self.files += 1
+
+    def too_large(self, what: str) -> UploadTooLarge:
+        return UploadTooLarge("payload_too_large", f"the archive {what} than {self.max_bytes} bytes, the most "
+                                                   f"this upload may unpack to (limits on the unpacked size and "
+                                                   f"on the compression ratio)", {"limit_bytes": self.max_bytes})
 
     def _target(self, parts: tuple[str, ...], name: str) -> Path:
         # A file member earlier in the archive may sit where this member needs a folder.
@@ -293,6 +308,11 @@ class _Extractor:
 
 def _unpack_zip(archive: Path, extractor: _Extractor) -> None:
     with zipfile.ZipFile(archive) as bundle:
+        # A zip lists every member's size up front: an archive that says it is too large is refused before a
+        # byte is written (one that lies is still stopped by the byte count while unpacking).
+        declared = sum(info.file_size for info in bundle.infolist())
+        if declared > extractor.max_bytes:
+            raise extractor.too_large(f"declares {declared} unpacked bytes, more")
         for info in bundle.infolist():
             parts = extractor.parts(info.filename)
             mode = info.external_attr >> 16
@@ -390,9 +410,9 @@ def _unwrap(root: Path) -> Path:
 def _manifest_format(path: Path, root: Path) -> Any:
     try:
         content = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+    except (ValueError, RecursionError) as error:
         relative = _relative(path, root)
-        raise InvalidUpload("invalid_dataset", f"{relative}: not valid JSON ({error})", {"path": relative}) from None
+        raise InvalidUpload("invalid_dataset", f"{relative}: {json_problem(error)}", {"path": relative}) from None
     return content.get("format") if isinstance(content, dict) else None
 
 
@@ -553,8 +573,10 @@ def dataset_exists(storage: Storage, dataset_id: str) -> bool:
 
 def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str, *, create: bool,
                    split: str = "train", replace: bool = False, max_unpacked_bytes: int,
-                   layout: Layout | None = None, notes: UploadNotes | None = None) -> DatasetDetail:
-    """Unpack and validate an uploaded archive in ``work`` (a staging workspace), then store it.
+                   max_pixels: int | None = None, layout: Layout | None = None,
+                   notes: UploadNotes | None = None) -> DatasetDetail:
+    """Unpack and validate an uploaded archive in ``work`` (a staging workspace), then store it; ``max_pixels``:
+    every EXR's header is checked against it before any frame is decoded, in any layout (FrameTooLargeUpload).
 
     ``create``: make dataset ``dataset_id`` (UploadConflict if it exists), else add the archive's sequences
     to it (UnknownDataset if it does not exist; UploadConflict for taken names unless ``replace``).
@@ -568,8 +590,11 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
     unpacked = work / "unpacked"
     unpack_archive(archive, unpacked, max_unpacked_bytes)
     archive.unlink()  # the unpacked copy is all we need; free the space early
+    renderer_frames = layout is not None and layout.name != "denoiser"
+    if max_pixels is not None:  # before the conversion or the stripping of unused channels decodes a frame
+        check_unpacked_frame_pixels(unpacked, max_pixels, renderer_frames=renderer_frames)
     try:
-        if layout is not None and layout.name != "denoiser":
+        if renderer_frames:
             unpacked = import_renderer_folders(unpacked, _unwrap(unpacked), work / "imported", layout, split, notes)
         else:
             strip_unused_channels(unpacked, notes)
@@ -584,6 +609,27 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
                 raise UnknownDataset("not_found", f"dataset {dataset_id!r} does not exist")
             _add_to_dataset(storage, dataset_id, sequences, work, replace)
     return describe_dataset(storage, dataset_id)
+
+
+def check_unpacked_frame_pixels(root: Path, max_pixels: int, *, renderer_frames: bool = False) -> None:
+    """FrameTooLargeUpload for the first EXR under ``root`` whose header declares more than ``max_pixels``.
+
+    ``renderer_frames`` (an upload in another renderer's layout): files in a ``references/`` folder are reference
+    renders, at up to 2x the frames' resolution (``model.exr.check_declared_pixels``)."""
+    for path in sorted(root.rglob("*.exr")):
+        if path.is_file():
+            try:
+                check_frame_file_pixels(path, max_pixels, _relative(path, root),
+                                        reference_render=renderer_frames and path.parent.name == REFERENCES_FOLDER)
+            except FrameTooLarge as error:
+                raise _too_many_pixels(error) from None
+            except FrameError:
+                continue  # unreadable: the full validation names the problem
+
+
+def _too_many_pixels(error: FrameTooLarge) -> FrameTooLargeUpload:
+    return FrameTooLargeUpload("frame_too_large", str(error), {"path": error.source, "pixels": error.pixels,
+                                                               "limit_pixels": error.limit})
 
 
 # --- frame-by-frame uploads --------------------------------------------------------------------------------
@@ -610,7 +656,8 @@ def _staged_info(dataset_id: str, state: dict) -> StagedSequence:
 
 def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, *, split: str | None = None,
                 scene: str | None = None, scales: list[int] | None = None,
-                layout: Layout | None = None, notes: UploadNotes | None = None) -> StagedSequence:
+                layout: Layout | None = None, notes: UploadNotes | None = None,
+                max_pixels: int | None = None) -> StagedSequence:
     """Validate one uploaded frame EXR and append it to the staged sequence (the first frame starts it).
 
     The frame's ``frame_index`` must be the next one (0 first); resolution, reference scales and buffers must
@@ -626,7 +673,9 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
     label = f"frame upload to {dataset_id}/{sequence}"
     layout = BUILTIN_LAYOUTS["denoiser"] if layout is None else layout
     try:
-        read = read_layout_frame(upload, layout, mode="strict")
+        read = read_layout_frame(upload, layout, mode="strict", max_pixels=max_pixels)
+    except FrameTooLarge as error:
+        raise _too_many_pixels(FrameTooLarge(label, error.problem, error.pixels, error.limit)) from None
     except FrameError as error:
         message = str(error).replace(str(upload), label)
         raise InvalidUpload("invalid_frame", message, {"buffer": error.buffer, "problem": error.problem}) from None
@@ -672,6 +721,29 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
     return _staged_info(dataset_id, state)
 
 
+def expire_staged_uploads(storage: Storage, ttl_seconds: float, now: float | None = None) -> list[str]:
+    """Discard frame-by-frame uploads untouched for ``ttl_seconds`` (their state file's modification time: every
+    staged frame rewrites it); returns "dataset/sequence" of each one discarded."""
+    now = time.time() if now is None else now
+    root = storage.staging / "sequences"
+    expired = []
+    for state_file in sorted(root.glob("*/*.json")) if root.is_dir() else []:
+        dataset_id, sequence = state_file.parent.name, state_file.stem
+        try:
+            if now - state_file.stat().st_mtime < ttl_seconds:
+                continue
+            with dataset_lock(storage, dataset_id):
+                if not state_file.is_file() or now - state_file.stat().st_mtime < ttl_seconds:
+                    continue  # committed, discarded or continued meanwhile
+                state_file.unlink()
+                shutil.rmtree(state_file.with_suffix(""), ignore_errors=True)
+        except (OSError, InvalidUpload):  # gone meanwhile, or a name this code never wrote
+            continue
+        expired.append(f"{dataset_id}/{sequence}")
+        log.info("discarded the frame upload %s/%s: untouched for %s s", dataset_id, sequence, ttl_seconds)
+    return expired
+
+
 def _check_continues(state: dict, frame: FrameBundle, buffers: list[str], split: str | None, label: str) -> None:
     first = "the first frame's"
     if (frame.width, frame.height) != (state["width"], state["height"]):
@@ -695,6 +767,7 @@ def staged_sequence(storage: Storage, dataset_id: str, sequence: str) -> StagedS
 
 def discard_staged_sequence(storage: Storage, dataset_id: str, sequence: str) -> None:
     folder, state_file = _staged_paths(storage, dataset_id, sequence)
+    _load_state(state_file, dataset_id, sequence)  # 404 before a lock file is made for an unknown id
     with dataset_lock(storage, dataset_id):
         _load_state(state_file, dataset_id, sequence)
         state_file.unlink()
@@ -705,6 +778,7 @@ def commit_staged_sequence(storage: Storage, dataset_id: str, sequence: str, *, 
                            ) -> DatasetDetail:
     """Write the staged sequence's manifest, check it, and move it into the dataset (created if new)."""
     folder, state_file = _staged_paths(storage, dataset_id, sequence)
+    _load_state(state_file, dataset_id, sequence)  # 404 before a lock file is made for an unknown id
     with dataset_lock(storage, dataset_id), workspace(storage, "commit") as work:
         state = _load_state(state_file, dataset_id, sequence)
         frames = state["frames"]
@@ -797,6 +871,7 @@ def list_datasets(storage: Storage) -> list[DatasetSummary]:
 
 
 def delete_dataset(storage: Storage, dataset_id: str) -> None:
+    _open(storage, dataset_id)  # 404 before a lock file is made for an unknown id
     with dataset_lock(storage, checked_dataset_id(dataset_id)):
         _open(storage, dataset_id)
         storage.remove_tree(storage.dataset(dataset_id))

@@ -7,7 +7,9 @@ are all turned into that shape here. Anything else is a bug and answers 500 with
 
 from __future__ import annotations
 
+import errno
 import logging
+import uuid
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -78,6 +80,17 @@ def _body_problem(request: Request, errors: list[dict]) -> tuple[int, str, str, 
     return None
 
 
+def _unparsable_body(cause: BaseException | None) -> str:
+    """Why FastAPI could not parse a JSON body (it keeps the parser's exception as the cause)."""
+    if isinstance(cause, UnicodeDecodeError):
+        return "the body could not be read as JSON text: it is not UTF-8"
+    if isinstance(cause, RecursionError):
+        return "the body is not accepted as JSON: it is nested too deeply"
+    if isinstance(cause, ValueError) and "digits" in str(cause):
+        return f"the body is not accepted as JSON: an integer has too many digits ({cause})"
+    return "the body could not be read as JSON text"
+
+
 def _status_code_name(status: int) -> str:
     return {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found",
             405: "method_not_allowed", 409: "conflict", 413: "payload_too_large", 415: "unsupported_media_type",
@@ -129,9 +142,10 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _http_error(request: Request, error: StarletteHTTPException) -> JSONResponse:
         message = error.detail if isinstance(error.detail, str) else str(error.detail)
         headers = getattr(error, "headers", None)
-        if error.status_code == 400 and message == FASTAPI_BODY_PARSE_ERROR:  # e.g. a body that is not UTF-8
-            return JSONResponse(error_body(INVALID_JSON, "the body could not be read as JSON text (is it UTF-8?)"),
-                                status_code=400)
+        if error.status_code == 400 and message == FASTAPI_BODY_PARSE_ERROR:
+            if isinstance(error.__cause__, ApiError):  # e.g. the body read timed out (service.request_limits)
+                return await _api_error(request, error.__cause__)
+            return JSONResponse(error_body(INVALID_JSON, _unparsable_body(error.__cause__)), status_code=400)
         if error.status_code == 405:
             allowed = _allowed_methods(request)
             headers = {**(headers or {}), "Allow": allowed}
@@ -150,8 +164,40 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _dataset_error(request: Request, error: DatasetError) -> JSONResponse:
         return JSONResponse(error_body("invalid_dataset", str(error)), status_code=400)
 
+    @app.exception_handler(OSError)
+    async def _storage_error(request: Request, error: OSError) -> JSONResponse:
+        return _os_error_response(request, error)
+
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, error: Exception) -> JSONResponse:
-        log.exception("unhandled error on %s %s", request.method, request.url.path)
-        return JSONResponse(error_body("internal_error", f"internal error: {type(error).__name__}: {error}"),
-                            status_code=500)
+        return _internal_error(request, error)
+
+
+# Storage that cannot take a write: the server's condition, not the caller's mistake, and not a bug either.
+STORAGE_FULL_ERRNOS = {errno.ENOSPC: "no space left", errno.EDQUOT: "disk quota exceeded",
+                       errno.EROFS: "storage is read-only", errno.EACCES: "storage is not writable",
+                       errno.EPERM: "storage is not writable"}
+
+
+def _os_error_response(request: Request, error: OSError) -> JSONResponse:
+    """507 for storage that is full or read-only, with a neutral message (paths go to the log only); any other
+    OSError is an internal error."""
+    reason = STORAGE_FULL_ERRNOS.get(error.errno) if error.errno is not None else None
+    if reason is None:
+        return _internal_error(request, error)
+    reference = uuid.uuid4().hex[:12]
+    log.error("storage error %s on %s %s: %s (path %s)", reference, request.method, request.url.path, error,
+              error.filename)
+    return JSONResponse(error_body("insufficient_storage", f"the server cannot store data now ({reason}); "
+                                                           f"nothing was changed, retry later (reference "
+                                                           f"{reference})", {"reference": reference}),
+                        status_code=507, headers={"Retry-After": "60"})
+
+
+def _internal_error(request: Request, error: Exception) -> JSONResponse:
+    """500 naming the kind of failure and a reference to the log entry, never the message (it may hold paths)."""
+    reference = uuid.uuid4().hex[:12]
+    log.error("unhandled error %s on %s %s", reference, request.method, request.url.path, exc_info=error)
+    return JSONResponse(error_body("internal_error", f"internal error ({type(error).__name__}); the server log "
+                                                     f"has the details under reference {reference}",
+                                   {"reference": reference}), status_code=500)

@@ -12,7 +12,9 @@ from fastapi import Depends, FastAPI
 
 from service.auth import UNAUTHORIZED_RESPONSE, require_api_key
 from service.errors import install_error_handlers
+from service.request_limits import BodyReadTimeout
 from service.routes import datasets, health, jobs, models, sessions
+from service.settings import get_settings
 
 API_VERSION = "1.0"
 
@@ -34,9 +36,12 @@ Authentication: header `X-API-Key` when the server has `DENOISER_API_KEY` set.
 
 @asynccontextmanager
 async def _lifespan(app: FastAPI):
+    from service.auth import check_deployment_key
     from service.sessions import get_session_store
+    from service.settings import get_settings
     from service.storage import get_storage
 
+    check_deployment_key(get_settings())  # before anything starts: an exposed API without a real key must not run
     get_storage()
     store = get_session_store()
     yield
@@ -46,6 +51,7 @@ async def _lifespan(app: FastAPI):
 def create_app() -> FastAPI:
     app = FastAPI(title="denoiser-service", version=API_VERSION, description=DESCRIPTION, lifespan=_lifespan)
     install_error_handlers(app)
+    app.add_middleware(BodyReadTimeout, timeout_seconds=get_settings().body_read_timeout_seconds)
     app.include_router(health.router)
     protected = [Depends(require_api_key)]
     for module in (datasets, jobs, models, sessions):

@@ -33,7 +33,7 @@ class DependencyCheck(BaseModel):
     """One dependency's state; ``detail`` says what was tried and, when down, what failed."""
 
     model_config = ConfigDict(json_schema_extra={
-        "examples": [{"status": "ok", "detail": "PING redis://127.0.0.1:6379/0 answered in 0.4 ms"}]
+        "examples": [{"status": "ok", "detail": "PING answered in 0.4 ms"}]
     })
 
     status: CheckStatus = Field(description="ok, down, or skipped (not checkable from here)")
@@ -41,35 +41,39 @@ class DependencyCheck(BaseModel):
 
 
 class Readiness(BaseModel):
-    """Whether the service can do work; answered with 200 when ``down`` is empty, else 503 with this body."""
+    """Whether this API can serve; answered with 200 when ``down`` is empty, else 503 with this body. Workers are
+    listed from their heartbeats but do not decide it."""
 
     model_config = ConfigDict(json_schema_extra={
         "examples": [
             {
                 "status": "ready",
-                "redis": {"status": "ok", "detail": "PING redis://127.0.0.1:6379/0 answered in 0.4 ms"},
-                "mlflow": {"status": "ok", "detail": "sqlite store folder /data/mlflow is writable"},
+                "redis": {"status": "ok", "detail": "PING answered in 0.4 ms"},
+                "storage": {"status": "ok", "detail": "data folder is writable"},
+                "mlflow": {"status": "ok", "detail": "GET /health answered 200"},
                 "workers": ["celery@gpu-box", "celery@cpu-box"],
-                "workers_detail": "2 Celery workers answered ping",
+                "workers_detail": "2 workers alive (heartbeat within 30 s); celery@gpu-box runs job 7f3c...",
                 "down": [],
             },
             {
                 "status": "unavailable",
-                "redis": {"status": "down", "detail": "redis://127.0.0.1:6379/0: Connection refused"},
-                "mlflow": {"status": "ok", "detail": "sqlite store folder /data/mlflow is writable"},
+                "redis": {"status": "down", "detail": "PING failed (ConnectionError; see the API log)"},
+                "storage": {"status": "ok", "detail": "data folder is writable"},
+                "mlflow": {"status": "ok", "detail": "sqlite store folder is writable"},
                 "workers": [],
-                "workers_detail": "not checked: Redis (the Celery broker) is down",
-                "down": ["redis", "workers"],
+                "workers_detail": "not checked: Redis (where workers write their heartbeats) is down",
+                "down": ["redis"],
             },
         ]
     })
 
     status: Literal["ready", "unavailable"]
     redis: DependencyCheck
+    storage: DependencyCheck
     mlflow: DependencyCheck
-    workers: list[str] = Field(description="host names of the Celery workers that answered a ping")
-    workers_detail: str = Field(description="how many workers answered, or why none could be asked")
-    down: list[str] = Field(description="the dependencies that are down: any of redis, mlflow, workers")
+    workers: list[str] = Field(description="host names of the workers whose heartbeat is alive")
+    workers_detail: str = Field(description="how many workers are alive and which jobs they run, or why unknown")
+    down: list[str] = Field(description="the dependencies that are down: any of redis, storage, mlflow")
 
 
 # =========================================================================================================
@@ -190,7 +194,7 @@ class StagedSequence(BaseModel):
 
 
 # =========================================================================================================
-# Models (/models): the MLflow registry (helper "sessions")
+# Models (/models): the MLflow registry
 # =========================================================================================================
 
 from datetime import datetime  # noqa: E402  (this section's own import; may move to the top of the file)
@@ -278,7 +282,7 @@ class AliasOut(BaseModel):
 
 
 # =========================================================================================================
-# Sessions (/sessions): streaming inference with server-side history (helper "sessions")
+# Sessions (/sessions): streaming inference with server-side history
 # =========================================================================================================
 
 OnGap = Literal["reset", "reject"]
@@ -423,10 +427,13 @@ class SessionOut(BaseModel):
                                                       "(set by the first frame); null before it")
     choice: AutoChoiceOut | None = Field(None, description="model 'auto' only: the version chosen and why")
     layout: str | dict[str, Any] = Field("denoiser", description="the layout posted frames are read in")
+    token: str | None = Field(None, description="only in the answer to POST /sessions, and only where the server "
+                                                "has DENOISER_SESSION_OWNER_TOKENS on: send it as X-Session-Token "
+                                                "with every request on this session")
 
 
 # =========================================================================================================
-# Jobs (/jobs): generate, train, evaluate, benchmark and infer jobs run by Celery workers (helper "jobs")
+# Jobs (/jobs): generate, train, evaluate, benchmark and infer jobs run by Celery workers
 # =========================================================================================================
 
 # This section's own imports (kept here so the section stays self-contained; they may move to the top).

@@ -47,9 +47,11 @@ restart meanwhile.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import io
 import json
 import logging
+import os
 import re
 import threading
 import time
@@ -77,7 +79,7 @@ from service.session_models import (
     resolve_session_model,
 )
 from service.settings import Settings
-from service.torch_thread import TorchThread
+from service.torch_thread import TorchPool
 
 log = logging.getLogger("denoiser.sessions")
 
@@ -125,6 +127,11 @@ class ModelNotLoadable(SessionError):
     code = "model_not_loadable"
 
 
+def token_digest(token: str) -> str:
+    """What a session keeps of its owner token (the token itself is only ever in the creation's answer)."""
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
 @dataclass(frozen=True)
 class SessionModel:
     name: str
@@ -160,6 +167,8 @@ class Session:
     next_frame_index: int | None = None  # None: no history, the next frame starts one
     resolution: tuple[int, int] | None = None  # (width, height) at render resolution
     revision: int = 0
+    # SHA-256 of the owner token given at creation (DENOISER_SESSION_OWNER_TOKENS), None: any key holder drives it.
+    owner_digest: str | None = None
     layout: str | dict[str, Any] = "denoiser"  # how posted frames are read (model.layouts.layout_from_value)
     # Runtime only (not in the metadata):
     state: State | None = field(default=None, repr=False)
@@ -178,7 +187,7 @@ class Session:
                 "last_used_at": self.last_used_at, "frames_processed": self.frames_processed,
                 "next_frame_index": self.next_frame_index,
                 "resolution": list(self.resolution) if self.resolution else None, "revision": self.revision,
-                "layout": self.layout}
+                "owner_digest": self.owner_digest, "layout": self.layout}
 
     @classmethod
     def from_metadata(cls, meta: dict[str, Any], ttl_seconds: int) -> Session:
@@ -186,7 +195,7 @@ class Session:
                    created_at=meta["created_at"], last_used_at=meta["last_used_at"], ttl_seconds=ttl_seconds,
                    frames_processed=meta["frames_processed"], next_frame_index=meta["next_frame_index"],
                    resolution=tuple(meta["resolution"]) if meta["resolution"] else None, revision=meta["revision"],
-                   layout=meta.get("layout", "denoiser"))
+                   owner_digest=meta.get("owner_digest"), layout=meta.get("layout", "denoiser"))
 
 
 @dataclass(frozen=True)
@@ -345,10 +354,11 @@ class SessionStore:
         self.redis = redis_client if redis_client is not None else redis.Redis.from_url(
             settings.redis_url, socket_timeout=5, socket_connect_timeout=1, retry=Retry(NoBackoff(), 1))
         self._redis_paused_until = 0.0
-        # Every tensor operation of the sessions (steps, state (de)serialization, loading weights) runs on this
-        # one thread: torch's OpenMP threads then form one team instead of one per request thread (see
-        # service.torch_thread for the measured cost).
-        self._torch = TorchThread(settings.session_threads, name="session-torch")
+        # Every tensor operation of the sessions (steps, state (de)serialization, loading weights) runs on these
+        # few threads: torch's OpenMP threads then form one team per worker instead of one per request thread, and
+        # a slow session holds one worker while the others serve the rest (service.torch_thread).
+        self.workers, self.threads_per_worker = session_thread_budget(settings)
+        self._torch = TorchPool(self.workers, self.threads_per_worker, name="session-torch")
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, threading.Lock] = {}
         self._methods: dict[tuple, Method] = {}  # SessionModelSource.key -> method
@@ -362,10 +372,12 @@ class SessionStore:
 
     def create(self, model: str, version: str | None = None, alias: str | None = None,
                on_gap: str = "reset", choice: dict[str, Any] | None = None,
-               layout: str | dict[str, Any] = "denoiser", scale: int | None = None) -> Session:
+               owner_digest: str | None = None, layout: str | dict[str, Any] = "denoiser",
+               scale: int | None = None) -> Session:
         """A new session of ``model``: a registered model at ``version``, ``alias`` or (neither) its latest version,
         a pretrained model, or a method without weights at ``scale`` (service.session_models);
-        ``choice`` (model "auto": how the version was chosen) is kept with the session's model.
+        ``choice`` (model "auto": how the version was chosen) is kept with the session's model; ``owner_digest``:
+        see ``token_digest``; ``layout``: how its frames are read (``model.layouts.layout_from_value``).
 
         Raises UnknownModelError (KeyError) / ValueError from the registry or service.session_models,
         SessionLimitReached past the cap.
@@ -384,7 +396,7 @@ class SessionStore:
                                    preset=method.preset, scale=method.scale, params=method.parameter_count(),
                                    choice=choice, source=origin.source),
                 on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method,
-                layout=layout)
+                owner_digest=owner_digest, layout=layout)
             with self._lock:
                 self._sessions[session.id] = session
             self._mirror(session, wait=True)
@@ -430,6 +442,23 @@ class SessionStore:
             except redis.RedisError as error:
                 log.warning("session %s: could not delete its Redis copy: %s", session_id, error)
         log.info("session %s deleted", session_id)
+
+    def owner_digest(self, session_id: str) -> str | None:
+        """The session's owner digest: from memory when it is there (no Redis access), else as ``get``."""
+        return self._as_created(session_id).owner_digest
+
+    def layout(self, session_id: str) -> str | dict[str, Any]:
+        """The layout the session reads frames in: from memory when it is there (no Redis access), else as ``get``."""
+        return self._as_created(session_id).layout
+
+    def _as_created(self, session_id: str) -> Session:
+        """The session for what never changes after its creation (owner digest, layout): the copy in memory when
+        there is a live one, else ``get``'s."""
+        with self._lock:
+            session = self._sessions.get(session_id)
+        if session is None or session.expired(self.clock()):
+            session = self.get(session_id)
+        return session
 
     def exists(self, session_id: str) -> bool:
         """Whether the session is live in this process's memory (no Redis access, so cheap enough to call from an
@@ -679,19 +708,47 @@ class SessionStore:
             self._forget(session_id)
             log.info("session %s expired", session_id)
 
-    def _live_ids(self) -> set[str]:
+    def _live_ids(self, require_redis: bool = False) -> set[str]:
+        """Ids of the sessions live now: in memory and not idle too long, or in Redis with metadata that says so
+        (a key outlives its session's idle time by up to the time its last mirror took, and by more under a
+        test's clock). ``require_redis``: SessionStoreUnavailable rather than memory alone when Redis is down."""
         self._purge_expired()
         with self._lock:
             ids = set(self._sessions)
         try:
-            keys = self._redis(lambda client: list(client.scan_iter(match=f"{self.prefix}*", count=1000)))
-            ids.update(key.decode()[len(self.prefix):] for key in keys)
+            ids.update(self._redis(self._live_ids_in_redis))
         except redis.RedisError as error:
+            if require_redis:
+                raise SessionStoreUnavailable(f"the session store (Redis) is unreachable, so the open sessions "
+                                              f"cannot be counted: {error}") from None
             log.warning("session store (Redis) unreachable, counting sessions in memory only: %s", error)
         return {session_id for session_id in ids if SESSION_ID.match(session_id)}
 
+    def _live_ids_in_redis(self, client: redis.Redis) -> set[str]:
+        keys = list(client.scan_iter(match=f"{self.prefix}*", count=1000))
+        if not keys:
+            return set()
+        pipeline = client.pipeline(transaction=False)
+        for key in keys:
+            pipeline.hget(key, "meta")
+        now = self.clock()
+        live = set()
+        for key, raw in zip(keys, pipeline.execute()):
+            if raw is None:
+                continue  # deleted or expired since the scan
+            try:
+                meta = json.loads(raw)
+                expired = meta["last_used_at"] + self.ttl_seconds <= now
+            except (ValueError, KeyError, TypeError):
+                continue  # not a session this code wrote
+            if not expired:
+                live.add(key.decode()[len(self.prefix):])
+        return live
+
     def _check_capacity(self) -> None:
-        live = len(self._live_ids())
+        # Counting memory alone while Redis is down would let every API process (and a restarted one) open up to
+        # the limit each: refuse instead (503) until the count can be trusted.
+        live = len(self._live_ids(require_redis=True))
         if live >= self.max_sessions:
             raise SessionLimitReached(
                 f"{live} sessions are open, the server's limit is {self.max_sessions}: delete a session or wait "
@@ -719,6 +776,13 @@ class SessionStore:
                     self._methods[key] = method
                 log.info("loaded %s %s (%s) for sessions", origin.source, origin.name, method.label)
             return method
+
+
+def session_thread_budget(settings: Settings) -> tuple[int, int]:
+    """(inference worker threads, torch threads of each): DENOISER_SESSION_WORKERS, and DENOISER_SESSION_THREADS
+    or else the cores shared out among the workers."""
+    threads = settings.session_threads or max(1, (os.cpu_count() or 1) // settings.session_workers)
+    return settings.session_workers, threads
 
 
 _store: SessionStore | None = None

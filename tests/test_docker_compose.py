@@ -178,8 +178,8 @@ def test_service_settings(services):
         assert {key for key in environment if key.startswith("DENOISER_")} <= known, name
         assert environment["DENOISER_TRACKING_URI"] == "http://mlflow:5000"
         assert environment["DENOISER_REDIS_URL"].startswith("redis://redis:6379/")
-        assert re.fullmatch(r"\$\{DENOISER_API_KEY:-[^}]+\}", environment["DENOISER_API_KEY"]), \
-            "the API key comes from the environment, with a default"
+        assert re.fullmatch(r"\$\{DENOISER_API_KEY:\?[^}]+\}", environment["DENOISER_API_KEY"]), \
+            "the API key comes from the environment, required (no default placeholder)"
 
 
 def test_gpu_worker_is_in_the_gpu_profile_with_a_device_reservation(services):
@@ -233,3 +233,14 @@ def test_compose_config_validates_where_docker_compose_exists():
     result = subprocess.run(binary + ["-f", str(COMPOSE), "--profile", "gpu", "config", "--quiet"],
                             capture_output=True, text=True, cwd=ROOT)
     assert result.returncode == 0, result.stderr
+
+
+def test_the_api_key_has_no_default_and_is_required(compose):
+    environment = compose["x-denoiser-environment"]
+    key = environment["DENOISER_API_KEY"]
+    assert key.startswith("${DENOISER_API_KEY:?"), f"compose must refuse to start without a key, not default: {key}"
+    assert environment["DENOISER_REQUIRE_API_KEY"] == "true"
+
+
+def test_the_image_requires_a_real_api_key():
+    assert "ENV DENOISER_REQUIRE_API_KEY=true" in DOCKERFILE.read_text()

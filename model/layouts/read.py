@@ -56,24 +56,28 @@ class _Channels:
 
 
 def read_layout_frame(path: str | os.PathLike, layout: Layout, *, mode: Mode = "strict",
-                      fov_y_degrees: float | None = None) -> LayoutFrame:
+                      fov_y_degrees: float | None = None, max_pixels: int | None = None) -> LayoutFrame:
     """Read the EXR at ``path`` in ``layout``; FrameError naming the file on any problem.
 
-    ``fov_y_degrees`` (planar depth only) overrides the layout's field of view and the header's."""
-    return _read(open_exr(path), str(path), layout, mode, fov_y_degrees)
+    ``fov_y_degrees`` (planar depth only) overrides the layout's field of view and the header's. ``max_pixels``:
+    FrameTooLarge (a FrameError) when the headers declare more (``model.exr.check_declared_pixels``), before any
+    pixel is decoded."""
+    return _read(open_exr(path, max_pixels=max_pixels), str(path), layout, mode, fov_y_degrees)
 
 
 def read_layout_frame_bytes(data: bytes, layout: Layout, source: str = "<bytes>", *, mode: Mode = "strict",
-                            fov_y_degrees: float | None = None) -> LayoutFrame:
+                            fov_y_degrees: float | None = None, max_pixels: int | None = None) -> LayoutFrame:
     """``read_layout_frame`` for an EXR held in memory (a request body)."""
-    return _read(open_exr_bytes(data, source), source, layout, mode, fov_y_degrees)
+    return _read(open_exr_bytes(data, source, max_pixels=max_pixels), source, layout, mode, fov_y_degrees)
 
 
-def read_layout_reference(path: str | os.PathLike, layout: Layout) -> dict[str, np.ndarray]:
+def read_layout_reference(path: str | os.PathLike, layout: Layout, *,
+                          max_pixels: int | None = None) -> dict[str, np.ndarray]:
     """A high-sample render of a frame in ``layout`` as target buffers: its colour is the ``reference``, its
-    albedos (when the layout reads them) the ``reference_albedo`` and ``reference_specular_albedo``."""
+    albedos (when the layout reads them) the ``reference_albedo`` and ``reference_specular_albedo``.
+    ``max_pixels``: the frames' limit, which a reference render (at up to 2x) may exceed 4 times."""
     source = str(path)
-    channels = _gather(open_exr(path), source)
+    channels = _gather(open_exr(path, max_pixels=max_pixels, reference_render=True), source)
     targets = {}
     for buffer, target in (("color", "reference"), ("albedo", "reference_albedo"),
                            ("specular_albedo", "reference_specular_albedo")):

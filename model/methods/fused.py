@@ -10,7 +10,7 @@ accumulated branch. Per frame:
    precomputed (``FrameBatch.spatial_estimate``, ``model.spatial_cache``); at scale 2 it is resampled to the
    target grid at the frame's *unjittered* positions (bicubic), so frames with different jitter add detail at
    their own sub-pixel phase instead of smearing it (TAAU-style temporal upsampling);
-2. the previous output ``h`` (kept at the output resolution) and a few recurrent feature channels are
+2. the previous output ``h`` (kept at the output resolution, read bicubically) and a few recurrent feature channels are
    reprojected by the motion vectors; the depth/normal test and camera cuts mark where there is no history,
    and a history-length counter says how long it has been valid;
 3. ``r`` = ``h`` rectified: clipped to ``s``'s 3 x 3 neighbourhood mean +- 1 sigma in YCoCg (``model.ops.rectify``);
@@ -188,7 +188,11 @@ class Fused(Method):
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(history at output resolution, hidden features, history length, valid) warped into this frame."""
         motion_out = upscale_motion(frame.motion, self.scale) if self.scale > 1 else frame.motion
-        history, _ = backward_warp(state["history"], motion_out, mode="bilinear")
+        # Bicubic: a bilinear read blurs the history a little every frame under camera motion, which adds up over
+        # a long history (measured on held-out glass with OIDN + TAA: 29.97 dB bicubic against 29.25 bilinear).
+        # Its overshoot is clamped: the values are x / (1 + x) in [0, 1).
+        history, _ = backward_warp(state["history"], motion_out, mode="bicubic")
+        history = history.clamp(0.0, 1.0 - 1e-4)
         render, _ = backward_warp(torch.cat([state["hidden"], state["length"]], dim=1), frame.motion,
                                   mode="bilinear")
         valid = disocclusion_mask(frame.depth, frame.normal, state["depth"], state["normal"], frame.motion,

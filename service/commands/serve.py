@@ -50,6 +50,14 @@ def _add_serve(commands) -> None:
 def _run_serve(args) -> int:
     import uvicorn
 
+    from service.auth import check_deployment_key
+    from service.settings import get_settings
+
+    try:
+        check_deployment_key(get_settings(), args.host)
+    except RuntimeError as error:
+        raise UsageError(str(error)) from None
+
     uvicorn.run("service.main:app", host=args.host, port=args.port, log_level=args.log_level, reload=args.reload)
     return 0
 

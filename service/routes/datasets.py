@@ -17,10 +17,11 @@ from starlette.concurrency import run_in_threadpool
 from model.layouts import BUILTIN_LAYOUTS, Layout
 from service import datasets as store
 from service.errors import ApiError
-from service.upload_layouts import UploadNotes
+from service.request_limits import upload_slots
 from service.schemas import DatasetDetail, DatasetSummary, Split, StagedSequence
 from service.settings import Settings, get_settings
 from service.storage import Storage, get_storage
+from service.upload_layouts import UploadNotes
 
 router = APIRouter(prefix="/datasets", tags=["datasets"])
 
@@ -46,7 +47,7 @@ LayoutName = Annotated[str | None, Query(
                 "EXRs and optionally references/ (as denoiser import reads them)", examples=["blender-cycles"])]
 
 _STATUS = {store.InvalidUpload: 400, store.UnknownDataset: 404, store.UploadConflict: 409,
-           store.UploadTooLarge: 413}
+           store.UploadTooLarge: 413, store.FrameTooLargeUpload: 413}
 
 
 def _error_response(description: str, code: str, message: str) -> dict:
@@ -60,6 +61,10 @@ _NOT_FOUND = _error_response("no such dataset", "not_found", "dataset 'kitchens'
 _BAD_NAME = _error_response("the dataset id or sequence name is not a valid id", "invalid_name",
                             "dataset id '.hidden' is not a valid id: use letters, digits, '.', '_' and '-' (at most "
                             "128, not starting with a punctuation mark)")
+_BUSY = _error_response("the server's limit of uploads in progress is reached (Retry-After)", "too_many_uploads",
+                        "2 dataset uploads are in progress, the server's limit is 2: retry in a moment")
+_STALLED = _error_response("the client paused longer than the body read timeout", "body_timeout",
+                           "the request body stalled: nothing arrived for 30 s; send the whole body without pausing")
 _TOO_LARGE = _error_response("upload larger than the configured limit", "payload_too_large",
                              "the upload is at least 2147483649 bytes; the limit is 2147483648 bytes")
 _UNSUPPORTED = _error_response("Content-Type not accepted", "unsupported_media_type",
@@ -117,13 +122,17 @@ async def _receive_archive(request: Request, response: Response, storage: Storag
     notes = UploadNotes()
     with _api_errors():
         chosen = _layout(layout)
-    with _api_errors(), store.workspace(storage, "upload") as work:
+    with upload_slots(settings.max_concurrent_uploads).take(), _api_errors(), \
+            store.workspace(storage, "upload") as work:
         archive = work / "upload.bin"
         await store.save_stream(request.stream(), archive, settings.max_upload_bytes, "upload",
                                 request.headers.get("content-length"))
+        limit = store.unpacked_limit(archive.stat().st_size, max_bytes=settings.max_unpacked_bytes,
+                                     max_ratio=settings.max_archive_ratio,
+                                     exempt_bytes=settings.archive_ratio_exempt_bytes)
         detail = await run_in_threadpool(
             store.ingest_archive, storage, archive, work, dataset_id, create=create, split=split,
-            replace=replace, max_unpacked_bytes=store.UNPACKED_FACTOR * settings.max_upload_bytes, layout=chosen,
+            replace=replace, max_unpacked_bytes=limit, max_pixels=settings.max_frame_pixels, layout=chosen,
             notes=notes)
     _note_headers(response, notes)
     return detail
@@ -136,7 +145,7 @@ async def _receive_archive(request: Request, response: Response, storage: Storag
     summary="Upload a new dataset (zip, tar or tar.gz)",
     responses={400: _BAD_UPLOAD, 409: _error_response("the id is taken", "dataset_exists",
                                                       "dataset 'kitchens' already exists"),
-               413: _TOO_LARGE, 415: _UNSUPPORTED},
+               408: _STALLED, 413: _TOO_LARGE, 415: _UNSUPPORTED, 429: _BUSY},
     openapi_extra=_binary_body(ARCHIVE_TYPES, "an archive of sequence folders (each manifest.json + frame EXRs), "
                                               "or of a whole dataset folder (manifest.json with splits)"),
 )
@@ -194,7 +203,7 @@ def delete_dataset(dataset_id: DatasetId, storage: StorageDep) -> Response:
     responses={400: _BAD_UPLOAD, 404: _NOT_FOUND,
                409: _error_response("a sequence name is taken", "sequence_exists",
                                     "dataset 'kitchens' already has sequence(s) kitchen_0; pass replace=true"),
-               413: _TOO_LARGE, 415: _UNSUPPORTED},
+               408: _STALLED, 413: _TOO_LARGE, 415: _UNSUPPORTED, 429: _BUSY},
     openapi_extra=_binary_body(ARCHIVE_TYPES, "an archive of sequence folders or of a dataset folder"),
 )
 async def add_sequences(
@@ -226,7 +235,7 @@ async def add_sequences(
                                                      "2 pixels are not finite"),
                409: _error_response("frame_index is not the next one", "frame_out_of_order",
                                     "frame upload to kitchens/kitchen_7: frame_index is 5, expected 3"),
-               413: _TOO_LARGE, 415: _UNSUPPORTED},
+               408: _STALLED, 413: _TOO_LARGE, 415: _UNSUPPORTED, 429: _BUSY},
     openapi_extra=_binary_body(FRAME_TYPES, "one frame bundle EXR as written by model.exr.write_frame"),
 )
 async def upload_frame(
@@ -252,12 +261,14 @@ async def upload_frame(
         expected_scales = _parse_scales(scales)
         chosen = _layout(layout)
         notes = UploadNotes()
-        with store.workspace(storage, "frame") as work:
+        await run_in_threadpool(store.expire_staged_uploads, storage, settings.staged_upload_ttl_seconds)
+        with upload_slots(settings.max_concurrent_uploads).take(), store.workspace(storage, "frame") as work:
             upload = work / "frame.exr"
             await store.save_stream(request.stream(), upload, settings.max_frame_bytes, "frame",
                                     request.headers.get("content-length"))
             staged = await run_in_threadpool(store.stage_frame, storage, dataset_id, sequence, upload, split=split,
-                                             scene=scene, scales=expected_scales, layout=chosen, notes=notes)
+                                             scene=scene, scales=expected_scales, layout=chosen, notes=notes,
+                                             max_pixels=settings.max_frame_pixels)
     _note_headers(response, notes)
     return staged
 

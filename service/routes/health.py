@@ -1,12 +1,15 @@
-"""/health (liveness) and /ready (readiness: Redis, MLflow and Celery workers). Neither needs the API key.
+"""/health (liveness) and /ready (readiness: Redis, storage, MLflow; workers' heartbeats listed). Neither needs
+the API key.
 
-/ready answers 503 with the same body when anything is down, so a load balancer or docker-compose health
-check can use the status code alone while a person reads which dependency failed and why. Every probe has a
-short timeout: a readiness check that hangs is worse than one that says "down".
+/ready answers 503 with the same body when anything this API needs is down, so a load balancer or docker-compose
+health check can use the status code alone while a person reads which dependency failed. The body is public: it
+names no path, URL or host of a dependency (those go to the API's log). Every probe has a short timeout: a
+readiness check that hangs is worse than one that says "down".
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Callable
@@ -20,6 +23,7 @@ import redis
 from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 
+from service.heartbeats import TTL_INTERVALS, WorkerBeat, read_beats
 from service.schemas import DependencyCheck, Health, Readiness
 from service.settings import Settings, get_settings
 
@@ -27,7 +31,8 @@ router = APIRouter(tags=["health"])
 
 REDIS_TIMEOUT_SECONDS = 1.0
 MLFLOW_TIMEOUT_SECONDS = 2.0
-WORKER_PING_SECONDS = 1.0
+
+log = logging.getLogger("denoiser.api")
 
 
 def redacted(url: str) -> str:
@@ -40,18 +45,22 @@ def redacted(url: str) -> str:
 
 
 def check_redis(settings: Settings) -> DependencyCheck:
-    url = redacted(settings.redis_url)
     client = redis.Redis.from_url(settings.redis_url, socket_connect_timeout=REDIS_TIMEOUT_SECONDS,
                                   socket_timeout=REDIS_TIMEOUT_SECONDS)
     try:
         start = time.perf_counter()
         client.ping()
-        return DependencyCheck(status="ok", detail=f"PING {url} answered in "
-                                                   f"{(time.perf_counter() - start) * 1000:.1f} ms")
+        return DependencyCheck(status="ok", detail=f"PING answered in {(time.perf_counter() - start) * 1000:.1f} ms")
     except (redis.RedisError, OSError) as error:
-        return DependencyCheck(status="down", detail=f"{url}: {error}")
+        log.warning("/ready: Redis at %s: %s", redacted(settings.redis_url), error)
+        return DependencyCheck(status="down", detail=f"PING failed ({type(error).__name__}; see the API log)")
     finally:
         client.close()
+
+
+def check_storage(settings: Settings) -> DependencyCheck:
+    """The data folder (datasets, staging, job files) exists and is writable."""
+    return _writable_folder(Path(settings.data_dir), "data folder")
 
 
 def check_mlflow(settings: Settings) -> DependencyCheck:
@@ -68,29 +77,36 @@ def check_mlflow(settings: Settings) -> DependencyCheck:
         try:
             answer = httpx.get(url, timeout=MLFLOW_TIMEOUT_SECONDS)
         except httpx.HTTPError as error:
-            return DependencyCheck(status="down", detail=f"GET {redacted(url)}: {type(error).__name__}: {error}")
+            log.warning("/ready: GET %s: %s", redacted(url), error)
+            return DependencyCheck(status="down", detail=f"GET /health failed ({type(error).__name__}; see the "
+                                                         f"API log)")
         if answer.status_code != 200:
-            return DependencyCheck(status="down", detail=f"GET {redacted(url)} answered {answer.status_code}")
-        return DependencyCheck(status="ok", detail=f"GET {redacted(url)} answered 200")
+            return DependencyCheck(status="down", detail=f"GET /health answered {answer.status_code}")
+        return DependencyCheck(status="ok", detail="GET /health answered 200")
     if scheme in ("", "file"):
         return _writable_folder(Path(urlsplit(uri).path if scheme else uri), "file store folder")
     return DependencyCheck(status="skipped", detail=f"tracking URI scheme {scheme!r} is not checked from here")
 
 
 def _writable_folder(folder: Path, what: str) -> DependencyCheck:
+    """Whether ``folder`` can be written; the answer names the folder's role, the log its path."""
     if not folder.is_dir():
-        return DependencyCheck(status="down", detail=f"{what} {folder} does not exist")
+        log.warning("/ready: %s %s does not exist", what, folder)
+        return DependencyCheck(status="down", detail=f"{what} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK):
-        return DependencyCheck(status="down", detail=f"{what} {folder} is not writable")
-    return DependencyCheck(status="ok", detail=f"{what} {folder} is writable")
+        log.warning("/ready: %s %s is not writable", what, folder)
+        return DependencyCheck(status="down", detail=f"{what} is not writable")
+    return DependencyCheck(status="ok", detail=f"{what} is writable")
 
 
-def ping_workers() -> list[str]:
-    """Host names of the Celery workers answering a broadcast ping within WORKER_PING_SECONDS."""
-    from workers.celery_app import app  # imported here: celery is only needed once /ready is asked
-
-    replies = app.control.ping(timeout=WORKER_PING_SECONDS) or []
-    return sorted(name for reply in replies for name in reply)
+def worker_beats(settings: Settings) -> list[WorkerBeat]:
+    """The workers whose heartbeat (service.heartbeats) is alive in Redis."""
+    client = redis.Redis.from_url(settings.redis_url, socket_connect_timeout=REDIS_TIMEOUT_SECONDS,
+                                  socket_timeout=REDIS_TIMEOUT_SECONDS)
+    try:
+        return read_beats(client)
+    finally:
+        client.close()
 
 
 @dataclass(frozen=True)
@@ -99,7 +115,8 @@ class Probes:
 
     redis: Callable[[Settings], DependencyCheck] = check_redis
     mlflow: Callable[[Settings], DependencyCheck] = check_mlflow
-    workers: Callable[[], list[str]] = ping_workers
+    storage: Callable[[Settings], DependencyCheck] = check_storage
+    workers: Callable[[Settings], list[WorkerBeat]] = worker_beats
 
 
 def get_probes() -> Probes:
@@ -115,27 +132,38 @@ def health() -> Health:
 @router.get(
     "/ready",
     response_model=Readiness,
-    summary="Readiness: Redis, MLflow and Celery workers",
-    responses={503: {"model": Readiness, "description": "something is down; `down` names it"}},
+    summary="Readiness: this API can serve (Redis, storage, MLflow); workers reported beside",
+    responses={503: {"model": Readiness, "description": "something this API needs is down; `down` names it"}},
 )
 def ready(settings: Annotated[Settings, Depends(get_settings)],
           probes: Annotated[Probes, Depends(get_probes)]) -> JSONResponse:
-    redis_check = probes.redis(settings)
-    mlflow_check = probes.mlflow(settings)
+    """200 when Redis, the data folder and MLflow answer. Workers do not decide it (a worker busy training is
+    not an API that cannot serve, and jobs wait in the queue for one): their heartbeats are listed, and
+    `workers_detail` says how many are alive and what they run."""
+    checks = {"redis": probes.redis(settings), "storage": probes.storage(settings),
+              "mlflow": probes.mlflow(settings)}
     workers: list[str] = []
-    if redis_check.status != "ok":
-        # The worker ping goes through the broker; with Redis down it could only hang or fail.
-        workers_detail = "not checked: Redis (the Celery broker) is down"
+    if checks["redis"].status != "ok":
+        workers_detail = "not checked: Redis (where workers write their heartbeats) is down"
     else:
         try:
-            workers = probes.workers()
-            workers_detail = (f"{len(workers)} Celery worker{'s' if len(workers) != 1 else ''} answered ping"
-                              if workers else f"no Celery worker answered ping within {WORKER_PING_SECONDS:g} s")
-        except Exception as error:  # any broker failure means the same thing here: no worker reachable
-            workers_detail = f"worker ping failed: {type(error).__name__}: {error}"
-    down = [name for name, check in (("redis", redis_check), ("mlflow", mlflow_check)) if check.status == "down"]
-    if not workers:
-        down.append("workers")
-    body = Readiness(status="unavailable" if down else "ready", redis=redis_check, mlflow=mlflow_check,
-                     workers=workers, workers_detail=workers_detail, down=down)
+            beats = probes.workers(settings)
+            workers = [beat.hostname for beat in beats]
+            workers_detail = _describe_workers(beats, settings.worker_heartbeat_seconds)
+        except (redis.RedisError, OSError) as error:
+            log.warning("/ready: reading worker heartbeats: %s", error)
+            workers_detail = f"worker heartbeats could not be read ({type(error).__name__})"
+    down = [name for name, check in checks.items() if check.status == "down"]
+    body = Readiness(status="unavailable" if down else "ready", redis=checks["redis"], storage=checks["storage"],
+                     mlflow=checks["mlflow"], workers=workers, workers_detail=workers_detail, down=down)
     return JSONResponse(body.model_dump(), status_code=503 if down else 200)
+
+
+def _describe_workers(beats: list[WorkerBeat], interval: float) -> str:
+    if not beats:
+        return (f"no worker heartbeat in the last {TTL_INTERVALS * interval:g} s: jobs wait in the queue until a "
+                f"worker starts")
+    running = [f"{beat.hostname} runs job {beat.job}" for beat in beats if beat.job]
+    window = TTL_INTERVALS * interval
+    alive = f"{len(beats)} worker{'s' if len(beats) != 1 else ''} alive (heartbeat within {window:g} s)"
+    return alive + (f"; {', '.join(running)}" if running else "; all idle")

@@ -9,21 +9,24 @@ service.sessions).
 
 from __future__ import annotations
 
+import hmac
+import secrets
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi import APIRouter, Depends, Header, Path, Request, Response
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
-from model.exr import encode_image_exr
+from model.exr import FrameTooLarge, encode_image_exr
 from model.frames import FrameError
 from model.layouts import LayoutFrame, layout_from_value, read_layout_frame_bytes
 from service.errors import ApiError
 from service.registry import AUTO_MODEL
+from service.request_limits import frame_budget
 from service.routes.models import registry_errors
 from service.schemas import SessionIn, SessionModelOut, SessionOut
 from service.session_models import SessionModelInvalid, SessionModelNotFound
@@ -36,6 +39,7 @@ from service.sessions import (
     SessionStore,
     SessionStoreUnavailable,
     get_session_store,
+    token_digest,
 )
 from service.settings import Settings, get_settings
 
@@ -44,6 +48,9 @@ router = APIRouter(prefix="/sessions", tags=["sessions"])
 StoreDep = Annotated[SessionStore, Depends(get_session_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 SessionId = Annotated[str, Path(description="session id", examples=["0f8fad5bd9cb469fa16570867728950e"])]
+SESSION_TOKEN_HEADER = "X-Session-Token"
+SessionToken = Annotated[str | None, Header(alias=SESSION_TOKEN_HEADER, description="the session's owner token "
+                                            "(the `token` of its creation), where the server has owner tokens on")]
 
 FRAME_TYPES = ("application/octet-stream", "image/x-exr")
 EXR_MEDIA_TYPE = "image/x-exr"
@@ -57,6 +64,9 @@ def _error_response(description: str, code: str, message: str) -> dict:
 
 _NOT_FOUND = _error_response("no such session (never created, deleted, or expired)", "not_found",
                              "session '0f8fad5bd9cb469fa16570867728950e' does not exist (expired or deleted)")
+_FORBIDDEN = _error_response("the server has owner tokens on and X-Session-Token is missing or not this "
+                              "session's token", "session_forbidden", "session '0f8f...' belongs to the client that "
+                                                                      "created it: send its token in X-Session-Token")
 _UNAVAILABLE = _error_response("Redis (the session store) or the model registry cannot be reached",
                                "session_store_unavailable", "session '0f8f...' is not in memory and the session "
                                                             "store (Redis) is unreachable: Connection refused")
@@ -83,6 +93,20 @@ def session_errors() -> Iterator[None]:
         raise ApiError(422, error.code, error.message, error.details) from None
     except SessionStoreUnavailable as error:
         raise ApiError(503, error.code, error.message, error.details) from None
+
+
+def _check_owner(store: SessionStore, session_id: str, token: str | None) -> None:
+    """403 unless ``token`` is the session's owner token (sessions created without one answer any key holder)."""
+    with session_errors():
+        digest = store.owner_digest(session_id)
+    if digest is None:
+        return
+    if token is None:
+        raise ApiError(403, "session_forbidden", f"session {session_id!r} belongs to the client that created it: "
+                                                 f"send its token in {SESSION_TOKEN_HEADER}")
+    if not hmac.compare_digest(token_digest(token), digest):
+        raise ApiError(403, "session_forbidden", f"the {SESSION_TOKEN_HEADER} header is not session "
+                                                 f"{session_id!r}'s token")
 
 
 def _time(seconds: float) -> datetime:
@@ -135,7 +159,7 @@ _SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
                                              "16 sessions are open, the server's limit is 16: delete a session "
                                              "or wait for an idle one to expire (1800 s)"),
                         503: _UNAVAILABLE})
-def create_session(body: SessionIn, response: Response, store: StoreDep) -> SessionOut:
+def create_session(body: SessionIn, response: Response, store: StoreDep, settings: SettingsDep) -> SessionOut:
     """`model` is a registered model (its `version`, else the version `alias` points at now, else its latest
     version), a pretrained model shipped with the service (`denoiser pretrained`), or a method without weights by
     the names `denoiser evaluate` takes (`oidn:high`, `oidn-taa`, `svgf`, `accumulation`; `scale` 1 or 2, default
@@ -151,15 +175,19 @@ def create_session(body: SessionIn, response: Response, store: StoreDep) -> Sess
     choice = None
     if body.model == AUTO_MODEL:
         choice = _choose(store, body)
+    token = secrets.token_urlsafe(24) if settings.session_owner_tokens else None
+    owner = token_digest(token) if token is not None else None
     with session_errors():
         if choice is None:
             session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap,
-                                   layout=body.layout, scale=body.scale)
+                                   owner_digest=owner, layout=body.layout, scale=body.scale)
         else:
             session = store.create(choice.info.name, version=choice.info.version, on_gap=body.on_gap,
-                                   choice=choice.to_dict(), layout=body.layout)
+                                   choice=choice.to_dict(), owner_digest=owner, layout=body.layout)
     response.headers["Location"] = f"/sessions/{session.id}"
-    return session_out(session)
+    out = session_out(session)
+    out.token = token
+    return out
 
 
 def _choose(store: SessionStore, body: SessionIn):
@@ -183,23 +211,26 @@ def list_sessions(store: StoreDep) -> list[SessionOut]:
 
 
 @router.get("/{session_id}", response_model=SessionOut, summary="A session's model and stream position",
-            responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
-def get_session(session_id: SessionId, store: StoreDep) -> SessionOut:
+            responses={403: _FORBIDDEN, 404: _NOT_FOUND, 503: _UNAVAILABLE})
+def get_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> SessionOut:
+    _check_owner(store, session_id, token)
     with session_errors():
         return session_out(store.get(session_id))
 
 
 @router.post("/{session_id}/reset", response_model=SessionOut, summary="Drop a session's history",
-             responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
-def reset_session(session_id: SessionId, store: StoreDep) -> SessionOut:
+             responses={403: _FORBIDDEN, 404: _NOT_FOUND, 503: _UNAVAILABLE})
+def reset_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> SessionOut:
     """The next frame starts a new history at any frame_index and may have a new resolution."""
+    _check_owner(store, session_id, token)
     with session_errors():
         return session_out(store.reset(session_id))
 
 
 @router.delete("/{session_id}", status_code=204, summary="Close a session",
-               responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
-def delete_session(session_id: SessionId, store: StoreDep) -> Response:
+               responses={403: _FORBIDDEN, 404: _NOT_FOUND, 503: _UNAVAILABLE})
+def delete_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> Response:
+    _check_owner(store, session_id, token)
     with session_errors():
         store.delete(session_id)
     return Response(status_code=204)
@@ -237,24 +268,34 @@ _FRAME_HEADERS = {
         400: _error_response("the body is not a valid frame bundle EXR (the message names the buffer and problem)",
                              "invalid_frame", "frame body: buffer 'color': 3 values are negative (radiance must be "
                                               ">= 0)"),
+        403: _FORBIDDEN,
         404: _NOT_FOUND,
         409: _error_response("frame_index or resolution does not continue the session (codes frame_gap, "
                              "frame_out_of_order, resolution_mismatch)", "frame_out_of_order",
                              "frame_index 4 repeats the last frame processed (4); this session expects "
                              "frame_index 5 (reset the session to restart the stream)"),
-        413: _error_response("the body is larger than the server's frame limit", "payload_too_large",
-                             "the frame is at least 268435457 bytes; the limit is 268435456 bytes"),
+        413: _error_response("the body is larger than the server's frame limit (payload_too_large), or its "
+                             "header declares more pixels than the pixel limit (frame_too_large)",
+                             "frame_too_large", "frame body: declares 2048x2048 = 4194304 pixels; the limit is "
+                                                "2097152 pixels per frame"),
+        408: _error_response("the client paused longer than the body read timeout while sending the frame",
+                             "body_timeout", "the request body stalled: nothing arrived for 30 s; send the whole "
+                                             "body without pausing"),
         415: _error_response("Content-Type not accepted", "unsupported_media_type",
                              "Content-Type text/plain is not accepted here; send application/octet-stream, "
                              "image/x-exr"),
-        503: _UNAVAILABLE,
+        503: _error_response("the session store or the registry cannot be reached (session_store_unavailable), "
+                             "or the frames in progress hold the server's frame memory budget (server_busy, "
+                             "Retry-After)", "server_busy", "the server holds 1073000000 bytes of session frames in "
+                                                           "progress, its limit is 1073741824: retry in a moment"),
     },
     openapi_extra={"requestBody": {
         "required": True,
         "description": "one frame bundle EXR, as model.exr.write_frame writes it (references optional, ignored)",
         "content": {kind: {"schema": {"type": "string", "format": "binary"}} for kind in FRAME_TYPES}}},
 )
-async def post_frame(session_id: SessionId, request: Request, store: StoreDep, settings: SettingsDep) -> Response:
+async def post_frame(session_id: SessionId, request: Request, store: StoreDep, settings: SettingsDep,
+                     token: SessionToken = None) -> Response:
     """Frame order: the first frame (or the first after a reset) starts the history at any frame_index; then
     frame_index == next continues it; a larger one skips frames (history reset, X-History: reset-gap, or 409
     frame_gap when the session has on_gap=reject); a smaller one (a repeat or backwards) is 409
@@ -265,9 +306,14 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
     if not store.exists(session_id):  # one in memory is checked against Redis when its frame runs
         with session_errors():
             await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
-    body = await _read_body(request, settings.max_frame_bytes)
-    with session_errors():
-        result, data, read = await run_in_threadpool(_run_frame, store, session_id, body)
+    await run_in_threadpool(_check_owner, store, session_id, token)
+    # The body's bytes count against the frame budget from the first byte until the output is encoded: bounds
+    # the memory all frames in progress hold, whatever their number.
+    with frame_budget(settings.max_buffered_frame_bytes).hold() as hold:
+        body = await _read_body(request, settings.max_frame_bytes, hold)
+        with session_errors():
+            result, data, read = await run_in_threadpool(_run_frame, store, session_id, body,
+                                                         settings.max_frame_pixels)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
                "X-Inference-Ms": f"{result.inference_ms:.3f}", "X-Sanitized-Pixels": str(result.sanitized.total),
                "X-Server-Ms": f"{(time.perf_counter() - started) * 1000:.3f}"}
@@ -280,8 +326,8 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
                     background=BackgroundTask(_start_mirror, store, session_id))
 
 
-def _run_frame(store: SessionStore, session_id: str, body: bytes):
-    read = _parse_frame(body, store.get(session_id).layout)
+def _run_frame(store: SessionStore, session_id: str, body: bytes, max_pixels: int):
+    read = _parse_frame(body, store.layout(session_id), max_pixels)
     frame = read.frame
     result = store.process_frame(session_id, frame, start_mirror=False, frame_index_given=read.frame_index_given)
     try:
@@ -308,11 +354,16 @@ async def _start_mirror(store: SessionStore, session_id: str) -> None:
     store.start_mirror(session_id)  # never blocks: hands the write to the store's writer threads
 
 
-def _parse_frame(body: bytes, layout: str | dict) -> LayoutFrame:
+def _parse_frame(body: bytes, layout: str | dict, max_pixels: int) -> LayoutFrame:
     try:
         # NaN / Inf / out-of-range values pass here and are repaired before the step (X-Sanitized-Pixels); "live"
-        # also renormalises lossy-compressed normals and reads a missing jitter as 0 (X-Repairs).
-        return read_layout_frame_bytes(body, layout_from_value(layout), FRAME_SOURCE, mode="live")
+        # also renormalises lossy-compressed normals and reads a missing jitter as 0 (X-Repairs). The header's
+        # pixel count is checked against ``max_pixels`` before anything is decoded, whatever the layout.
+        return read_layout_frame_bytes(body, layout_from_value(layout), FRAME_SOURCE, mode="live",
+                                       max_pixels=max_pixels)
+    except FrameTooLarge as error:
+        raise ApiError(413, "frame_too_large", str(error), {"pixels": error.pixels, "limit_pixels": error.limit}) \
+            from None
     except FrameError as error:
         raise ApiError(400, "invalid_frame", str(error),
                        {"buffer": error.buffer, "problem": error.problem}) from None
@@ -328,16 +379,22 @@ def _check_content_type(request: Request) -> None:
                                                       f"{', '.join(FRAME_TYPES)}", {"accepted": list(FRAME_TYPES)})
 
 
-async def _read_body(request: Request, limit: int) -> bytes:
-    """The whole body, refusing (413) past ``limit`` bytes without reading further."""
+async def _read_body(request: Request, limit: int, hold: Callable[[int], None]) -> bytes:
+    """The whole body, refusing (413) past ``limit`` bytes without reading further; its bytes are ``hold``-ed (a
+    declared length at once, so a frame the budget cannot take is refused before it is read)."""
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > limit:
         raise _too_large(int(declared), limit)
+    reserved = int(declared) if declared.isdigit() else 0
+    hold(reserved)
     chunks, size = [], 0
-    async for chunk in request.stream():
+    async for chunk in request.stream():  # each read bounded by the BodyReadTimeout middleware (408)
         size += len(chunk)
         if size > limit:
             raise _too_large(size, limit, at_least=True)
+        if size > reserved:  # no (or a wrong) Content-Length: held as it arrives
+            hold(size - reserved)
+            reserved = size
         chunks.append(chunk)
     if size == 0:
         raise ApiError(400, "invalid_frame", f"{FRAME_SOURCE}: empty; send one frame bundle EXR")

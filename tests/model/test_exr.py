@@ -309,3 +309,69 @@ def test_invalid_contents_are_validated_on_read(tmp_path):
     write_raw_exr(tmp_path / "f.exr", channels, {"jitter": (0.0, 0.0)})
     with pytest.raises(FrameValidationError, match=r"f.exr: buffer 'depth': 1 pixels are negative"):
         read_frame(tmp_path / "f.exr")
+
+
+# --- declared size, checked before decoding ----------------------------------------------------------------
+
+
+def zero_bomb(width: int, height: int) -> bytes:
+    """An all-zero ZIP-compressed EXR declaring width x height: a few kilobytes that decode to megabytes."""
+    import io
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    stream = io.BytesIO()
+    OpenEXR.File(header, {"color": np.zeros((height, width, 3), np.float32)}).write(stream)
+    return stream.getvalue()
+
+
+def test_a_frame_declaring_more_pixels_than_the_limit_is_refused_before_decoding(monkeypatch):
+    import model.exr as exr
+
+    bomb = zero_bomb(1024, 1024)
+    assert len(bomb) < 100_000
+    decoded = []
+    monkeypatch.setattr(exr, "_read_coalesced", lambda *args: decoded.append(args))
+    with pytest.raises(exr.FrameTooLarge, match=r"declares 1024x1024 = 1048576 pixels; the limit is 1000000") as info:
+        read_frame_bytes(bomb, "bomb.exr", max_pixels=1_000_000)
+    assert (info.value.pixels, info.value.limit, info.value.source) == (1048576, 1_000_000, "bomb.exr")
+    assert decoded == []
+
+
+def test_the_pixel_limit_counts_the_render_part_and_leaves_room_for_a_2x_reference(tmp_path):
+    import pickle
+
+    import model.exr as exr
+
+    frame = make_frame(0, 8, 6, scales=(1, 2))
+    path = write_frame(tmp_path / "f.exr", frame)
+    read_frame(path, max_pixels=48)  # 48 render pixels, a 2x reference of 192 beside them
+    with pytest.raises(exr.FrameTooLarge, match="= 48 pixels; the limit is 47 pixels per frame"):
+        read_frame(path, max_pixels=47)
+    exr.check_frame_file_pixels(path, 48)
+    error = exr.FrameTooLarge("f.exr", "declares too much", 10, 5)
+    assert pickle.loads(pickle.dumps(error)).pixels == 10
+
+
+def test_the_pixel_limit_holds_every_pass_part_and_bounds_the_values_of_all_parts():
+    import io
+
+    import model.exr as exr
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT, blender_like_bomb
+
+    # Blender writes one part per pass: 6 parts of 32x32 are one 1024-pixel frame (18 values a pixel), not 6 of them.
+    exr.check_frame_file_pixels(BLENDER_ORBIT / "frame_0000.exr", 1024)
+    with pytest.raises(exr.FrameTooLarge, match="= 1024 pixels; the limit is 1023 pixels per frame"):
+        exr.check_frame_file_pixels(BLENDER_ORBIT / "frame_0000.exr", 1023)
+    # A pass part larger than the first part is held to the limit too.
+    parts = OpenEXR.File(io.BytesIO(blender_like_bomb(64, 64, pass_size=(32, 32))), header_only=True).parts
+    with pytest.raises(exr.FrameTooLarge, match="64x64 = 4096 pixels in part 'ViewLayer.Depth'; the limit is 1024"):
+        exr.check_declared_pixels(parts, "f.exr", 1024)
+    # One part of a few pixels but very many channels: bounded by its values (pixels x channels).
+    stream = io.BytesIO()
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {f"aov{i}.Y": np.zeros((10, 10), np.float16) for i in range(200)}).write(stream)
+    parts = OpenEXR.File(io.BytesIO(stream.getvalue()), header_only=True).parts
+    with pytest.raises(exr.FrameTooLarge, match=r"declares 20000 values \(pixels x channels\) in its 1 parts; the "
+                                                r"limit is 12800 \(128 per pixel"):
+        exr.check_declared_pixels(parts, "f.exr", 100)
+    exr.check_declared_pixels(parts, "f.exr", 157)  # 128 x 157 = 20096 values

@@ -444,3 +444,23 @@ def test_a_stored_frame_with_nan_is_sent_for_the_session_to_repair(tmp_path):
         read_frame(path)
     sent = read_frame_bytes(frame_bytes(path), sanitizable=True)
     assert np.isnan(sent.color[1, 2, 0]) and sent.references == {}
+
+
+def test_the_client_sends_the_owner_token_of_the_sessions_it_created():
+    seen = []
+
+    def handler(request):
+        seen.append((request.method, request.url.path, request.headers.get("x-session-token")))
+        if request.method == "POST" and request.url.path == "/sessions":
+            return httpx.Response(201, json={"id": "a" * 32, "token": "tok"})
+        if request.method == "DELETE":
+            return httpx.Response(204)
+        return httpx.Response(200, json={"id": "a" * 32})
+
+    with DenoiserClient("http://fake.test", transport=httpx.MockTransport(handler)) as client:
+        session = client.create_session("m")
+        client.get_session(session["id"])
+        client.reset_session(session["id"])
+        client.delete_session(session["id"])
+        client.get_session("b" * 32)  # not one it created: no token
+    assert [token for _, _, token in seen] == [None, "tok", "tok", "tok", None]

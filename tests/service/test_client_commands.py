@@ -332,12 +332,20 @@ def test_stream_errors(api, tmp_path, capsys):
 def test_serve_runs_uvicorn_on_the_app(monkeypatch):
     import uvicorn
 
+    from service.settings import get_settings
+
     calls = []
     monkeypatch.setattr(uvicorn, "run", lambda target, **options: calls.append((target, options)))
-    assert main(["serve", "--host", "0.0.0.0", "--port", "8080"]) == 0
-    assert calls == [("service.main:app", {"host": "0.0.0.0", "port": 8080, "log_level": "info", "reload": False})]
-    with pytest.raises(SystemExit):
-        main(["serve", "--port", "70000"])
+    monkeypatch.setenv("DENOISER_API_KEY", "0123456789abcdef0123")  # every interface: a real key is required
+    get_settings.cache_clear()
+    try:
+        assert main(["serve", "--host", "0.0.0.0", "--port", "8080"]) == 0
+        assert calls == [("service.main:app", {"host": "0.0.0.0", "port": 8080, "log_level": "info",
+                                               "reload": False})]
+        with pytest.raises(SystemExit):
+            main(["serve", "--port", "70000"])
+    finally:
+        get_settings.cache_clear()  # the key set here must not outlive the test
 
 
 def test_worker_runs_the_celery_app_with_the_solo_pool(monkeypatch, capsys):

@@ -47,3 +47,45 @@ def test_a_valid_json_body_with_a_bad_field_is_still_422_naming_the_field(client
     response = client.post("/sessions", json={"model": "x", "on_gap": "sometimes"})
     assert response.status_code == 422
     assert "on_gap" in response.json()["error"]["message"]
+
+
+@pytest.mark.parametrize(("body", "fragment"), [
+    (b"[" * 100_000, "nested too deeply"),
+    (b'{"model": ' + b"9" * 5000 + b"}", "an integer has too many digits"),
+    (b"\xff\xfe\x00", "it is not UTF-8"),
+])
+def test_json_bodies_the_parser_refuses_are_400_saying_why(client, body, fragment):
+    response = client.post("/jobs", content=body, headers={"content-type": "application/json"})
+    assert response.status_code == 400, response.text
+    error = response.json()["error"]
+    assert error["code"] == "invalid_json" and fragment in error["message"], error
+
+
+@pytest.mark.parametrize(("number", "reason"), [(28, "no space left"), (30, "storage is read-only")])
+def test_full_or_read_only_storage_is_507_without_server_paths(client, monkeypatch, caplog, number, reason):
+    import errno
+
+    from service import datasets
+
+    def fail(*args, **kwargs):
+        raise OSError(number, errno.errorcode[number], "/srv/secret/var/staging/upload-1/upload.bin")
+
+    monkeypatch.setattr(datasets, "save_stream", fail)
+    with caplog.at_level("ERROR", logger="denoiser.api"):
+        response = client.post("/datasets", content=b"PK\x03\x04", headers={"content-type": "application/zip"})
+    assert response.status_code == 507, response.text
+    error = response.json()["error"]
+    assert error["code"] == "insufficient_storage" and reason in error["message"]
+    assert "/srv/secret" not in response.text
+    assert "/srv/secret/var/staging/upload-1/upload.bin" in caplog.text  # the operator still finds it
+    assert error["details"]["reference"] in caplog.text
+
+
+def test_an_unexpected_error_is_500_without_its_message(client, monkeypatch):
+    from service import datasets
+
+    monkeypatch.setattr(datasets, "list_datasets", lambda storage: open("/srv/secret/missing"))
+    response = client.get("/datasets")
+    assert response.status_code == 500
+    assert "/srv/secret" not in response.text
+    assert response.json()["error"]["message"].startswith("internal error (FileNotFoundError)")

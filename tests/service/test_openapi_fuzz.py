@@ -11,8 +11,7 @@ stored dataset ``rooms``, so the documented examples (``jnds-xs-x2``, ``champion
 models, sessions and job checks rather than stopping at 404. The server has an API key, as deployed. No endpoint
 is left out; two dependencies are replaced: the job dispatcher queues nothing (a message in db 15's queue would
 be run by whichever test worker consumes it; the job record is still created and checked as usual), and
-/ready's worker probe names a worker at once (the real one broadcasts a ping through the Celery app's broker and
-waits 1 s per call; the 503 without workers is tested in tests/service/routes/test_health.py).
+/ready's worker probe names one worker (heartbeats are tested in tests/service/routes/test_health.py).
 """
 
 from __future__ import annotations
@@ -28,6 +27,7 @@ from hypothesis import settings
 from schemathesis.python.asgi import shutdown_lifespans
 
 from service.main import create_app
+from service.heartbeats import WorkerBeat
 from service.routes.health import Probes, get_probes
 from service.routes.jobs import job_store_dependency
 from service.sessions import SessionStore, get_session_store
@@ -99,7 +99,8 @@ def configured_app(tmp_path_factory):
                      get_session_store: lambda: sessions,
                      job_store_dependency: lambda: JobStore(client, f"{prefix}denoiser:"),
                      get_dispatcher: NoQueue,
-                     get_probes: lambda: Probes(workers=lambda: ["fuzz-worker@test"])}
+                     get_probes: lambda: Probes(workers=lambda settings: [
+                         WorkerBeat("fuzz-worker@test", 1, ["cpu"], None, 0.0)])}
         APP.dependency_overrides.update(overrides)
         try:
             yield

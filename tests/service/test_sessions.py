@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -24,6 +26,7 @@ from service.sessions import (
     SessionLimitReached,
     SessionNotFound,
     SessionStore,
+    SessionStoreUnavailable,
     deserialize_state,
     serialize_state,
 )
@@ -285,24 +288,48 @@ def test_concurrent_frames_of_one_session_are_serialized(make_store):
     assert session.frames_processed == 2
 
 
-def test_sessions_keep_working_in_memory_when_redis_is_down(registry_settings, caplog):
+def test_sessions_keep_working_in_memory_when_redis_is_down(make_store, caplog):
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    store.redis = redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2, socket_timeout=0.2,
+                              retry=Retry(NoBackoff(), 0))  # Redis goes away
+    results = [store.process_frame(session.id, frame).history for frame in stream_frames(2)]
+    assert results == [STARTED, CONTINUED]
+    assert [s.id for s in store.list()] == [session.id]
+    assert "could not mirror to Redis" in caplog.text
+
+
+def test_no_session_is_created_while_redis_is_down(registry_settings):
+    # Counting memory alone would let every API process (and a restarted one) go past the limit.
     down = redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2, socket_timeout=0.2,
                        retry=Retry(NoBackoff(), 0))
     store = SessionStore(registry_settings, redis_client=down, prefix="denoiser:session:test-down:")
     try:
-        session = store.create(MODEL_NAME)
-        results = [store.process_frame(session.id, frame).history for frame in stream_frames(2)]
-        assert results == [STARTED, CONTINUED]
-        assert [s.id for s in store.list()] == [session.id]
-        assert "could not mirror to Redis" in caplog.text
+        with pytest.raises(SessionStoreUnavailable, match="cannot be counted"):
+            store.create(MODEL_NAME)
     finally:
         store.close()
 
 
+def test_the_session_cap_does_not_count_sessions_idle_past_their_ttl(make_store, redis_db):
+    clock = FakeClock()
+    store = make_store(clock=clock, max_sessions=2, session_ttl_seconds=60)
+    store.create(MODEL_NAME)
+    store.create(MODEL_NAME)
+    clock.advance(61)  # both idle past the TTL; their Redis keys (real time) are still there
+    assert len(list(redis_db.scan_iter(match=f"{store.prefix}*"))) == 2
+    assert store.list() == []
+    store.create(MODEL_NAME)
+    restarted = make_store(clock=clock, max_sessions=2, session_ttl_seconds=60)
+    restarted.create(MODEL_NAME)  # a fresh process counts Redis alone: the two idle ones do not count either
+    with pytest.raises(SessionLimitReached, match="2 sessions are open"):
+        restarted.create(MODEL_NAME)
+
+
 def test_every_step_runs_on_the_store_torch_thread(make_store):
-    # One OpenMP team for the process (service.torch_thread): steps asked for from different request threads all
-    # run on one thread, never on the caller's.
-    store = make_store()
+    # One OpenMP team per session worker (service.torch_thread): steps asked for from different request threads all
+    # run on the store's one worker here, never on the caller's.
+    store = make_store(session_workers=1)
     session = store.create(MODEL_NAME)
     method = session.method
     steps: list[int] = []
@@ -328,6 +355,40 @@ def test_every_step_runs_on_the_store_torch_thread(make_store):
     assert len(steps) == 4 and len(set(steps)) == 1
     assert all(step != caller for step, caller in zip(steps, callers))
     assert session.next_frame_index == 4
+
+
+def test_a_slow_session_does_not_hold_up_the_others(make_store):
+    # Two session workers: session A's step is stuck (a huge frame, say) until session B's frame is done.
+    store = make_store(session_workers=2, session_threads=1)
+    slow, fast = store.create(MODEL_NAME, version="1"), store.create(MODEL_NAME, version="2")
+    assert slow.method is not fast.method
+    released, original = threading.Event(), slow.method.step
+
+    def stuck_step(batch, state):
+        assert released.wait(30), "session B's frame waited behind session A's"
+        return original(batch, state)
+
+    slow.method.step = stuck_step
+    frames = stream_frames(2)
+    try:
+        with ThreadPoolExecutor(1) as caller:
+            pending = caller.submit(store.process_frame, slow.id, frames[0])
+            assert store.process_frame(fast.id, frames[0]).history == STARTED  # while A's step is still stuck
+            released.set()
+            assert pending.result().history == STARTED
+    finally:
+        released.set()
+        del slow.method.step
+
+
+def test_the_session_thread_budget(registry_settings):
+    from service.sessions import session_thread_budget
+
+    assert session_thread_budget(registry_settings.model_copy(update={"session_workers": 3,
+                                                                      "session_threads": 2})) == (3, 2)
+    workers, threads = session_thread_budget(registry_settings.model_copy(update={"session_workers": 2,
+                                                                                  "session_threads": None}))
+    assert workers == 2 and threads == max(1, (os.cpu_count() or 1) // 2)
 
 
 def test_a_fused_model_streams_with_oidn_inside_and_survives_a_restart(make_store):
@@ -361,3 +422,37 @@ def test_a_fused_model_streams_with_oidn_inside_and_survives_a_restart(make_stor
         result = restarted.process_frame(session.id, frame)
         assert result.history == CONTINUED
         assert_same_image(result.output, image)
+
+
+def test_a_session_keeps_its_layout_and_owner_and_its_steps_run_on_the_session_workers(make_store):
+    # Both sides of a session's creation (how its frames are read, who owns it) live in its metadata: a restarted
+    # store restores them from Redis, and frames without a frame index (read in a layout) still run on the session
+    # worker threads, one after the other.
+    import dataclasses
+
+    from service.sessions import token_digest
+
+    store = make_store(session_workers=2, session_threads=1)
+    session = store.create(MODEL_NAME, version="2", layout="blender-cycles", owner_digest=token_digest("secret"))
+    threads, original = [], session.method.step
+
+    def recorded_step(batch, state):
+        threads.append(threading.current_thread().name)
+        return original(batch, state)
+
+    session.method.step = recorded_step
+    # Files without a frame index read as index 0: each is the session's next frame, not a repeat of frame 0.
+    frames = [dataclasses.replace(frame, frame_index=0) for frame in stream_frames(3)]
+    try:
+        results = [store.process_frame(session.id, frame, frame_index_given=False) for frame in frames[:2]]
+    finally:
+        del session.method.step
+    assert [(r.frame_index, r.history) for r in results] == [(0, STARTED), (1, CONTINUED)]
+    assert len(threads) == 2 and all(name.startswith("session-torch") for name in threads)
+    assert (store.layout(session.id), store.owner_digest(session.id)) == ("blender-cycles", token_digest("secret"))
+    restarted = make_store(session_workers=2, session_threads=1)
+    assert restarted.get(session.id).layout == "blender-cycles"
+    assert (restarted.layout(session.id), restarted.owner_digest(session.id)) == ("blender-cycles",
+                                                                                  token_digest("secret"))
+    result = restarted.process_frame(session.id, frames[2], frame_index_given=False)
+    assert (result.frame_index, result.history) == (2, CONTINUED)

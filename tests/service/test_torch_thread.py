@@ -48,3 +48,21 @@ def test_after_shutdown_calls_run_in_the_caller():
     worker = TorchThread()
     worker.shutdown()
     assert worker.run(threading.get_ident) == threading.get_ident()
+
+
+def test_a_pool_serves_other_calls_while_one_call_is_slow():
+    from service.torch_thread import TorchPool
+
+    pool = TorchPool(workers=2, num_threads=1)
+    released = threading.Event()
+    try:
+        with ThreadPoolExecutor(1) as caller:
+            # The slow call holds one worker until the fast one has finished (or, on one thread, gives up).
+            slow = caller.submit(pool.run, lambda: released.wait(30))
+            fast = pool.run(lambda: torch.get_num_threads())
+            released.set()
+            assert slow.result() is True  # released by the fast call, not by its timeout
+        assert fast == 1
+    finally:
+        released.set()
+        pool.shutdown()

@@ -24,6 +24,7 @@ from typing import Any
 from service.settings import Settings
 from service.storage import Storage
 from workers.job_store import JobStore
+from workers.redis_retry import with_retry
 
 LOG_FILE = "job.log"
 PROGRESS_INTERVAL = 0.5  # seconds between progress writes to Redis
@@ -64,6 +65,7 @@ class JobContext:
     sink: ProgressSink | None = None
     cancelled: threading.Event = field(default_factory=threading.Event)
     lease_lost: threading.Event = field(default_factory=threading.Event)
+    sleep: Callable[[float], None] = time.sleep  # between Redis retries (tests pass one that does not wait)
 
     def __post_init__(self) -> None:
         self.started = time.monotonic()
@@ -102,14 +104,19 @@ class JobContext:
             self._last_write = now
             report = {"current": int(current), "total": int(total), "message": message,
                       "eta_seconds": self.eta(current, total, now)}
-            self.store.set_progress(self.job_id, report)
+            # A Redis blip must not end the attempt: retried with backoff for settings.redis_retry_seconds.
+            self._retried(lambda: self.store.set_progress(self.job_id, report), "progress")
             if self.sink is not None:
-                self.sink(report)
+                self._retried(lambda: self.sink(report), "progress to Celery")
             if first or current >= total or now - self._last_log >= LOG_INTERVAL:
                 self._last_log = now
                 eta = "" if report["eta_seconds"] is None else f", ETA {report['eta_seconds']:.0f} s"
                 self.logger.info("progress %d/%d%s: %s", current, total, eta, message)
         self.check()
+
+    def _retried(self, call: Callable[[], Any], what: str) -> Any:
+        return with_retry(call, self.settings.redis_retry_seconds, f"job {self.job_id[:8]} {what}",
+                          sleep=self.sleep)
 
     def eta(self, current: int, total: int, now: float | None = None) -> float | None:
         """Seconds left at the rate this execution has made progress so far (None until it has made some)."""

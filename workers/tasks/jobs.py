@@ -22,9 +22,10 @@ import threading
 from typing import Any
 
 from celery import Celery
-from celery.signals import worker_ready
+from celery.signals import worker_ready, worker_shutdown
 
 from service.errors import ApiError
+from service.heartbeats import Heartbeat
 from service.settings import Settings, get_settings
 from service.storage import Storage, get_storage
 from workers.celery_app import QUEUES, app
@@ -67,15 +68,29 @@ def execute(job_id: str, store: JobStore, storage: Storage, settings: Settings,
         state = decision.record["state"] if decision.record else None
         return {"job_id": job_id, "state": state, "skipped": decision.outcome}
     context = JobContext(decision.record, store, storage, settings, owner, sink)
+    apply_job_threads(settings)
     handler = JobLogHandler(context.folder / LOG_FILE)
     root = logging.getLogger()
     root.addHandler(handler)
+    if _heartbeat is not None:
+        _heartbeat.job = job_id
     try:
         return _run(context)
     finally:
+        if _heartbeat is not None:
+            _heartbeat.job = None
         root.removeHandler(handler)
         handler.close()
         store.release(job_id, owner)
+
+
+def apply_job_threads(settings: Settings) -> None:
+    """The job's torch thread budget (DENOISER_JOB_THREADS): a worker beside an API serving sessions must not take
+    every core (DDP ranks share the budget, see workers.tasks.train)."""
+    if settings.job_threads:
+        import torch
+
+        torch.set_num_threads(settings.job_threads)
 
 
 def _run(context: JobContext) -> dict[str, Any]:
@@ -170,3 +185,30 @@ _recovery_stop = threading.Event()
 @worker_ready.connect
 def _start_recovery(**_: Any) -> None:
     threading.Thread(target=_recovery_loop, args=(_recovery_stop,), name="job-recovery", daemon=True).start()
+
+
+# ------------------------------------------------------------------------------------------ heartbeat
+
+_heartbeat: Heartbeat | None = None
+
+
+@worker_ready.connect
+def _start_heartbeat(sender: Any = None, **_: Any) -> None:
+    """The worker's liveness for the API (service.heartbeats): a thread, so a long job does not silence it."""
+    global _heartbeat
+    hostname = getattr(sender, "hostname", None) or f"celery@{socket.gethostname()}"
+    _heartbeat = Heartbeat(get_job_store().redis, hostname, _consumed_queues(sender),
+                           get_settings().worker_heartbeat_seconds).start()
+
+
+def _consumed_queues(consumer: Any) -> list[str]:
+    try:
+        return sorted(consumer.app.amqp.queues.consume_from)
+    except AttributeError:  # not a worker's consumer (e.g. a test): the queues this app knows
+        return list(QUEUES)
+
+
+@worker_shutdown.connect
+def _stop_heartbeat(**_: Any) -> None:
+    if _heartbeat is not None:
+        _heartbeat.stop()

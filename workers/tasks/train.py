@@ -40,7 +40,8 @@ def train_config(params: TrainParams, storage: Storage, settings: Settings, out:
         schedule=params.schedule, warmup_steps=params.warmup_steps, seed=params.seed, out=str(out), resume=True,
         device=device, world_size=params.world_size, checkpoint_every=params.checkpoint_every,
         validate_every=params.validate_every, validation_frames=params.validation_frames,
-        num_threads=params.threads, tracking_uri=settings.resolved_tracking_uri(), experiment=params.experiment,
+        num_threads=params.threads or rank_threads(settings, params.world_size),
+        tracking_uri=settings.resolved_tracking_uri(), experiment=params.experiment,
         register_as=params.register_as, init_from=str(init_from) if init_from else None)
 
 
@@ -63,6 +64,13 @@ def initial_weights(params: TrainParams, storage: Storage) -> Path | None:
                        f"{source.get('preset')} at scale {source.get('scale')}; it cannot start {params.method} at "
                        f"scale {params.scale}")
     return path
+
+
+def rank_threads(settings: Settings, world_size: int) -> int | None:
+    """Each rank's share of DENOISER_JOB_THREADS (None: unset, each rank takes its share of the cores)."""
+    if not settings.job_threads:
+        return None
+    return max(1, settings.job_threads // max(1, world_size))
 
 
 def check(params: TrainParams, storage: Storage, settings: Settings) -> dict[str, Any]:

@@ -47,3 +47,32 @@ def write_channels(path: Path, channels: dict[str, np.ndarray], attributes: dict
                    compression=OpenEXR.ZIP_COMPRESSION, half: bool = False) -> Path:
     """A one-part EXR with these channels and header attributes."""
     return write_parts(path, [("render", channels, attributes or {})], compression, half)
+
+
+def blender_like_bomb(width: int, height: int, pass_size: tuple[int, int] | None = None) -> bytes:
+    """A zero-filled EXR with the parts and channels of the Blender fixture (one part per pass, half floats, ZIP):
+    a few hundred kilobytes declaring ``width`` x ``height`` pixels in every part, or in every part but the first
+    (``ViewLayer.Combined``) when ``pass_size`` gives that one's (width, height)."""
+    import io
+
+    source = OpenEXR.File(str(BLENDER_ORBIT / "frame_0000.exr"), header_only=True)
+    window = (np.array([0, 0], np.int32), np.array([width - 1, height - 1], np.int32))  # the same for all parts
+    built = []
+    for index, part in enumerate(source.parts):
+        part_width, part_height = pass_size if (pass_size and index == 0) else (width, height)
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, "displayWindow": window}
+        planes = {channel.name: np.zeros((part_height, part_width), np.float16) for channel in part.header["channels"]}
+        built.append(OpenEXR.Part(header, planes, part.name()))
+    stream = io.BytesIO()
+    OpenEXR.File(built).write(stream)
+    return stream.getvalue()
+
+
+def upscaled_copy(source: Path, destination: Path, factor: int) -> Path:
+    """Every part and channel of ``source`` repeated ``factor`` times along both axes (a render at ``factor``x)."""
+    parts = []
+    for part in OpenEXR.File(str(source), separate_channels=True).parts:
+        channels = {name: np.repeat(np.repeat(channel.pixels, factor, axis=0), factor, axis=1)
+                    for name, channel in part.channels.items()}
+        parts.append((part.name(), channels, {}))
+    return write_parts(destination, parts)

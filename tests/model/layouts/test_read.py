@@ -220,3 +220,33 @@ def test_bytes_and_files_read_the_same_and_references_parts_come_along(tmp_path,
     assert from_bytes.frame.scales == from_file.frame.scales == (1, 2)
     np.testing.assert_array_equal(from_bytes.frame.reference(2), with_references.reference(2))
     np.testing.assert_array_equal(from_file.frame.color, with_references.color)
+
+
+@pytest.mark.parametrize("name", ["blender-cycles", "generic"])
+def test_the_pixel_limit_is_checked_from_the_headers_before_decoding_in_any_layout(monkeypatch, name):
+    import model.exr
+    from model.exr import FrameTooLarge
+    from tests.model.layouts.exr_builders import blender_like_bomb
+
+    decoded = []
+    monkeypatch.setattr(model.exr, "_read_coalesced", lambda *args: decoded.append(args))
+    bomb = blender_like_bomb(1024, 1024)
+    assert len(bomb) < 100_000
+    with pytest.raises(FrameTooLarge, match=r"bomb.exr: declares 1024x1024 = 1048576 pixels; the limit is 1000000"):
+        read_layout_frame_bytes(bomb, BUILTIN_LAYOUTS[name], "bomb.exr", mode="live", max_pixels=1_000_000)
+    assert decoded == []
+
+
+def test_a_reference_render_may_declare_a_2x_render_of_the_limit(tmp_path):
+    from model.exr import FrameTooLarge
+    from model.layouts.read import read_layout_reference
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT, upscaled_copy
+
+    blender = BUILTIN_LAYOUTS["blender-cycles"]
+    frame = read_layout_frame(BLENDER_ORBIT / "frame_0000.exr", blender, max_pixels=1024)  # 32x32, 6 pass parts
+    assert (frame.frame.width, frame.frame.height) == (32, 32)
+    path = upscaled_copy(BLENDER_ORBIT / "references" / "frame_0000.exr", tmp_path / "ref.exr", 2)
+    assert read_layout_reference(path, blender, max_pixels=1024)["reference"].shape == (64, 64, 3)
+    with pytest.raises(FrameTooLarge, match="declares 64x64 = 4096 pixels; the limit is 4092 pixels per reference "
+                                            "render"):
+        read_layout_reference(path, blender, max_pixels=1023)

@@ -12,7 +12,13 @@ from fastapi.testclient import TestClient
 from model.dataset import Dataset
 from model.exr import read_frame
 from service.routes import datasets
-from tests.model.layouts.exr_builders import BLENDER_ORBIT, bundle_channels, write_channels
+from tests.model.layouts.exr_builders import (
+    BLENDER_ORBIT,
+    blender_like_bomb,
+    bundle_channels,
+    upscaled_copy,
+    write_channels,
+)
 
 
 @pytest.fixture
@@ -84,3 +90,39 @@ def test_frames_without_a_frame_index_are_appended_in_order(api, tmp_path, tiny_
         assert response.status_code == 200, response.text
     assert response.json()["frames"] == 2
     assert api.post("/datasets/live/sequences/blender/commit").status_code == 201
+
+
+def test_frames_declaring_too_many_pixels_are_413_before_decoding_in_any_layout(make_app, storage, tmp_path,
+                                                                                  make_archive, monkeypatch):
+    import model.exr
+
+    api = TestClient(make_app(datasets.router, max_frame_pixels=1024))
+    # Within the limit: the fixture's 32x32 frames (6 pass parts each) and their references rendered at 2x.
+    folder = tmp_path / "up" / "orbit"
+    shutil.copytree(BLENDER_ORBIT, folder)
+    for path in sorted((folder / "references").glob("*.exr")):
+        upscaled_copy(path, path, 2)
+    response = upload(api, make_archive(tmp_path / "up", prefix=""), name="ok", layout="blender-cycles")
+    assert response.status_code == 201, response.text
+    assert response.json()["sequences"][0]["scales"] == [1, 2]
+
+    decoded = []
+    monkeypatch.setattr(model.exr, "_read_coalesced", lambda *args: decoded.append(args))
+    for layout in ("blender-cycles", "generic"):
+        response = api.post("/datasets/live/sequences/cam/frames", content=blender_like_bomb(1024, 1024),
+                            headers={"Content-Type": "image/x-exr"}, params={"layout": layout})
+        assert response.status_code == 413, response.text
+        error = response.json()["error"]
+        assert error["code"] == "frame_too_large"
+        assert error["message"].startswith("frame upload to live/cam: declares 1024x1024 = 1048576 pixels; the "
+                                           "limit is 1024")
+    assert api.get("/datasets/live/sequences/cam/frames").status_code == 404
+    # An archive in the layout: refused from the headers before the conversion reads a frame.
+    (folder / "frame_0002.exr").write_bytes(blender_like_bomb(1024, 1024, pass_size=(32, 32)))
+    response = upload(api, make_archive(tmp_path / "up", prefix=""), name="bomb", layout="blender-cycles")
+    assert response.status_code == 413, response.text
+    error = response.json()["error"]
+    assert error["code"] == "frame_too_large" and error["details"]["path"] == "orbit/frame_0002.exr"
+    assert "in part 'ViewLayer.Depth'" in error["message"]
+    assert decoded == []
+    assert not (storage.datasets / "bomb").exists()

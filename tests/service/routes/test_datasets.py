@@ -160,12 +160,53 @@ def test_too_large_upload_is_413_and_leaves_nothing(make_app, storage, two_seque
 
 
 def test_archive_unpacking_past_the_limit_is_413(make_app, storage):
-    api = TestClient(make_app(datasets.router, max_upload_bytes=10_000))
+    api = TestClient(make_app(datasets.router, max_unpacked_bytes=40_000))
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as bundle:
         bundle.writestr("seq/frame_0000.exr", b"\x00" * 200_000)  # compresses to a few hundred bytes
-    assert_error(post_archive(api, buffer.getvalue()), 413, "payload_too_large", "unpacks to more than 40000")
+    assert_error(post_archive(api, buffer.getvalue()), 413, "payload_too_large", "more than 40000 bytes")
     assert_nothing_stored(storage)
+
+
+def deflated_zip(members: dict[str, bytes]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as bundle:
+        for name, data in members.items():
+            bundle.writestr(name, data)
+    return buffer.getvalue()
+
+
+def test_an_archive_past_the_compression_ratio_is_413_before_anything_is_written(make_app, storage, monkeypatch):
+    # 1 MB of zeros deflates to about 1 KB: far past a ratio of 20 once the exempt bytes are 0.
+    api = TestClient(make_app(datasets.router, max_archive_ratio=20, archive_ratio_exempt_bytes=0))
+    body = deflated_zip({"seq/frame_0000.exr": b"\x00" * 1_000_000})
+    written = []
+    monkeypatch.setattr(datasets.store._Extractor, "file", lambda self, *args: written.append(args))
+    error = assert_error(post_archive(api, body), 413, "payload_too_large", "declares 1000000 unpacked bytes",
+                         "compression ratio")
+    assert error["details"] == {"limit_bytes": 20 * len(body)}
+    assert written == []  # refused from the zip's directory, before extracting
+    assert_nothing_stored(storage)
+
+
+def test_a_gzip_tar_past_the_compression_ratio_is_413(make_app, storage, tmp_path):
+    api = TestClient(make_app(datasets.router, max_archive_ratio=20, archive_ratio_exempt_bytes=0))
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz") as bundle:
+        info = tarfile.TarInfo("seq/frame_0000.exr")
+        info.size = 4_000_000
+        bundle.addfile(info, io.BytesIO(b"\x00" * info.size))
+    body = buffer.getvalue()
+    assert_error(post_archive(api, body, content_type="application/gzip"), 413, "payload_too_large",
+                 f"unpacks to more than {20 * len(body)} bytes")
+    assert_nothing_stored(storage)
+
+
+def test_the_unpacked_limit_is_the_ratio_within_the_exemption_and_the_cap():
+    limit = datasets.store.unpacked_limit
+    assert limit(1000, max_bytes=10**9, max_ratio=20, exempt_bytes=0) == 20_000
+    assert limit(1000, max_bytes=10**9, max_ratio=20, exempt_bytes=50_000) == 50_000
+    assert limit(10**8, max_bytes=10**9, max_ratio=20, exempt_bytes=0) == 10**9
 
 
 @pytest.mark.parametrize("member", ["../evil.exr", "seq/../../evil.exr", "/etc/evil.exr", "C:/evil.exr",
@@ -409,3 +450,69 @@ def test_openapi_documents_bodies_errors_and_examples(api):
     schemas = document["components"]["schemas"]
     for name in ("DatasetDetail", "DatasetSummary", "SequenceInfo", "SplitSummary", "StagedSequence"):
         assert schemas[name].get("examples"), name
+
+
+def test_a_decompression_bomb_frame_upload_is_413(make_app, storage):
+    from tests.model.test_exr import zero_bomb
+
+    api = TestClient(make_app(datasets.router, max_frame_pixels=1_000_000))
+    error = assert_error(post_frame(api, zero_bomb(1024, 1024)), 413, "frame_too_large",
+                         "frame upload to live/cam_0: declares 1024x1024 = 1048576 pixels")
+    assert error["details"]["limit_pixels"] == 1_000_000
+    assert api.get("/datasets/live/sequences/cam_0/frames").status_code == 404
+
+
+def test_an_archive_holding_a_decompression_bomb_is_413_before_frames_are_decoded(make_app, storage, two_sequences,
+                                                                                    make_archive, monkeypatch):
+    import model.exr
+    from tests.model.test_exr import zero_bomb
+
+    (two_sequences / "seq_b" / "frame_0001.exr").write_bytes(zero_bomb(1024, 1024))
+    api = TestClient(make_app(datasets.router, max_frame_pixels=1_000_000))
+    decoded = []
+    monkeypatch.setattr(model.exr, "_read_coalesced", lambda *args: decoded.append(args))
+    error = assert_error(post_archive(api, make_archive(two_sequences)), 413, "frame_too_large",
+                         "seq_b/frame_0001.exr: declares 1024x1024")
+    assert error["details"]["path"] == "seq_b/frame_0001.exr"
+    assert decoded == []
+    assert_nothing_stored(storage)
+
+
+@pytest.mark.parametrize(("manifest", "fragment"), [
+    (b"[" * 100_000, "manifest.json: not valid JSON here (nested too deeply)"),
+    (b'{"format": ' + b"1" * 5000 + b"}", "manifest.json: not valid JSON here"),
+])
+def test_a_manifest_the_json_parser_refuses_is_400_not_500(api, storage, manifest, fragment):
+    body = zip_bytes({"seq/manifest.json": manifest, "seq/frame_0000.exr": b"x"})
+    assert_error(post_archive(api, body), 400, "invalid_dataset", fragment)
+    assert_nothing_stored(storage)
+
+
+def test_requests_on_unknown_ids_leave_no_lock_files(api, storage):
+    for method, path in (("DELETE", "/datasets/ghost"), ("GET", "/datasets/ghost"),
+                         ("DELETE", "/datasets/ghost/sequences/cam/frames"),
+                         ("POST", "/datasets/ghost/sequences/cam/commit")):
+        assert api.request(method, path).status_code == 404, (method, path)
+    locks = storage.staging / "locks"
+    assert not locks.exists() or list(locks.iterdir()) == []
+
+
+def test_abandoned_frame_uploads_expire(make_app, storage, tmp_path, tiny_frames):
+    import os
+    import time
+
+    api = TestClient(make_app(datasets.router, staged_upload_ttl_seconds=3600))
+    assert post_frame(api, frame_bytes(tmp_path, tiny_frames(1)[0]), sequence="old").status_code == 200
+    assert post_frame(api, frame_bytes(tmp_path, tiny_frames(1)[0]), sequence="fresh").status_code == 200
+    state = storage.staging / "sequences" / "live" / "old.json"
+    long_ago = time.time() - 3601
+    os.utime(state, (long_ago, long_ago))  # untouched for longer than the TTL
+    assert datasets.store.expire_staged_uploads(storage, 3600) == ["live/old"]
+    assert api.get("/datasets/live/sequences/old/frames").status_code == 404
+    assert not (storage.staging / "sequences" / "live" / "old").exists()
+    assert api.get("/datasets/live/sequences/fresh/frames").json()["frames"] == 1
+    # Uploading a frame sweeps too: one more abandoned upload goes with the next frame of any sequence.
+    fresh = storage.staging / "sequences" / "live" / "fresh.json"
+    os.utime(fresh, (long_ago, long_ago))
+    assert post_frame(api, frame_bytes(tmp_path, tiny_frames(1)[0]), sequence="other").status_code == 200
+    assert api.get("/datasets/live/sequences/fresh/frames").status_code == 404

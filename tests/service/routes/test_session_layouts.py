@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from model.exr import decode_image_exr
 from model.layouts.builtin import BLENDER_CYCLES
-from tests.model.layouts.exr_builders import BLENDER_ORBIT, bundle_channels, write_channels
+from tests.model.layouts.exr_builders import BLENDER_ORBIT, blender_like_bomb, bundle_channels, write_channels
 from tests.service.routes.test_sessions import api, create, error_of, post_frame  # noqa: F401 (api: a fixture)
 from tests.service.session_fixtures import stream_frames
 
@@ -58,3 +59,42 @@ def test_a_layout_object_is_accepted_and_an_unknown_name_is_422(api):  # noqa: F
     assert response.status_code == 422 and "unknown layout 'arnold'" in response.text
     response = client.post("/sessions", json={"model": "x", "layout": {"name": "x", "channels": {"color": ["R"]}}})
     assert response.status_code == 422 and "channels.color must be a list of 3 channel names" in response.text
+
+
+@pytest.mark.parametrize("layout", ["blender-cycles", "generic"])
+def test_a_frame_declaring_too_many_pixels_is_413_before_decoding_in_the_sessions_layout(api, monkeypatch,  # noqa: F811
+                                                                                         layout):
+    import model.exr
+
+    client, _ = api(max_frame_pixels=1024)
+    sid = create(client, layout=layout)["id"]
+    if layout == "blender-cycles":  # the fixture's 32x32 frame, 6 parts (one per pass), is within the limit
+        assert post_frame(client, sid, (BLENDER_ORBIT / "frame_0000.exr").read_bytes()).status_code == 200
+    decoded = []
+    monkeypatch.setattr(model.exr, "_read_coalesced", lambda *args: decoded.append(args))
+    message = error_of(post_frame(client, sid, blender_like_bomb(1024, 1024)), 413, "frame_too_large")
+    assert "declares 1024x1024 = 1048576 pixels; the limit is 1024 pixels per frame" in message
+    message = error_of(post_frame(client, sid, blender_like_bomb(1024, 1024, pass_size=(32, 32))), 413,
+                       "frame_too_large")
+    assert "in part 'ViewLayer.Depth'" in message  # a pass part past the limit, though the first part is within it
+    assert decoded == []
+    assert client.get(f"/sessions/{sid}").json()["frames_processed"] == (1 if layout == "blender-cycles" else 0)
+
+
+def test_an_owned_session_in_a_layout_keeps_both_across_a_restart(api):  # noqa: F811
+    client, store = api(session_owner_tokens=True)
+    session = create(client, layout="blender-cycles")
+    assert session["layout"] == "blender-cycles" and session["token"]
+    sid, mine = session["id"], {"X-Session-Token": session["token"], "Content-Type": "image/x-exr"}
+    files = sorted(BLENDER_ORBIT.glob("frame_*.exr"))
+    error_of(post_frame(client, sid, files[0].read_bytes()), 403, "session_forbidden")
+    first = client.post(f"/sessions/{sid}/frames", content=files[0].read_bytes(), headers=mine)
+    assert first.status_code == 200, first.text
+    assert first.headers["X-Frame-Index"] == "1"  # read in the session's layout: Blender's frame number
+    assert store.flush(timeout=30)
+    restarted, _ = api(session_owner_tokens=True)
+    error_of(restarted.get(f"/sessions/{sid}"), 403, "session_forbidden")
+    assert restarted.get(f"/sessions/{sid}", headers=mine).json()["layout"] == "blender-cycles"
+    second = restarted.post(f"/sessions/{sid}/frames", content=files[1].read_bytes(), headers=mine)
+    assert second.status_code == 200, second.text
+    assert (second.headers["X-Frame-Index"], second.headers["X-History"]) == ("2", "continued")

@@ -245,3 +245,78 @@ def test_openapi_documents_the_frame_endpoint(api):
     assert "image/x-exr" in ok["content"]
     assert {"X-History", "X-Inference-Ms", "X-Server-Ms", "X-Sanitized-Pixels", "X-Sanitized"} <= set(ok["headers"])
     assert {"400", "404", "409", "413", "415"} <= set(operation["responses"])
+
+
+def test_a_decompression_bomb_frame_is_413_before_it_is_decoded(api, monkeypatch):
+    import model.exr
+    from tests.model.test_exr import zero_bomb
+
+    client, store = api(max_frame_pixels=1_000_000)
+    session = create(client)
+    decoded = []
+    monkeypatch.setattr(model.exr, "_read_coalesced", lambda *args: decoded.append(args))
+    message = error_of(post_frame(client, session["id"], zero_bomb(1024, 1024)), 413, "frame_too_large")
+    assert "declares 1024x1024 = 1048576 pixels; the limit is 1000000" in message
+    assert decoded == []
+    assert client.get(f"/sessions/{session['id']}").json()["frames_processed"] == 0
+
+
+def test_frames_past_the_memory_budget_are_503_with_retry_after(api):
+    from service.request_limits import frame_budget
+
+    body = frame_bytes(stream_frames(1)[0])
+    budget = 3 * len(body) // 2
+    client, _ = api(max_buffered_frame_bytes=budget)
+    session = create(client)
+    with frame_budget(budget).hold() as other:
+        other(len(body))  # another session's frame in progress: this one would pass the budget
+        response = post_frame(client, session["id"], body)
+        assert response.status_code == 503 and response.headers["retry-after"] == "1"
+        assert "bytes of session frames in progress" in error_of(response, 503, "server_busy")
+        chunked = client.post(f"/sessions/{session['id']}/frames", content=iter([body[:100], body[100:]]),
+                              headers={"Content-Type": "image/x-exr"})  # no Content-Length: held as it arrives
+        error_of(chunked, 503, "server_busy")
+    assert post_frame(client, session["id"], body).status_code == 200
+
+
+def test_with_owner_tokens_only_the_creator_drives_a_session(api):
+    client, _ = api(session_owner_tokens=True)
+    session = create(client)
+    token = session["token"]
+    assert token and len(token) >= 32
+    mine = {"X-Session-Token": token}
+    frame = frame_bytes(stream_frames(1)[0])
+    for method, path, body in (("GET", "", None), ("POST", "/frames", frame), ("POST", "/reset", None),
+                               ("DELETE", "", None)):
+        url = f"/sessions/{session['id']}{path}"
+        headers = {"Content-Type": "image/x-exr"} if body else {}
+        missing = client.request(method, url, content=body, headers=headers)
+        assert "X-Session-Token" in error_of(missing, 403, "session_forbidden"), (method, path)
+        wrong = client.request(method, url, content=body, headers={**headers, "X-Session-Token": "x" * 32})
+        error_of(wrong, 403, "session_forbidden")
+    assert client.get(f"/sessions/{session['id']}", headers=mine).json()["frames_processed"] == 0
+    assert post_frame_with(client, session["id"], frame, mine).status_code == 200
+    assert client.get(f"/sessions/{session['id']}", headers=mine).json()["token"] is None  # only at creation
+    assert client.delete(f"/sessions/{session['id']}", headers=mine).status_code == 204
+
+
+def test_a_restarted_api_keeps_the_owner_token(api):
+    client, store = api(session_owner_tokens=True)
+    session = create(client)
+    store.flush(timeout=30)
+    restarted, _ = api(session_owner_tokens=True)
+    error_of(restarted.get(f"/sessions/{session['id']}"), 403, "session_forbidden")
+    assert restarted.get(f"/sessions/{session['id']}",
+                         headers={"X-Session-Token": session["token"]}).status_code == 200
+
+
+def test_without_owner_tokens_sessions_have_none(api):
+    client, _ = api()
+    session = create(client)
+    assert session["token"] is None
+    assert client.get(f"/sessions/{session['id']}").status_code == 200
+
+
+def post_frame_with(client, session_id, body, headers):
+    return client.post(f"/sessions/{session_id}/frames", content=body,
+                       headers={"Content-Type": "image/x-exr", **headers})
