@@ -7,7 +7,7 @@ manifest::
     {"format": "denoiser-pretrained/1", "name", "method", "preset", "scale", "params",
      "file": "model.pt", "sha256": hex digest of the file, "bytes": its size,
      "training": {"script", "dataset": {"path", "script", "digest", "splits": {split: {"sequences", "scenes"}}},
-                  "steps", "step", "seed", "best_metric", "train_config"},
+                  "steps", "step", "seed", "best_metric", "train_config", "stages": [earlier trainings]},
      "held_out": {"status": "measured" | "pending", ...}}
 
 ``held_out`` is copied from an evaluation report (``denoiser evaluate --out``) of the same run: the shipped model's
@@ -217,9 +217,12 @@ def held_out_from_report(report: dict[str, Any], row_source: str, method: str, p
 def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.PathLike | None = None,
                     dataset_dir: str | os.PathLike | None = None, dataset_script: str | None = None,
                     training_script: str | None = None, report: dict[str, Any] | None = None,
-                    report_source: str | None = None) -> PretrainedModel:
+                    report_source: str | None = None,
+                    stages: list[str | os.PathLike] | None = None) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
-    an existing model of that name is replaced (both files are renamed into place)."""
+    an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
+    earlier trainings this one started from (``--init-from``), first to last; their step, best metric and training
+    settings are recorded as ``training.stages``."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -245,6 +248,13 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     if dataset_dir is not None:
         dataset.update(dataset_summary(dataset_dir))
     training["dataset"] = dataset
+    if stages:
+        training["stages"] = []
+        for stage in stages:
+            earlier = load_checkpoint(stage)
+            training["stages"].append({"checkpoint": str(stage), "method": earlier["method"],
+                                       "step": int(earlier["step"]), "best_metric": earlier.get("best_metric"),
+                                       "train_config": earlier.get("train_config")})
     held_out = {"status": "pending",
                 "note": "not evaluated yet: evaluate the checkpoint on the dataset's test split (the reproduction "
                         "script does) and ship it again with that report"}

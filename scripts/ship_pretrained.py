@@ -30,6 +30,8 @@ def main() -> int:
     parser.add_argument("--training-script", default=None, help="the script that trained the checkpoint")
     parser.add_argument("--report", type=Path, default=None, help="denoiser evaluate --out JSON of the held-out split")
     parser.add_argument("--report-source", default=None, help="the checkpoint as the report's row names it")
+    parser.add_argument("--stage", type=Path, action="append", default=None, metavar="CHECKPOINT",
+                        help="an earlier training this checkpoint started from (--init-from); repeat, first to last")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
     report = None
@@ -41,7 +43,7 @@ def main() -> int:
     try:
         model = ship_checkpoint(args.checkpoint, args.name, root=args.root, dataset_dir=args.data,
                                 dataset_script=args.dataset_script, training_script=args.training_script,
-                                report=report, report_source=args.report_source)
+                                report=report, report_source=args.report_source, stages=args.stage)
     except (PretrainedError, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -58,6 +58,15 @@ def test_shipping_strips_training_state_and_records_the_recipe(tmp_path):
     assert pretrained_names(tmp_path / "pretrained") == ["wskpn-xs-x1"]
 
 
+def test_earlier_training_stages_are_recorded(tmp_path):
+    torch.manual_seed(1)
+    first = save_checkpoint(tmp_path / "first.pt", method=build_method("wskpn:xs", 1), step=400,
+                            train_config={"steps": 400, "frames_per_sample": 8})
+    shipped = ship_tiny(tmp_path / "pretrained", stages=[first])
+    (stage,) = shipped.manifest["training"]["stages"]
+    assert stage["step"] == 400 and stage["train_config"]["frames_per_sample"] == 8
+
+
 def test_without_a_report_the_held_out_metrics_are_pending(tmp_path):
     shipped = ship_tiny(tmp_path / "pretrained")
     assert shipped.held_out["status"] == "pending" and shipped.held_out_row() is None
