@@ -208,7 +208,9 @@ def held_out_from_report(report: dict[str, Any], row_source: str, method: str, p
                 "ms_per_frame": entry.get("ms_per_frame"), "time_ratio_to_oidn": entry.get("time_ratio_to_oidn")}
 
     return {"status": "measured", "split": report.get("split"), "scale": scale,
-            "sequences": sorted(report.get("sequences") or []), "frame_limit": report.get("frame_limit"),
+            "sequences": sorted(entry["name"] if isinstance(entry, dict) else str(entry)
+                                for entry in report.get("sequences") or []),
+            "frame_limit": report.get("frame_limit"),
             "threads": report.get("threads"), "device": report.get("device"), "timing_reference":
                 report.get("timing_reference"), "model": brief(row),
             "peers": [brief(entry) for entry in rows if entry.get("method") in PEER_METHODS]}

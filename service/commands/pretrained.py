@@ -33,17 +33,18 @@ def _peer(model, label: str) -> dict | None:
 
 def markdown_table(models) -> str:
     """Each model's held-out row next to the OIDN and OIDN + TAA rows of the same evaluation run, as Markdown."""
-    lines = ["| model | row | PSNR dB | SSIM | FLIP | temporal | ms/frame | time / OIDN-high |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| model | row | PSNR dB ↑ | SSIM ↑ | FLIP ↓ | temporal ↓ | JOD ↑ | ms/frame | time / OIDN-high |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for model in models:
         held_out = model.held_out
         if held_out.get("status") != "measured":
-            lines.append(f"| {model.name} | held-out evaluation pending | - | - | - | - | - | - |")
+            lines.append(f"| {model.name} | held-out evaluation pending | - | - | - | - | - | - | - |")
             continue
         for row in [held_out["model"], *(held_out.get("peers") or [])]:
             label = f"**{row['label']}** (shipped)" if row is held_out["model"] else row["label"]
             lines.append(f"| {model.name} | {label} | {_score(row, 'psnr', '.2f')} | {_score(row, 'ssim', '.4f')} | "
                          f"{_score(row, 'flip', '.4f')} | {_score(row, 'temporal_error', '.5f')} | "
+                         f"{_score(row, 'fvvdp_jod', '.2f')} | "
                          f"{_score(row, 'ms_per_frame', '.1f')} | {_score(row, 'time_ratio_to_oidn', '.3g')} |")
     return "\n".join(lines)
 

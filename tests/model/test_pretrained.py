@@ -38,7 +38,8 @@ def report_for(source="runs/x/best.pt", scale=1):
         return {"label": label, "source": source_ or label, "method": method, "preset": preset, "scale": scale,
                 "metrics": {"psnr": psnr, "flip": 0.1}, "ms_per_frame": 5.0, "time_ratio_to_oidn": 0.5}
 
-    return {"split": "test", "scale": scale, "sequences": {"glass_s4": {}, "moving_light_s4": {}},
+    return {"split": "test", "scale": scale, "sequences": [{"name": "moving_light_s4", "frames": 16},
+                                                           {"name": "glass_s4", "frames": 16}],
             "methods": [row("wskpn:xs", "wskpn", "xs", 30.5, source), row("oidn:high", "oidn", "high", 31.0),
                         row("oidn-taa:high", "oidn-taa", "high", 31.4), row("svgf", "svgf", "default", 27.0)]}
 
