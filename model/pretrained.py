@@ -219,7 +219,7 @@ def held_out_from_report(report: dict[str, Any], row_source: str, method: str, p
 def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.PathLike | None = None,
                     dataset_dir: str | os.PathLike | None = None, dataset_script: str | None = None,
                     training_script: str | None = None, report: dict[str, Any] | None = None,
-                    report_source: str | None = None,
+                    report_source: str | None = None, report_path: str | None = None,
                     stages: list[str | os.PathLike] | None = None) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
     an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
@@ -263,6 +263,7 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     if report is not None:
         held_out = held_out_from_report(report, report_source or str(checkpoint), method.name, method.preset,
                                         method.scale)
+        held_out["report"] = report_path
     manifest = {"format": PRETRAINED_FORMAT, "name": name, "method": method.name, "preset": method.preset,
                 "scale": method.scale, "params": params, "flops_per_pixel": flops, "file": WEIGHTS,
                 "sha256": file_sha256(weights), "bytes": weights.stat().st_size, "training": training,

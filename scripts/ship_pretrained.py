@@ -43,7 +43,8 @@ def main() -> int:
     try:
         model = ship_checkpoint(args.checkpoint, args.name, root=args.root, dataset_dir=args.data,
                                 dataset_script=args.dataset_script, training_script=args.training_script,
-                                report=report, report_source=args.report_source, stages=args.stage)
+                                report=report, report_source=args.report_source,
+                                report_path=None if args.report is None else str(args.report), stages=args.stage)
     except (PretrainedError, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

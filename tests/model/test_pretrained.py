@@ -45,7 +45,7 @@ def report_for(source="runs/x/best.pt", scale=1):
 
 
 def test_shipping_strips_training_state_and_records_the_recipe(tmp_path):
-    shipped = ship_tiny(tmp_path / "pretrained", report=report_for())
+    shipped = ship_tiny(tmp_path / "pretrained", report=report_for(), report_path="docs/results/x.json")
     content = torch.load(shipped.path, weights_only=True)
     assert content["optimizer"] is None and content["rng"] is None and content["step"] == 120
     manifest = json.loads((shipped.folder / "manifest.json").read_text())
@@ -54,6 +54,7 @@ def test_shipping_strips_training_state_and_records_the_recipe(tmp_path):
     assert manifest["bytes"] == shipped.path.stat().st_size
     held_out = manifest["held_out"]
     assert held_out["status"] == "measured" and held_out["model"]["psnr"] == 30.5
+    assert held_out["report"] == "docs/results/x.json"
     assert [peer["label"] for peer in held_out["peers"]] == ["oidn:high", "oidn-taa:high"]
     assert held_out["sequences"] == ["glass_s4", "moving_light_s4"]
     assert pretrained_names(tmp_path / "pretrained") == ["wskpn-xs-x1"]
