@@ -40,6 +40,9 @@ RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml
 COPY model ./model
 COPY service ./service
 COPY workers ./workers
+# The pretrained models (weights + manifests, model/pretrained.py); the installed package finds them here.
+COPY pretrained ./pretrained
+ENV DENOISER_PRETRAINED_DIR=/app/pretrained
 # --no-deps: everything is installed above; this adds the packages and the `denoiser` console script.
 RUN pip install --no-deps .
 

@@ -461,3 +461,18 @@ class Dataset:
 
     def __repr__(self) -> str:
         return f"Dataset({str(self.root)!r}, sequences={len(self)})"
+
+
+def dataset_digest(root: str | os.PathLike) -> str:
+    """sha256 over a dataset's manifest and its sequences' manifests (names, splits, frames, renderer settings):
+    what a training run's lineage and a pretrained model's manifest record as the dataset's identity."""
+    import hashlib
+
+    root = Path(root)
+    digest = hashlib.sha256((root / MANIFEST).read_bytes())
+    dataset = Dataset(root)
+    for split in SPLITS:
+        for name in dataset.names(split):
+            digest.update(f"{split}/{name}\n".encode())
+            digest.update((root / name / MANIFEST).read_bytes())
+    return digest.hexdigest()

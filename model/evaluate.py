@@ -86,7 +86,8 @@ def _missing_scale_message(sequence: Sequence, scale: int) -> str:
 # ------------------------------------------------------------------------------------------- methods
 
 def resolve_method(text: str, scale: int) -> tuple[Method, str]:
-    """``NAME[:PRESET]`` from the registry, or a checkpoint file of a trained method; returns (method, source).
+    """``NAME[:PRESET]`` from the registry, a checkpoint file of a trained method, or the name of a pretrained model
+    (``model.pretrained``); returns (method, source).
 
     A text naming an existing file is a checkpoint (loaded with ``model.checkpoint.load_method``); a text that
     looks like a path but names no file is reported as a missing checkpoint rather than an unknown method.
@@ -96,6 +97,12 @@ def resolve_method(text: str, scale: int) -> tuple[Method, str]:
         from model.checkpoint import load_method
 
         return load_method(path, scale=scale), str(path)
+    from model.pretrained import is_pretrained
+
+    if is_pretrained(text):  # a model shipped in pretrained/ (sha256 checked when loaded)
+        from model.pretrained import load_pretrained
+
+        return load_pretrained(text, scale=scale), f"pretrained:{text}"
     if path.suffix in CHECKPOINT_SUFFIXES or os.sep in text:
         raise FileNotFoundError(f"checkpoint {text} not found")
     from model.methods.registry import build_method

@@ -163,6 +163,9 @@ class Tracker(Protocol):
     def log_image_grid(self, name: str, columns: dict[str, list[np.ndarray]], step: int) -> None:
         """``columns``: title -> one HxWx3 display-encoded image in [0, 1] per row."""
 
+    def log_dataset(self, path: str, context: str) -> None:
+        """Record the dataset folder the run reads (lineage), ``context``: training, evaluation."""
+
     def log_model(self, checkpoint: Path, registered_name: str, tags: dict[str, str]) -> dict[str, Any] | None:
         """Store the final checkpoint and register it; returns what was registered (name, version), if anything."""
 
@@ -182,6 +185,9 @@ class NullTracker:
         pass
 
     def log_image_grid(self, name: str, columns: dict[str, list[np.ndarray]], step: int) -> None:
+        pass
+
+    def log_dataset(self, path: str, context: str) -> None:
         pass
 
     def log_model(self, checkpoint: Path, registered_name: str, tags: dict[str, str]) -> dict[str, Any] | None:
@@ -392,6 +398,7 @@ class _Training:
         self._resume_or_seed()
         self.tracker.start(self._params(), resume_run_id=self.resumed_run_id)
         try:
+            self.tracker.log_dataset(self.config.data, "training")
             self._loop()
             registered = self._finish()
         except BaseException as error:

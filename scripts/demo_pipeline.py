@@ -1,6 +1,7 @@
 """The main job's work, done through the running service exactly as a user would (REST, via the client):
-render a small dataset, train a small model, evaluate it against OIDN on a held-out scene, register it with
-the alias `champion`, and stream the held-out sequence through an inference session.
+render a small dataset, train a small model, register it with the alias `champion`, evaluate it next to the
+pretrained fused model (registered by scripts/setup.sh with the alias `pretrained`), SVGF and OIDN on a held-out
+scene, and stream the held-out sequence through inference sessions on both models.
 
     .venv/bin/python scripts/demo_pipeline.py [--url http://127.0.0.1:8000] [--out var/demo-output]
 
@@ -21,6 +22,8 @@ from service.client import ApiClientError, DenoiserClient  # noqa: E402
 
 DATASET = "demo"
 MODEL = "demo-wskpn-xs"
+# Shipped in pretrained/ and registered by scripts/setup.sh (denoiser pretrained --register): usable at once.
+PRETRAINED = "fused-balanced-x1"
 RENDERS = [  # (split, scenes, frames, seed): two training scenes, one validation sequence, one held-out scene
     ("train", ["diffuse_room", "moving_light"], 8, 1),
     ("validation", ["diffuse_room"], 4, 5),
@@ -87,20 +90,23 @@ def main() -> int:
           flush=True)
 
     job = client.submit_job("evaluate", {"dataset": DATASET, "split": "test", "vdp": False,
-                                         "methods": [f"models:/{MODEL}@champion", "svgf", "oidn:high"]})
-    evaluated = follow(client, job, "evaluating on the held-out scene against SVGF and OIDN")
+                                         "methods": [f"models:/{MODEL}@champion", f"models:/{PRETRAINED}@pretrained",
+                                                     "svgf", "oidn:high"]})
+    evaluated = follow(client, job, "evaluating on the held-out scene: the demo model, the pretrained model, SVGF, "
+                                    "OIDN")
     for row in evaluated["result"]["methods"]:
-        print(f"[demo]   {row['label']}: PSNR {row['metrics']['psnr']:.2f} dB, {row['ms_per_frame']:.1f} ms/frame",
-              flush=True)
+        print(f"[demo]   {row['source']} ({row['label']}): PSNR {row['metrics']['psnr']:.2f} dB, "
+              f"{row['ms_per_frame']:.1f} ms/frame", flush=True)
 
-    session = client.create_session(MODEL, alias="champion")
-    summary = client.stream_sequence(session["id"], Path(os.environ.get("DENOISER_DATA_DIR", "var"))
-                                     / "datasets" / DATASET / "glass_s2", args.out)
-    client.delete_session(session["id"])
-    numbers = summary.as_dict()
-    print(f"[demo] streamed glass_s2 ({numbers['frames']} frames) through session {session['id']} into "
-          f"{args.out}: median {numbers['median_round_trip_ms']:.1f} ms per frame over HTTP, "
-          f"{numbers['median_inference_ms']:.1f} ms of it in the model", flush=True)
+    held_out = Path(os.environ.get("DENOISER_DATA_DIR", "var")) / "datasets" / DATASET / "glass_s2"
+    for name, alias, out in ((MODEL, "champion", args.out), (PRETRAINED, "pretrained", args.out / PRETRAINED)):
+        session = client.create_session(name, alias=alias)
+        summary = client.stream_sequence(session["id"], held_out, out)
+        client.delete_session(session["id"])
+        numbers = summary.as_dict()
+        print(f"[demo] streamed glass_s2 ({numbers['frames']} frames) through a session on {name}@{alias} into "
+              f"{out}: median {numbers['median_round_trip_ms']:.1f} ms per frame over HTTP, "
+              f"{numbers['median_inference_ms']:.1f} ms of it in the model", flush=True)
     return 0
 
 

@@ -2,7 +2,9 @@
 # Reproduces the README's temporal-reuse results: the fused family (OIDN + learned temporal reuse) trained on
 # the dataset of scripts/generate_reuse_data.sh (rendered first if missing), then evaluated on its held-out test
 # recipes at 1x and 2x against OIDN (fast, balanced, high) and OIDN + TAA at the same qualities, timed in the same
-# run, with side-by-side pictures of the moving-light and moving-object cases.
+# run, with side-by-side pictures of the moving-light and moving-object cases; then it ships the default
+# preset at both scales as the repository's pretrained models (pretrained/fused-balanced-x{1,2}: weights, recipe
+# and the held-out rows of these reports; scripts/ship_pretrained.py).
 # On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side (13 and
 # 25 minutes), then 600 steps with longer histories at 1x and the fast / high presets fine-tuned from it (6 min).
 # Usage: scripts/reproduce_reuse_results.sh [DATA_DIR]
@@ -53,3 +55,10 @@ picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png runs/fuse
 picture moving_light_s4 -1 1 30,50,56 docs/reuse_moving_light_x1.png runs/fused-balanced-x1-long/best.pt
 picture visible_emitter_s4 10 2 80,60,112 docs/reuse_visible_emitter_x2.png runs/fused-balanced-x2/best.pt
 picture moving_object_s4 -1 2 60,80,112 docs/reuse_moving_object_x2.png runs/fused-balanced-x2/best.pt
+# The default preset at both scales as the repository's pretrained models (1x: the longer-history fine-tune, its
+# first stage recorded too).
+ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-script scripts/generate_reuse_data.sh
+      --training-script scripts/reproduce_reuse_results.sh)
+"${ship[@]}" runs/fused-balanced-x1-long/best.pt --name fused-balanced-x1 --stage runs/fused-balanced-x1/best.pt \
+  --report docs/results/reuse_x1.json
+"${ship[@]}" runs/fused-balanced-x2/best.pt --name fused-balanced-x2 --report docs/results/reuse_x2.json

@@ -14,7 +14,8 @@ import sys
 # dependencies only when they run.
 COMMAND_MODULES = ("service.commands.data", "service.commands.evaluate", "service.commands.train",
                    "service.commands.client", "service.commands.serve", "service.commands.stability",
-                   "service.commands.benchmark", "service.commands.fit")
+                   "service.commands.benchmark", "service.commands.fit", "service.commands.pretrained",
+                   "service.commands.export")
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1

@@ -390,14 +390,18 @@ class DenoiserClient:
     # --- sessions ------------------------------------------------------------------------------------------
 
     def create_session(self, model: str, version: str | int | None = None, alias: str | None = None,
-                       on_gap: str = "reset", layout: str | dict | None = None) -> dict:
-        """``layout``: a built-in layout's name or a layout mapping (the keys of a layout file); default denoiser."""
+                       on_gap: str = "reset", layout: str | dict | None = None, scale: int | None = None) -> dict:
+        """``model``: a registered model, a pretrained model or a method without weights (``oidn:high``);
+        ``layout``: a built-in layout's name or a layout mapping (the keys of a layout file); default denoiser;
+        ``scale``: a method's output scale (default 1)."""
         if version is not None and alias is not None:
             raise ValueError("give a model version or an alias, not both")
         body = {"model": model, "version": None if version is None else str(version), "alias": alias,
                 "on_gap": on_gap}
         if layout is not None:
             body["layout"] = layout
+        if scale is not None:
+            body["scale"] = scale
         session = self._json("POST", "/sessions", json=body)
         if session.get("token"):  # the server has owner tokens on: every later request on it sends this one
             self._session_tokens[session["id"]] = session["token"]

@@ -199,6 +199,14 @@ class Registry:
         entity = self._call(f"version {version} of model {name!r}", self.client.get_model_version, name, version)
         return self._version_info(entity, model.aliases)
 
+    def has_model(self, name: str) -> bool:
+        """Whether a registered model ``name`` exists (False also for a name the store cannot hold)."""
+        try:
+            self._call(f"model {name!r}", self.client.get_registered_model, name)
+        except (UnknownModelError, ValueError):
+            return False
+        return True
+
     def latest_version(self, name: str) -> ModelVersionInfo:
         model = self._call(f"model {name!r}", self.client.get_registered_model, name)
         versions = self._versions(name)

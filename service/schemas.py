@@ -302,10 +302,13 @@ class SessionIn(BaseModel):
         "examples": [{"model": "jnds-xs-x2", "alias": "champion", "on_gap": "reset"},
                      {"model": "jnds-xs-x2", "version": "3", "on_gap": "reject"},
                      {"model": "auto", "max_ms_per_frame": 20, "family": "wskpn"},
-                     {"model": "auto", "min_psnr": 30}]
+                     {"model": "auto", "min_psnr": 30},
+                     {"model": "oidn:high"}, {"model": "svgf", "scale": 2}, {"model": "fused-balanced-x1"}]
     })
 
-    model: str = Field(min_length=1, description="registered model name (GET /models), or 'auto': choose by "
+    model: str = Field(min_length=1, description="registered model name (GET /models), pretrained model name "
+                                                 "(denoiser pretrained), a method without weights (oidn:high, "
+                                                 "oidn-taa, svgf, accumulation), or 'auto': choose by "
                                                  "max_ms_per_frame / min_psnr", examples=["jnds-xs-x2"])
     version: str | None = Field(None, pattern=r"^[1-9][0-9]*$", description="version number; not with alias")
     alias: str | None = Field(None, min_length=1, description="alias, e.g. champion; not with version")
@@ -319,7 +322,8 @@ class SessionIn(BaseModel):
                                    description="auto: validation PSNR (dB) at least this; the smallest such "
                                                "version wins (FLOPs per pixel)")
     family: str | None = Field(None, pattern=r"^[A-Za-z0-9_]+$", description="auto: only versions of this method")
-    scale: Literal[1, 2] | None = Field(None, description="auto: only versions at this output scale")
+    scale: Literal[1, 2] | None = Field(None, description="auto: only versions at this output scale; a method: its "
+                                                        "output scale (default 1); a model: must be its own")
     layout: str | dict[str, Any] = Field(
         "denoiser", description="how the posted frames' EXR channels map to the frame bundle: a built-in layout "
                                 "(denoiser, blender-cycles, generic) or a layout object (README, 'Bringing your "
@@ -338,7 +342,7 @@ class SessionIn(BaseModel):
 
     @_session_validator(mode="after")
     def _auto_fields(self) -> SessionIn:
-        auto_fields = [name for name in ("max_ms_per_frame", "min_psnr", "family", "scale")
+        auto_fields = [name for name in ("max_ms_per_frame", "min_psnr", "family")
                        if getattr(self, name) is not None]
         if self.model == AUTO_MODEL:
             if self.version is not None or self.alias is not None:
@@ -385,12 +389,16 @@ class SessionModelOut(BaseModel):
     })
 
     name: str
-    version: str
+    version: str | None = Field(description="registered: the version; pretrained: the weights' sha256 prefix; "
+                                            "method: null")
     alias: str | None = Field(description="the alias the session was created with (resolved once, at creation)")
     method: str
     preset: str
     scale: int = Field(description="output / render resolution ratio")
     params: int = Field(description="number of parameters")
+    source: Literal["registered", "pretrained", "method"] = Field(
+        "registered", description="a registered model version, a pretrained model shipped with the service, or a "
+                                  "method without weights")
 
 
 class SessionOut(BaseModel):
@@ -520,6 +528,13 @@ class TrainParams(BaseModel):
     threads: int | None = Field(None, ge=1, le=1024, description="torch threads per rank")
     experiment: str = Field("denoiser", min_length=1, max_length=200, description="MLflow experiment")
     track: bool = Field(True, description="log to MLflow and register the model")
+    init_from: str | None = Field(None, min_length=1, max_length=500,
+                                  description="start from these weights instead of random ones (fine-tuning): a "
+                                              "registered model (models:/NAME@ALIAS, models:/NAME/VERSION, "
+                                              "models:/NAME), a pretrained model's name (denoiser pretrained), or a "
+                                              "checkpoint under the data folder's jobs/ or models/; same method "
+                                              "and scale (a float32 JNDS may start its -int8 preset)",
+                                  examples=["fused-balanced-x1", "models:/fused-balanced-x1@pretrained"])
 
 
 class EvaluateParams(BaseModel):

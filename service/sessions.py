@@ -67,11 +67,17 @@ import torch
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
-from model.checkpoint import load_method
 from model.frames import FrameBundle
 from model.methods.base import FrameBatch, Method, State
 from model.sanitize import SanitizeReport, sanitize_frame
 from service.registry import Registry, UnknownModelError, registry_for
+from service.session_models import (
+    REGISTERED,
+    SessionModelSource,
+    load_session_method,
+    registered_checkpoint,
+    resolve_session_model,
+)
 from service.settings import Settings
 from service.torch_thread import TorchPool
 
@@ -129,7 +135,7 @@ def token_digest(token: str) -> str:
 @dataclass(frozen=True)
 class SessionModel:
     name: str
-    version: str
+    version: str | None  # registered: the version; pretrained: its file's sha256 prefix; method: None
     alias: str | None
     method: str
     preset: str
@@ -137,6 +143,16 @@ class SessionModel:
     params: int
     # Sessions created with model "auto": the choice (service.registry.AutoChoice.to_dict) that picked this version.
     choice: dict[str, Any] | None = field(default=None, compare=False)
+    source: str = REGISTERED  # registered, pretrained or method (service.session_models)
+
+    @property
+    def origin(self) -> SessionModelSource:
+        return SessionModelSource(self.source, self.name, self.version, self.scale)
+
+    def describe(self) -> str:
+        if self.source == REGISTERED:
+            return f"version {self.version} of model {self.name!r}"
+        return f"{self.source} {self.name!r}"
 
 
 @dataclass
@@ -345,7 +361,7 @@ class SessionStore:
         self._torch = TorchPool(self.workers, self.threads_per_worker, name="session-torch")
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, threading.Lock] = {}
-        self._methods: dict[tuple[str, str], Method] = {}
+        self._methods: dict[tuple, Method] = {}  # SessionModelSource.key -> method
         self._writers: dict[str, _MirrorWriter] = {}
         self._lock = threading.RLock()  # guards the four dicts
         self._mirror_pool = ThreadPoolExecutor(MIRROR_WRITERS, thread_name_prefix="session-mirror")
@@ -356,32 +372,35 @@ class SessionStore:
 
     def create(self, model: str, version: str | None = None, alias: str | None = None,
                on_gap: str = "reset", choice: dict[str, Any] | None = None,
-               owner_digest: str | None = None, layout: str | dict[str, Any] = "denoiser") -> Session:
-        """A new session of registered model ``model`` at ``version``, ``alias`` or (neither) its latest version;
+               owner_digest: str | None = None, layout: str | dict[str, Any] = "denoiser",
+               scale: int | None = None) -> Session:
+        """A new session of ``model``: a registered model at ``version``, ``alias`` or (neither) its latest version,
+        a pretrained model, or a method without weights at ``scale`` (service.session_models);
         ``choice`` (model "auto": how the version was chosen) is kept with the session's model; ``owner_digest``:
         see ``token_digest``; ``layout``: how its frames are read (``model.layouts.layout_from_value``).
 
-        Raises UnknownModelError (KeyError) / ValueError from the registry, SessionLimitReached past the cap.
+        Raises UnknownModelError (KeyError) / ValueError from the registry or service.session_models,
+        SessionLimitReached past the cap.
         """
         if on_gap not in ON_GAP_POLICIES:
             raise ValueError(f"on_gap must be one of {', '.join(ON_GAP_POLICIES)}, got {on_gap!r}")
-        info = self.registry.resolve_version(model, version, alias)
+        origin = resolve_session_model(model, self.registry, version, alias, scale)
         self._check_capacity()  # before loading weights for a session that cannot be created
-        method = self._method(info.name, info.version)
+        method = self._method(origin)
         with self._create_lock:
             self._check_capacity()
             now = self.clock()
             session = Session(
                 id=uuid.uuid4().hex,
-                model=SessionModel(name=info.name, version=info.version, alias=alias, method=method.name,
+                model=SessionModel(name=origin.name, version=origin.version, alias=alias, method=method.name,
                                    preset=method.preset, scale=method.scale, params=method.parameter_count(),
-                                   choice=choice),
+                                   choice=choice, source=origin.source),
                 on_gap=on_gap, created_at=now, last_used_at=now, ttl_seconds=self.ttl_seconds, method=method,
                 owner_digest=owner_digest, layout=layout)
             with self._lock:
                 self._sessions[session.id] = session
             self._mirror(session, wait=True)
-        log.info("session %s created: %s version %s", session.id, info.name, info.version)
+        log.info("session %s created: %s", session.id, session.model.describe())
         return session
 
     def get(self, session_id: str) -> Session:
@@ -468,7 +487,7 @@ class SessionStore:
             self._wait_for_mirror(session_id)  # the previous frame's mirror first: Redis lags by one frame at most
             session = self._current(session_id, activate=True)
             if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
-                session.method = self._method(session.model.name, session.model.version)
+                session.method = self._method(session.model.origin)
             if not frame_index_given:
                 frame = dataclasses.replace(frame, frame_index=session.next_frame_index or 0)
             resolution = (frame.width, frame.height)
@@ -589,7 +608,7 @@ class SessionStore:
             self._locks.pop(session_id, None)
             self._writers.pop(session_id, None)
             # Weights no session in memory uses any more are released; a session restored later reloads them.
-            used = {(s.model.name, s.model.version) for s in self._sessions.values()}
+            used = {s.model.origin.key for s in self._sessions.values()}
             for key in [key for key in self._methods if key not in used]:
                 del self._methods[key]
 
@@ -632,7 +651,7 @@ class SessionStore:
         except redis.RedisError as error:
             raise SessionStoreUnavailable(f"session {session_id!r}: cannot read its history from Redis: {error}") \
                 from None
-        fresh.method = self._method(fresh.model.name, fresh.model.version)
+        fresh.method = self._method(fresh.model.origin)
         fresh.mirrored_revision = fresh.revision
         with self._lock:
             self._sessions[session_id] = fresh
@@ -736,30 +755,27 @@ class SessionStore:
                 f"for an idle one to expire ({self.ttl_seconds} s)",
                 details={"max_sessions": self.max_sessions, "open": live})
 
-    def _method(self, name: str, version: str) -> Method:
-        """The model version's method in inference form, loaded once and shared by its sessions."""
-        key = (name, version)
+    def _method(self, origin: SessionModelSource) -> Method:
+        """The model's method in inference form, loaded once and shared by its sessions."""
+        key = origin.key
         with self._methods_lock:
             with self._lock:
                 method = self._methods.get(key)
             if method is None:
-                checkpoint = self.registry.checkpoint(name, version)
+                checkpoint = registered_checkpoint(origin, self.registry)  # downloads off the torch thread
                 try:
-                    method = self._torch.run(self._load, checkpoint)
-                except (KeyError, ValueError) as error:  # build_method / load_checkpoint name the problem
+                    method = self._torch.run(load_session_method, origin, checkpoint, self.device)
+                except (KeyError, ValueError) as error:  # build_method / load_checkpoint / pretrained name it
                     message = error.args[0] if isinstance(error, KeyError) and error.args else error
-                    raise ModelNotLoadable(f"version {version} of model {name!r} cannot be loaded: {message}",
-                                           details={"model": name, "version": version}) from None
+                    what = (f"version {origin.version} of model {origin.name!r}" if origin.source == REGISTERED
+                            else f"{origin.source} {origin.name!r}")
+                    raise ModelNotLoadable(f"{what} cannot be loaded: {message}",
+                                           details={"model": origin.name, "version": origin.version,
+                                                    "source": origin.source}) from None
                 with self._lock:
                     self._methods[key] = method
-                log.info("loaded %s version %s (%s) for sessions", name, version, method.label)
+                log.info("loaded %s %s (%s) for sessions", origin.source, origin.name, method.label)
             return method
-
-    def _load(self, checkpoint: Path) -> Method:
-        method = load_method(checkpoint, self.device).for_inference()
-        for parameter in method.parameters():
-            parameter.requires_grad_(False)
-        return method
 
 
 def session_thread_budget(settings: Settings) -> tuple[int, int]:

@@ -10,10 +10,17 @@ them under the current folder of whichever process created the experiment); a se
 the server's artifact store.
 
 Models. The final checkpoint (``model.checkpoint``, loadable with ``load_method``) is stored as an MLflow 3
-*logged model* of the run, with no pyfunc flavour (the service drives methods through ``step``, not
-``predict``), and registered as a new version of the registered model, tagged with method, preset, scale,
-params, flops_per_pixel and validation PSNR. ``download_registered_checkpoint`` brings a version's checkpoint
-back. Aliases (not stages) mark versions for serving; choosing them is the service's business.
+*logged model* of the run in the ``pyfunc`` flavour (``workers.pyfunc_model``: an MLmodel file with a signature,
+the checkpoint inside as its artifact, so ``mlflow.pyfunc.load_model("models:/NAME@ALIAS")`` denoises a
+sequence), with a copy of the checkpoint at the model's root (``checkpoint.pt``, what the service downloads: it
+drives methods through ``step``), and registered as a new version of the registered model, tagged with method,
+preset, scale, params, flops_per_pixel and validation PSNR. ``download_registered_checkpoint`` brings a version's
+checkpoint back. Aliases (not stages) mark versions for serving; choosing them is the service's business.
+
+Lineage. Every run is tagged with the code version (``mlflow.source.git.commit`` and ``code_version``: the git
+commit of the project, with ``+dirty`` when the working tree has uncommitted changes, else the package version),
+and ``log_dataset`` records a dataset as a run input (``mlflow.log_input``): its name, path and digest (sha256 of
+its manifests, ``model.dataset.dataset_digest``) with the context (training, evaluation).
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ import fcntl
 import os
 import re
 import shutil
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -34,7 +42,7 @@ os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
 
 import mlflow  # noqa: E402  (after the telemetry switch)
 from mlflow import MlflowClient  # noqa: E402
-from mlflow.entities import LoggedModelStatus, Metric, Param, RunStatus  # noqa: E402
+from mlflow.entities import Dataset, DatasetInput, InputTag, LoggedModelStatus, Metric, Param, RunStatus  # noqa: E402
 from mlflow.exceptions import MlflowException  # noqa: E402
 
 TRACKING_URI_ENV = "DENOISER_TRACKING_URI"
@@ -114,6 +122,8 @@ class MLflowTracker:
         else:
             run_name = self.run_name or f"{params.get('method', 'train')}"
             self._run_id = self.client.create_run(self._experiment_id, run_name=run_name).info.run_id
+        for key, value in code_version_tags().items():
+            self.client.set_tag(self._run_id, key, value)
         values = {key: str(value)[:PARAM_VALUE_LIMIT] for key, value in params.items()}
         # A resumed run keeps its parameters (MLflow never changes one); a changed setting becomes a tag.
         new = [Param(key, value) for key, value in values.items() if key not in logged]
@@ -171,16 +181,27 @@ class MLflowTracker:
             artifact_folder = str(Path(name).parent) if Path(name).parent != Path(".") else None
             self.client.log_artifact(self._run_id, str(path), artifact_folder)
 
+    def log_dataset(self, path: str | os.PathLike, context: str) -> None:
+        """Record a dataset folder as an input of the run (``mlflow.log_input``): name, path, manifests' digest."""
+        from model.dataset import dataset_digest
+
+        root = Path(path).resolve()
+        dataset = Dataset(name=root.name, digest=dataset_digest(root)[:36], source_type="local",
+                          source=root.as_uri())
+        self.client.log_inputs(self._run_id, datasets=[DatasetInput(dataset, [InputTag("mlflow.data.context",
+                                                                                       context)])])
+
     def log_model(self, checkpoint: Path, registered_name: str, tags: dict[str, str]) -> dict[str, Any]:
-        """Store ``checkpoint`` as the run's logged model and register it as a new version of ``registered_name``."""
+        """Store ``checkpoint`` as the run's logged model (pyfunc flavour, see the module notes) and register it as a
+        new version of ``registered_name``."""
         self._flush()
         for key, value in tags.items():
             self.client.set_tag(self._run_id, key, value)
         model = self.client.create_logged_model(self._experiment_id, name=_slug(registered_name),
                                                 source_run_id=self._run_id, tags=tags)
         with tempfile.TemporaryDirectory() as folder:
-            shutil.copy2(checkpoint, Path(folder) / CHECKPOINT_ARTIFACT)
-            self.client.log_model_artifacts(model.model_id, folder)
+            save_pyfunc_model(checkpoint, Path(folder) / "model")
+            self.client.log_model_artifacts(model.model_id, str(Path(folder) / "model"))
         self.client.finalize_logged_model(model.model_id, LoggedModelStatus.READY)
         try:
             self.client.create_registered_model(registered_name)
@@ -233,3 +254,106 @@ def save_image_grid(columns: dict[str, list[np.ndarray]], path: str | os.PathLik
     path = Path(path)
     figure.savefig(path, dpi=100)
     return path
+
+
+PRETRAINED_ALIAS = "pretrained"
+PRETRAINED_EXPERIMENT = "pretrained"
+
+
+def pretrained_tags(model) -> dict[str, str]:
+    """Version tags of a shipped model (``model.pretrained.PretrainedModel``): what training tags, its sha256, and
+    its held-out PSNR / FLIP with OIDN-high's of the same evaluation run when measured."""
+    manifest, training = model.manifest, model.manifest.get("training") or {}
+    tags = {"method": model.method, "preset": model.preset, "scale": str(model.scale),
+            "params": str(manifest.get("params", "")), "flops_per_pixel": str(manifest.get("flops_per_pixel", "")),
+            "sha256": model.sha256, "pretrained": "true", "held_out": model.held_out.get("status", "pending"),
+            "steps": str(training.get("step", ""))}
+    best = training.get("best_metric") or {}
+    if best.get("name") == "validation/psnr" and best.get("value") is not None:
+        tags["validation_psnr"] = f"{best['value']:.4f}"
+    row = model.held_out_row()
+    if row is not None:
+        for key in ("psnr", "flip"):
+            if row.get(key) is not None:
+                tags[f"metric.held_out_{key}"] = f"{row[key]:.6g}"
+        for peer in model.held_out.get("peers") or []:
+            if peer.get("label") == "oidn:high" and peer.get("psnr") is not None:
+                tags["metric.held_out_oidn_high_psnr"] = f"{peer['psnr']:.6g}"
+    return {key: value for key, value in tags.items() if value != ""}
+
+
+def register_pretrained(model, tracking_uri: str | None = None, alias: str = PRETRAINED_ALIAS) -> dict[str, Any]:
+    """Register a shipped model once and point ``alias`` at it: a version of ``model.name`` tagged with the same
+    sha256 is reused (so running this again changes nothing), else the file is checked and logged as a new version
+    from a run of the ``pretrained`` experiment. Returns name, version, uri and whether it was created."""
+    from model.pretrained import verify
+
+    tracker = MLflowTracker(tracking_uri, experiment=PRETRAINED_EXPERIMENT, run_name=model.name)
+    client = tracker.client
+    if "'" in model.name:
+        raise ValueError(f"model name {model.name!r} contains a quote")
+    same = [version for version in client.search_model_versions(f"name = '{model.name}'")
+            if (version.tags or {}).get("sha256") == model.sha256]
+    created = not same
+    if same:
+        version = str(min(int(v.version) for v in same))
+    else:
+        path = verify(model)
+        training = model.manifest.get("training") or {}
+        dataset = training.get("dataset") or {}
+        tracker.start({"method": f"{model.method}:{model.preset}", "scale": model.scale, "pretrained": model.name,
+                       "sha256": model.sha256, "steps": training.get("steps"), "step": training.get("step"),
+                       "seed": training.get("seed"), "training_script": training.get("script"),
+                       "dataset_script": dataset.get("script"), "dataset_digest": dataset.get("digest")})
+        try:
+            version = tracker.log_model(path, model.name, pretrained_tags(model))["version"]
+        except BaseException:
+            tracker.finish("FAILED")
+            raise
+        tracker.finish("FINISHED")
+    client.set_registered_model_alias(model.name, alias, version)
+    return {"name": model.name, "version": version, "uri": f"models:/{model.name}@{alias}", "created": created}
+
+
+def save_pyfunc_model(checkpoint: str | os.PathLike, folder: Path) -> Path:
+    """Write ``checkpoint`` as a pyfunc model into ``folder`` (MLmodel, signature, the checkpoint as its artifact) plus
+    a copy at ``folder/checkpoint.pt``; the requirements are pinned to this environment's torch, numpy and MLflow
+    (the project itself must be installed where it loads: ``mlflow models serve --env-manager local``)."""
+    import numpy
+    import torch
+
+    from workers.pyfunc_model import CHECKPOINT_KEY, DenoiserModel, signature
+
+    mlflow.pyfunc.save_model(str(folder), python_model=DenoiserModel(), artifacts={CHECKPOINT_KEY: str(checkpoint)},
+                             signature=signature(),
+                             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
+                                               f"numpy=={numpy.__version__}", f"mlflow=={mlflow.__version__}"])
+    shutil.copy2(checkpoint, folder / CHECKPOINT_ARTIFACT)
+    return folder
+
+
+_CODE_VERSION: dict[str, str] | None = None
+
+
+def code_version_tags() -> dict[str, str]:
+    """``mlflow.source.git.commit`` (when the project is a git checkout) and ``code_version`` (the commit, with
+    ``+dirty`` for uncommitted changes, else the installed package's version), read once per process."""
+    global _CODE_VERSION
+    if _CODE_VERSION is None:
+        root = Path(__file__).resolve().parent.parent
+        tags: dict[str, str] = {}
+        try:
+            commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                    timeout=10, check=True).stdout.strip()
+            dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                   capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+            tags = {"mlflow.source.git.commit": commit, "code_version": commit + ("+dirty" if dirty else "")}
+        except (OSError, subprocess.SubprocessError):
+            from importlib.metadata import PackageNotFoundError, version
+
+            try:
+                tags = {"code_version": f"denoiser-service {version('denoiser-service')}"}
+            except PackageNotFoundError:
+                tags = {"code_version": "unknown"}
+        _CODE_VERSION = tags
+    return dict(_CODE_VERSION)

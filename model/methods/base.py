@@ -120,7 +120,8 @@ def drop_history(state: State | None, frame: FrameBatch) -> State | None:
     Methods keep a per-pixel history sample count in their state; zeroed, it marks the history invalid.
     Returns None when every sample restarts, so a method can take its `state is None` path.
     """
-    if state is None or not bool(frame.camera_cut.any()):
+    # Exported steps (model/export.py) take the state as an input: there a cut is the caller's, who passes zeros.
+    if state is None or torch.compiler.is_exporting() or not bool(frame.camera_cut.any()):
         return state
     if bool(frame.camera_cut.all()):
         return None

@@ -519,7 +519,8 @@ def _run_alias(args) -> int:
 def _add_stream(commands, common) -> None:
     parser = commands.add_parser(
         "stream", parents=[common], help="denoise a sequence folder frame by frame through a model session",
-        description="Open a session on a registered model, send every frame of SEQUENCE_DIR in order (the server "
+        description="Open a session on a registered model, a pretrained model or a method without weights (as "
+                    "'denoiser evaluate' names them: oidn:high, svgf), send every frame of SEQUENCE_DIR in order (the server "
                     "keeps the temporal history), write each output to OUT/frame_NNNN.exr and print per-frame "
                     "timings (server inference, whole server request, client round trip) and a summary. The "
                     "session is deleted at the end.")
@@ -529,7 +530,11 @@ def _add_stream(commands, common) -> None:
     parser.add_argument("--layout", default=None, metavar="NAME|FILE",
                         help="how the session reads the frames: a built-in layout (denoiser, blender-cycles, "
                              "generic) or a layout file (.toml, .json); default denoiser")
-    parser.add_argument("--model", required=True, metavar="NAME", help="registered model")
+    parser.add_argument("--model", required=True, metavar="NAME",
+                        help="registered model, pretrained model (denoiser pretrained), or a method without weights "
+                             "(oidn:high, oidn-taa, svgf, accumulation)")
+    parser.add_argument("--scale", type=int, choices=(1, 2), default=None,
+                        help="a method's output scale (default 1); a model runs at its own")
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--version", default=None, help="model version (default: the latest)")
     which.add_argument("--alias", default=None, help="model alias, e.g. champion")
@@ -581,9 +586,11 @@ def _run_stream(args) -> int:
 
     with _client(args) as client:
         session = client.create_session(args.model, version=args.version, alias=args.alias, on_gap=args.on_gap,
-                                        layout=layout)
+                                        layout=layout, scale=args.scale)
         model = session.get("model") or {}
-        print(f"session {session.get('id')}: {model.get('name', args.model)} version {model.get('version', '?')} "
+        which = {"method": "method", "pretrained": "pretrained"}.get(model.get("source"),
+                                                                     f"version {model.get('version', '?')}")
+        print(f"session {session.get('id')}: {model.get('name', args.model)} {which} "
               f"({model.get('method', '?')}{':' + model['preset'] if model.get('preset') else ''}, "
               f"scale {model.get('scale', '?')}), {frames} frames", flush=True)
         try:

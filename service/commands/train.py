@@ -7,7 +7,7 @@ import re
 import sys
 from pathlib import Path
 
-from service.cli import HelpFormatter, EXIT_FAILURE, positive_int, registered_name
+from service.cli import EXIT_FAILURE, HelpFormatter, UsageError, positive_int, registered_name
 
 # As model.train.SCHEDULES and model.dataset.SPLITS; repeated so --help stays import-light.
 SCHEDULES = ("cosine", "step", "constant")
@@ -58,9 +58,10 @@ def add_commands(commands) -> None:
                         help="output folder for checkpoints; none given: runs/METHOD[-PRESET]")
     parser.add_argument("--resume", action=argparse.BooleanOptionalAction, default=True,
                         help="continue from OUT/last.pt when it exists")
-    parser.add_argument("--init-from", type=Path, default=None, metavar="CHECKPOINT",
-                        help="start a fresh run from this checkpoint's weights (same method and scale; a float32 "
-                             "JNDS checkpoint initializes its -int8 preset for quantization-aware fine-tuning)")
+    parser.add_argument("--init-from", default=None, metavar="CHECKPOINT|PRETRAINED",
+                        help="start a fresh run from this checkpoint's weights, or a pretrained model's (denoiser "
+                             "pretrained: fine-tuning); same method and scale (a float32 JNDS checkpoint initializes "
+                             "its -int8 preset for quantization-aware fine-tuning)")
     parser.add_argument("--world-size", type=positive_int, default=1, metavar="N", help="DDP ranks")
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
                         help="auto: CUDA when available (NCCL between ranks), else CPU (gloo)")
@@ -131,7 +132,7 @@ def _run_train(args) -> int:
         out=str(args.out or _default_out(args.method)), resume=args.resume, world_size=args.world_size,
         device=args.device, num_threads=args.threads, seed=args.seed, tracking_uri=args.tracking_uri,
         experiment=args.experiment, register_as=args.register_as,
-        init_from=str(args.init_from) if args.init_from else None)
+        init_from=_initial_weights(args.init_from))
     # Every input problem surfaces here, before any rank starts: ValueError / KeyError exit with status 2.
     resolve_device(config.device)
     crops, _, method = prepare(config)
@@ -204,3 +205,15 @@ def _print_result(result: dict) -> None:
     if registered:
         lines.append(f"registered model: {registered['name']} version {registered['version']} ({registered['uri']})")
     print("\n".join(lines))
+
+
+def _initial_weights(text: str | None) -> str | None:
+    """--init-from: a checkpoint file, or a pretrained model's name (its verified weights file)."""
+    from model.pretrained import PretrainedError, get_pretrained, is_pretrained, verify
+
+    if text is None or Path(text).is_file() or not is_pretrained(text):
+        return text
+    try:
+        return str(verify(get_pretrained(text)))
+    except PretrainedError as error:
+        raise UsageError(str(error)) from None

@@ -29,6 +29,7 @@ from service.registry import AUTO_MODEL
 from service.request_limits import frame_budget
 from service.routes.models import registry_errors
 from service.schemas import SessionIn, SessionModelOut, SessionOut
+from service.session_models import SessionModelInvalid, SessionModelNotFound
 from service.sessions import (
     FrameRejected,
     ModelNotLoadable,
@@ -76,7 +77,12 @@ def session_errors() -> Iterator[None]:
     """The store's and the registry's errors as API errors."""
     try:
         with registry_errors():
-            yield
+            try:
+                yield
+            except SessionModelNotFound as error:  # before registry_errors: it keeps the listing in details
+                raise ApiError(404, "not_found", str(error), error.details) from None
+            except SessionModelInvalid as error:
+                raise ApiError(422, error.code, str(error), error.details) from None
     except SessionNotFound as error:
         raise ApiError(404, error.code, error.message, error.details) from None
     except FrameRejected as error:
@@ -129,7 +135,8 @@ _SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
                   "DeleteSession": _session_link("/sessions/{session_id}", "delete")}
 
 
-@router.post("", status_code=201, response_model=SessionOut, summary="Open a session on a registered model",
+@router.post("", status_code=201, response_model=SessionOut,
+             summary="Open a session on a registered model, a pretrained model or a method",
              responses={201: {"description": "the session; its URL is in the Location header",
                               "links": _SESSION_LINKS},
                         400: _error_response("the body is not JSON", "invalid_json",
@@ -137,12 +144,15 @@ _SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
                         415: _error_response("the body was not sent as application/json", "unsupported_media_type",
                                              "Content-Type text/plain is not accepted here; send the body as "
                                              "JSON with Content-Type application/json"),
-                        404: _error_response("unknown model, version or alias (model 'auto': no version has the "
-                                             "tags to compare, code no_candidate_model)", "not_found",
-                                             "model 'jnds-xs-x2' has no alias 'champion' (aliases: none)"),
-                        422: _error_response("malformed request, or the version's checkpoint cannot be loaded "
-                                             "(model 'auto': no version meets the constraint, code "
-                                             "constraint_not_met)",
+                        404: _error_response("unknown model, version or alias; an unknown name lists the registered "
+                                             "models, pretrained models and methods in details (model 'auto': no "
+                                             "version has the tags to compare, code no_candidate_model)",
+                                             "not_found", "model 'jnds-xs-x2' has no alias 'champion' (aliases: "
+                                                          "none)"),
+                        422: _error_response("malformed request or model name (invalid_model_name), a learned "
+                                             "method by name (untrained_method), an unknown preset, a scale the "
+                                             "model cannot run at, or the model cannot be loaded (model 'auto': no "
+                                             "version meets the constraint, code constraint_not_met)",
                                              "invalid_request", "give a version or an alias of model "
                                                                 "'jnds-xs-x2', not both"),
                         429: _error_response("the server's session limit is reached", "too_many_sessions",
@@ -150,8 +160,12 @@ _SESSION_LINKS = {"GetSession": _session_link("/sessions/{session_id}", "get"),
                                              "or wait for an idle one to expire (1800 s)"),
                         503: _UNAVAILABLE})
 def create_session(body: SessionIn, response: Response, store: StoreDep, settings: SettingsDep) -> SessionOut:
-    """The model is `version` of `model`, else the version `alias` points at now, else its latest version; it is
-    loaded (shared with other sessions of the same version) before the session is answered.
+    """`model` is a registered model (its `version`, else the version `alias` points at now, else its latest
+    version), a pretrained model shipped with the service (`denoiser pretrained`), or a method without weights by
+    the names `denoiser evaluate` takes (`oidn:high`, `oidn-taa`, `svgf`, `accumulation`; `scale` 1 or 2, default
+    1). A name with ':' is a method; a bare name is looked up in that order. It is loaded (shared with other
+    sessions of the same model) before the session is answered. An unknown name is 404 listing what exists; a
+    malformed one 422 `invalid_model_name`; a learned method by name 422 `untrained_method`.
 
     `"model": "auto"` chooses among registered versions by their tags (README, "Right-sizing"): with `min_psnr`
     the smallest (FLOPs per pixel) whose validation PSNR is at least that, with `max_ms_per_frame` alone the best
@@ -166,7 +180,7 @@ def create_session(body: SessionIn, response: Response, store: StoreDep, setting
     with session_errors():
         if choice is None:
             session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap,
-                                   owner_digest=owner, layout=body.layout)
+                                   owner_digest=owner, layout=body.layout, scale=body.scale)
         else:
             session = store.create(choice.info.name, version=choice.info.version, on_gap=body.on_gap,
                                    choice=choice.to_dict(), owner_digest=owner, layout=body.layout)

@@ -107,7 +107,7 @@ def test_sessions_of_one_version_share_its_weights(make_store):
     assert not any(p.requires_grad for p in first.method.parameters()) and not first.method.training
     store.delete(first.id)
     store.delete(second.id)
-    assert list(store._methods) == [(MODEL_NAME, "2")]  # weights no session uses are released
+    assert list(store._methods) == [("registered", MODEL_NAME, "2", None)]  # weights no session uses are released
 
 
 def test_unknown_models_versions_and_aliases(make_store):

@@ -78,6 +78,14 @@ def test_a_training_run_is_tracked_and_its_model_registered(tmp_path, monkeypatc
     assert float(version.tags["flops_per_pixel"]) == pytest.approx(result["flops_per_pixel"], rel=1e-5)
     assert float(version.tags["validation_psnr"]) == pytest.approx(result["validation"]["psnr"], abs=1e-4)
 
+    # Lineage: the code version and the dataset, by its manifests' digest.
+    from model.dataset import dataset_digest
+
+    assert run.data.tags["code_version"] and run.data.tags["code_version"] != "unknown"
+    inputs = run.inputs.dataset_inputs
+    assert [(i.dataset.name, i.dataset.digest, i.tags[0].value) for i in inputs] == \
+        [("data", dataset_digest(tmp_path / "data")[:36], "training")]
+
     # The registered checkpoint loads back into the trained method.
     downloaded = download_registered_checkpoint("tiny-denoiser", 1, tmp_path / "download", tracking_uri=uri)
     method = load_method(downloaded)
@@ -126,3 +134,65 @@ def _start_a_run(arguments):
     tracker.start({"method": name})
     tracker.finish("FINISHED")
     return tracker.run_id
+
+
+def sequence_arrays(frames):
+    """FrameBundles as the pyfunc model's input: named (T, H, W, C) arrays and the jitter."""
+    names = ("color", "albedo", "normal", "depth", "motion", "diffuse", "specular", "specular_albedo", "roughness")
+    arrays = {name: np.stack([getattr(frame, name) for frame in frames]).astype(np.float32) for name in names
+              if all(getattr(frame, name) is not None for frame in frames)}
+    arrays = {name: array[..., None] if array.ndim == 3 else array for name, array in arrays.items()}  # depth
+    arrays["jitter"] = np.array([frame.jitter for frame in frames], dtype=np.float32)
+    return arrays
+
+
+def test_a_registered_model_loads_through_mlflow_pyfunc_and_denoises_a_sequence(tmp_path, monkeypatch):
+    import dataclasses
+
+    import mlflow
+
+    from model.checkpoint import save_checkpoint
+    from model.methods.base import FrameBatch
+    from model.methods.registry import build_method
+    from tests.model.training_fixtures import synthetic_frame
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    torch.manual_seed(5)
+    checkpoint = save_checkpoint(tmp_path / "wskpn.pt", method=build_method("wskpn:xs", 1))
+    tracker = MLflowTracker(uri, "tests")
+    tracker.start({"method": "wskpn:xs"})
+    tracker.log_model(checkpoint, "wskpn-pyfunc", {"method": "wskpn"})
+    tracker.finish("FINISHED")
+    tracker.client.set_registered_model_alias("wskpn-pyfunc", "champion", "1")
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    monkeypatch.setenv("MLFLOW_REGISTRY_URI", uri)
+    model = mlflow.pyfunc.load_model("models:/wskpn-pyfunc@champion")
+    assert [spec.name for spec in model.metadata.get_input_schema().inputs] == \
+        ["color", "albedo", "normal", "depth", "motion", "jitter"]
+    rng = np.random.default_rng(0)
+    # The signature's buffers only (MLflow drops undeclared inputs; module notes of workers.pyfunc_model).
+    frames = [dataclasses.replace(synthetic_frame(rng, index, 16, 16), diffuse=None, specular=None,
+                                  specular_albedo=None, roughness=None) for index in range(4)]
+    output = model.predict(sequence_arrays(frames))
+    assert output.shape == (4, 16, 16, 3) and output.dtype == np.float32
+
+    # The same as stepping the checkpoint in process, history carried over the sequence.
+    method, state = load_method(checkpoint).for_inference(), None
+    with torch.no_grad():
+        for index, frame in enumerate(frames):
+            expected, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
+            np.testing.assert_allclose(output[index], expected[0].permute(1, 2, 0).numpy(), rtol=1e-5, atol=1e-6)
+    # History matters: frame 3 alone (a new sequence) gives another output than frame 3 after 0-2.
+    alone = model.predict(sequence_arrays(frames[3:]))
+    assert not np.allclose(alone[0], output[3])
+    with pytest.raises(Exception, match="jitter"):
+        model.predict({key: value for key, value in sequence_arrays(frames).items() if key != "jitter"})
+    # The optional buffers reach the model through the unwrapped python model.
+    full = [synthetic_frame(np.random.default_rng(1), index, 16, 16) for index in range(2)]
+    direct = model.unwrap_python_model().predict(None, sequence_arrays(full))
+    method, state = load_method(checkpoint).for_inference(), None
+    with torch.no_grad():
+        for index, frame in enumerate(full):
+            expected, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
+            np.testing.assert_allclose(direct[index], expected[0].permute(1, 2, 0).numpy(), rtol=1e-5, atol=1e-6)

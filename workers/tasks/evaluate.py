@@ -169,6 +169,7 @@ def _start_tracking(context: JobContext, params: EvaluateParams, methods: list[s
                    "split": params.split, "scale": params.scale, "methods": ",".join(methods),
                    "frames": params.frames, "vdp": params.vdp, "device": context.torch_device})
     context.set_mlflow_run(tracker.run_id, getattr(tracker, "_experiment_id", None))
+    tracker.log_dataset(context.storage.dataset(params.dataset), "evaluation")
     return tracker
 
 

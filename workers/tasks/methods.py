@@ -5,6 +5,7 @@ A job names a method the way the CLI does, with one more form:
 - ``NAME[:PRESET]`` from the registry (``identity``, ``oidn:high``, ``wskpn:s``);
 - ``models:/NAME/VERSION``, ``models:/NAME@ALIAS`` or ``models:/NAME`` (latest): a registered model, whose
   checkpoint ``service.registry.resolve_checkpoint`` brings to local disk;
+- the name of a pretrained model shipped in ``pretrained/`` (``fused-balanced-x1``), its sha256 checked;
 - a checkpoint file, as a path relative to the data folder (``jobs/<id>/checkpoints/best.pt``). Only files under
   ``jobs/`` and ``models/`` are accepted: a checkpoint is read with ``torch.load``, and an API caller must not be
   able to point the server at arbitrary files.
@@ -63,10 +64,24 @@ def checkpoint_in_storage(text: str, storage: Storage) -> Path:
     return path
 
 
+def pretrained_checkpoint(name: str) -> Path:
+    """The verified weights file of a pretrained model, or ApiError 422 when it fails its check."""
+    from model.pretrained import PretrainedError, get_pretrained, verify
+
+    try:
+        return verify(get_pretrained(name))
+    except PretrainedError as error:
+        raise ApiError(422, "invalid_checkpoint", str(error)) from None
+
+
 def checkpoint_source(text: str, storage: Storage) -> Path | None:
     """The checkpoint file ``text`` stands for, or None when it names a registry method."""
+    from model.pretrained import is_pretrained
+
     if is_model_ref(text):
         return registered_checkpoint(text)
+    if is_pretrained(text):
+        return pretrained_checkpoint(text)
     if looks_like_path(text):
         return checkpoint_in_storage(text, storage)
     return None

@@ -23,12 +23,14 @@ from service.settings import Settings
 from service.storage import Storage
 from workers.tasks.checks import invalid, open_dataset, split_sequences
 from workers.tasks.context import JobContext
-from workers.tasks.methods import check_registry_method
+from workers.tasks.methods import check_registry_method, checkpoint_method, checkpoint_source
 
 CHECKPOINT_FOLDER = "checkpoints"
 
 
-def train_config(params: TrainParams, storage: Storage, settings: Settings, out: Path, device: str):
+def train_config(params: TrainParams, storage: Storage, settings: Settings, out: Path, device: str,
+                 init_from: Path | None = None):
+    """``init_from``: the local checkpoint ``params.init_from`` stands for (``initial_weights``)."""
     from model.train import TrainConfig
 
     return TrainConfig(
@@ -40,7 +42,28 @@ def train_config(params: TrainParams, storage: Storage, settings: Settings, out:
         validate_every=params.validate_every, validation_frames=params.validation_frames,
         num_threads=params.threads or rank_threads(settings, params.world_size),
         tracking_uri=settings.resolved_tracking_uri(), experiment=params.experiment,
-        register_as=params.register_as)
+        register_as=params.register_as, init_from=str(init_from) if init_from else None)
+
+
+def initial_weights(params: TrainParams, storage: Storage) -> Path | None:
+    """The checkpoint ``init_from`` names (a registered model, a pretrained model or a stored checkpoint), checked
+    to hold the job's method family at its scale; ApiError 404 / 422 otherwise."""
+    if params.init_from is None:
+        return None
+    path = checkpoint_source(params.init_from, storage)
+    if path is None:
+        from model.pretrained import pretrained_names
+
+        raise ApiError(404, "init_from_not_found", f"init_from {params.init_from!r} is no registered model "
+                       f"(models:/NAME@ALIAS), pretrained model or checkpoint (a method name has no weights); "
+                       f"pretrained models: {', '.join(pretrained_names()) or 'none'}")
+    source = checkpoint_method(path, f"init_from {params.init_from!r}")
+    family = params.method.partition(":")[0]
+    if source.get("method") != family or source.get("scale") != params.scale:
+        raise ApiError(422, "invalid_init_from", f"init_from {params.init_from!r} holds {source.get('method')}:"
+                       f"{source.get('preset')} at scale {source.get('scale')}; it cannot start {params.method} at "
+                       f"scale {params.scale}")
+    return path
 
 
 def rank_threads(settings: Settings, world_size: int) -> int | None:
@@ -56,8 +79,9 @@ def check(params: TrainParams, storage: Storage, settings: Settings) -> dict[str
 
     dataset = open_dataset(storage, params.dataset)
     check_registry_method(params.method, params.scale, learned=True)
+    init_from = initial_weights(params, storage)
     try:
-        train_config(params, storage, settings, storage.jobs / "_check", "cpu").check()
+        train_config(params, storage, settings, storage.jobs / "_check", "cpu", init_from).check()
     except ValueError as error:
         raise invalid(error) from None
     sequences = split_sequences(dataset, params.dataset, params.train_split, params.scale)
@@ -86,7 +110,8 @@ def run(context: JobContext) -> dict[str, Any]:
 
     params = TrainParams.model_validate(context.params)
     out = context.folder / CHECKPOINT_FOLDER
-    config = train_config(params, context.storage, context.settings, out, context.torch_device)
+    config = train_config(params, context.storage, context.settings, out, context.torch_device,
+                          initial_weights(params, context.storage))
     last = out / LAST_CHECKPOINT
     if last.is_file():
         checkpoint = load_checkpoint(last)
@@ -123,6 +148,9 @@ class _JobTracker:
 
     def log_image_grid(self, name: str, columns, step: int) -> None:
         self.inner.log_image_grid(name, columns, step)
+
+    def log_dataset(self, path: str, context: str) -> None:
+        self.inner.log_dataset(path, context)
 
     def log_model(self, checkpoint: Path, registered_name: str, tags: dict[str, str]):
         return self.inner.log_model(checkpoint, registered_name, tags)

@@ -172,6 +172,20 @@ def test_a_trained_checkpoint_is_accepted_by_its_path_in_the_data_folder(client,
     assert error_of(client.post("/jobs", json=body), 422)["code"] == "unsupported_scale"
 
 
+def test_a_pretrained_model_is_accepted_by_its_name_and_a_damaged_one_is_422(client, tmp_path, monkeypatch):
+    import model.pretrained as pretrained
+    from tests.model.test_pretrained import ship_tiny
+
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    shipped = ship_tiny(tmp_path / "pretrained", "wskpn-xs-x1")
+    assert client.post("/jobs", json=evaluate_body(methods=["wskpn-xs-x1", "oidn:high"])).status_code == 202
+    body = {"kind": "infer", "params": {"dataset": "tiny", "model": "wskpn-xs-x1", "scale": 2}}
+    assert client.post("/jobs", json=body).status_code == 202  # WSKPN runs at 2x as "+ bicubic"
+    shipped.path.write_bytes(b"damaged")
+    error = error_of(client.post("/jobs", json=evaluate_body(methods=["wskpn-xs-x1"])), 422)
+    assert error["code"] == "invalid_checkpoint" and "damaged or was replaced" in error["message"]
+
+
 def test_a_broker_that_is_down_answers_503_and_fails_the_record(client, dispatcher, store):
     dispatcher.broken = True
     error = error_of(client.post("/jobs", json=evaluate_body()), 503)

@@ -120,6 +120,72 @@ def test_train_tracks_registers_and_links_the_mlflow_run(store, storage, setting
     assert record["mlflow_url"].endswith(f"/runs/{result['run_id']}")
 
 
+def _shipped_tiny(tmp_path, monkeypatch, name="tiny-x1"):
+    """A seeded tiny_test checkpoint shipped as a pretrained model in a tmp pretrained folder."""
+    import model.pretrained as pretrained
+    from model.checkpoint import save_checkpoint
+
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    torch.manual_seed(11)
+    source = save_checkpoint(tmp_path / "tiny.pt", method=build_method(TINY_METHOD, 1), step=5,
+                             train_config={"steps": 5, "seed": 11})
+    return pretrained.ship_checkpoint(source, name)
+
+
+def test_a_training_starts_from_a_pretrained_model_or_a_registered_one(store, storage, settings, dataset, tmp_path,
+                                                                       monkeypatch):
+    from model.checkpoint import load_checkpoint
+
+    shipped = _shipped_tiny(tmp_path, monkeypatch)
+    initial = load_checkpoint(shipped.path)["model"]
+    # A learning rate this small leaves the weights where they started: the start is what init_from gave.
+    job_id = submit(store, storage, settings, "train",
+                    **train_params(steps=1, lr=1e-12, init_from="tiny-x1", track=True, register_as="tiny-tuned"))
+    record = run(store, storage, settings, job_id)
+    assert record["state"] == "succeeded", record["error"]
+    tuned = load_checkpoint(storage.root / record["result"]["checkpoint"])["model"]
+    assert tuned.keys() == initial.keys()
+    for key in initial:
+        torch.testing.assert_close(tuned[key], initial[key], atol=1e-9, rtol=0)
+    scratch = run(store, storage, settings, submit(store, storage, settings, "train", **train_params(steps=1)))
+    from_scratch = load_checkpoint(storage.root / scratch["result"]["checkpoint"])["model"]
+    assert any(not torch.allclose(from_scratch[key], initial[key]) for key in initial)
+    # The registered result is a models:/ reference a next fine-tune can start from (references resolve through
+    # the configured settings, as in the API).
+    from service.settings import get_settings
+
+    monkeypatch.setenv("DENOISER_TRACKING_URI", settings.tracking_uri)
+    monkeypatch.setenv("DENOISER_DATA_DIR", str(settings.data_dir))
+    get_settings.cache_clear()
+    again = submit(store, storage, settings, "train", **train_params(steps=1, init_from="models:/tiny-tuned/1"))
+    try:
+        assert run(store, storage, settings, again)["state"] == "succeeded"
+    finally:
+        get_settings.cache_clear()
+
+
+@pytest.mark.parametrize("init_from, status, code, words", [
+    ("nothing-here", 404, "init_from_not_found", "pretrained models: tiny-x1"),
+    ("identity", 404, "init_from_not_found", "a method name has no weights"),
+    ("models:/no-such-model@pretrained", 404, "model_not_found", "does not exist"),
+    ("wskpn-xs-x1", 422, "invalid_init_from", "holds wskpn:xs at scale 1; it cannot start tiny_test"),
+])
+def test_a_bad_init_from_is_refused_before_queueing(store, storage, settings, dataset, tmp_path, monkeypatch,
+                                                    init_from, status, code, words):
+    from service.errors import ApiError
+
+    _shipped_tiny(tmp_path, monkeypatch)
+    if init_from == "wskpn-xs-x1":  # another family
+        import model.pretrained as pretrained
+        from model.checkpoint import save_checkpoint
+
+        pretrained.ship_checkpoint(save_checkpoint(tmp_path / "w.pt", method=build_method("wskpn:xs", 1)), init_from)
+    with pytest.raises(ApiError) as caught:
+        submit(store, storage, settings, "train", **train_params(init_from=init_from))
+    assert (caught.value.status, caught.value.code) == (status, code)
+    assert words in str(caught.value)
+
+
 def test_a_cancelled_training_resumes_from_its_checkpoint_when_run_again(store, storage, settings, dataset):
     job_id = submit(store, storage, settings, "train", **train_params(steps=100_000, checkpoint_every=1))
 

@@ -1,0 +1,213 @@
+"""Export a method's per-frame step for engines: ONNX, the history as explicit inputs and outputs.
+
+An engine calls the exported graph once per frame::
+
+    output, state_out.* = step(color, albedo, normal, depth, motion, jitter, [optional buffers],
+                               [spatial_estimate], state.*)
+
+- inputs are the frame bundle's buffers at render resolution, NCHW float32 with N = 1 (``color`` (1, 3, H, W),
+  ``depth`` (1, 1, H, W), ``motion`` (1, 2, H, W), ``jitter`` (1, 2)); ``diffuse``, ``specular``,
+  ``specular_albedo`` and ``roughness`` only when exported ``with_optional`` (every method runs without them);
+- ``state.NAME`` are the method's history tensors, fed back from the previous frame's ``state_out.NAME``. On the
+  first frame and after a camera cut, pass zeros of the recorded shapes: a zeroed history is the methods' own "no
+  history" (``model.methods.base.drop_history`` zeroes it at a cut), so the first output is what ``step`` gives
+  without a state (the tests check both within the tolerance below);
+- the resolution is fixed at export (``height`` x ``width``); the output is (1, 3, H * scale, W * scale).
+
+Methods with a spatial prior (the fused family: OIDN, then the learned fusion) cannot be exported whole: OIDN is a
+native library, not torch operations. Their network part is exported, with OIDN's output at render resolution
+(linear radiance) as one more input, ``spatial_estimate``: the engine runs OIDN (quality = the preset) itself.
+Methods that are OIDN alone or OIDN + TAA have no network to export, and int8 JNDS runs eager-mode quantized
+modules that neither exporter takes: both are refused with ``ExportError`` saying so.
+
+Accuracy: ``check_export`` runs the exported file (onnxruntime) and the method over the same frames with the history
+carried and returns the largest difference; exports pass when it is within ``TOLERANCE`` (absolute 1e-4 + relative
+1e-4 of the reference's magnitude).
+
+TorchScript is not offered: the shared kernel ops are custom autograd functions (``model.ops.kernels``,
+``model.ops.splat``) that ``torch.jit.trace`` cannot record, and ``torch.jit.script`` does not take the methods'
+Python; ONNX goes through ``torch.export``, which traces into them. ``UNSUPPORTED_FORMATS`` says so.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from model.methods.base import FrameBatch, Method
+
+FORMATS = ("onnx",)
+UNSUPPORTED_FORMATS = {
+    "torchscript": "TorchScript export is not supported: the methods' kernel ops are custom autograd functions that "
+                   "torch.jit.trace cannot record (and torch.jit.script cannot compile the methods); use --format "
+                   "onnx (torch.export traces into them)"}
+REQUIRED_INPUTS = ("color", "albedo", "normal", "depth", "motion", "jitter")
+OPTIONAL_INPUTS = ("diffuse", "specular", "specular_albedo", "roughness")
+SPATIAL_INPUT = "spatial_estimate"
+TOLERANCE = {"atol": 1e-4, "rtol": 1e-4}
+
+
+class ExportError(ValueError):
+    """The method cannot be exported (OIDN inside, int8 eager modules, an exporter failure), or a bad request."""
+
+
+class _Step(nn.Module):
+    """``method.step`` with the frame's buffers and the state as flat tensors (what exporters take)."""
+
+    def __init__(self, method: Method, inputs: tuple[str, ...], state_names: tuple[str, ...]) -> None:
+        super().__init__()
+        self.method = method
+        self.inputs = inputs
+        self.state_names = state_names
+
+    def forward(self, *tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        named = dict(zip(self.inputs, tensors))
+        frame = FrameBatch(camera_cut=torch.zeros(1, dtype=torch.bool), **named)
+        state = dict(zip(self.state_names, tensors[len(self.inputs):]))
+        output, new_state = self.method.step(frame, state)
+        # clone: a state entry that is an input passed through (depth, normal, jitter) must be a graph output too.
+        return (output, *[new_state[name].clone() for name in self.state_names])
+
+
+def check_exportable(method: Method) -> None:
+    """ExportError naming why ``method`` has no exportable per-frame network."""
+    label = method.label
+    if not method.learned:
+        raise ExportError(f"{label} has no network to export: "
+                          + ("it is OIDN's native library (run OIDN in the engine)" if method.name.startswith("oidn")
+                             else "it is a filter without weights; only trained models are exported"))
+    if method.preset.endswith("-int8"):
+        raise ExportError(f"{label} runs eager-mode int8 quantized modules (torch.ao), which neither ONNX nor "
+                          f"TorchScript export takes; export the float32 checkpoint it was fine-tuned from")
+
+
+def example_inputs(method: Method, height: int, width: int, with_optional: bool = False,
+                   seed: int = 0) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """(frame inputs by name, the state after one step on them): shapes for the export and a first frame."""
+    from model.methods.registry import example_batch
+
+    frame = example_batch(height, width, seed=seed)
+    inputs = {name: getattr(frame, name) for name in REQUIRED_INPUTS}
+    if with_optional:
+        inputs.update({name: getattr(frame, name) for name in OPTIONAL_INPUTS})
+    if getattr(method, "spatial_prior", None):
+        inputs[SPATIAL_INPUT] = frame.color * 0.5  # any plausible radiance: only shapes matter for the trace
+    with torch.no_grad():
+        _, state = method.step(_frame(inputs), None)
+    # Copies: a state entry may be an input tensor itself (depth, normal, jitter), and an exporter given the same
+    # tensor twice merges the two inputs into one.
+    return inputs, {name: tensor.clone() for name, tensor in state.items()}
+
+
+def _frame(inputs: dict[str, torch.Tensor]) -> FrameBatch:
+    return FrameBatch(camera_cut=torch.zeros(1, dtype=torch.bool), **inputs)
+
+
+def interface(method: Method, inputs: dict[str, torch.Tensor], state: dict[str, torch.Tensor]) -> dict[str, Any]:
+    """What an engine needs to call the exported step: names and shapes of inputs, state and outputs."""
+    return {"format": "denoiser-export/1", "method": method.name, "preset": method.preset, "scale": method.scale,
+            "inputs": {name: list(tensor.shape) for name, tensor in inputs.items()},
+            "state": {name: list(tensor.shape) for name, tensor in sorted(state.items())},
+            "outputs": {"output": [1, 3, inputs["color"].shape[2] * method.scale,
+                                   inputs["color"].shape[3] * method.scale],
+                        **{f"state_out.{name}": list(tensor.shape) for name, tensor in sorted(state.items())}},
+            "first_frame": "state inputs all zeros (also after a camera cut)",
+            "spatial_estimate": ("OIDN's output at render resolution (linear radiance, quality "
+                                 f"'{method.preset}', albedo + normal, clean aux)") if SPATIAL_INPUT in inputs else None,
+            "tolerance": TOLERANCE}
+
+
+def export_step(method: Method, path: str | os.PathLike, fmt: str = "onnx", height: int = 128, width: int = 128,
+                with_optional: bool = False) -> dict[str, Any]:
+    """Write ``method``'s per-frame step to ``path``; returns its interface (also stored in the file's metadata,
+    ONNX ``metadata_props['denoiser']``)."""
+    if fmt in UNSUPPORTED_FORMATS:
+        raise ExportError(UNSUPPORTED_FORMATS[fmt])
+    if fmt not in FORMATS:
+        raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")
+    check_exportable(method)
+    method = method.cpu().for_inference().eval()
+    for parameter in method.parameters():
+        parameter.requires_grad_(False)
+    inputs, state = example_inputs(method, height, width, with_optional)
+    state_names = tuple(sorted(state))
+    module = _Step(method, tuple(inputs), state_names).eval()
+    arguments = (*inputs.values(), *[state[name] for name in state_names])
+    info = interface(method, inputs, state)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # tracer and exporter chatter about constants and deprecations
+            _export_onnx(module, arguments, inputs, state_names, path, info)
+    except ExportError:
+        raise
+    except Exception as error:  # the exporters raise many types; the first line says what failed
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ExportError(f"{method.label} could not be exported to {fmt}: {first}") from None
+    return info
+
+
+def _export_onnx(module: nn.Module, arguments: tuple, inputs: dict, state_names: tuple, path: Path,
+                 info: dict) -> None:
+    import contextlib
+    import io
+
+    import onnx
+
+    with contextlib.redirect_stdout(io.StringIO()):  # the exporter prints its progress
+        program = torch.onnx.export(module, arguments, dynamo=True, external_data=False,
+                                    input_names=[*inputs, *[f"state.{name}" for name in state_names]],
+                                    output_names=["output", *[f"state_out.{name}" for name in state_names]])
+    proto = program.model_proto
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = "denoiser", json.dumps(info)
+    onnx.save(proto, str(path))
+
+
+def run_exported(path: str | os.PathLike, frames: list[dict[str, torch.Tensor]],
+                 state_shapes: dict[str, list[int]]) -> list[torch.Tensor]:
+    """Outputs of the exported step (onnxruntime) over ``frames`` (inputs by name), zeros as the first state, the
+    history fed back from frame to frame."""
+    import onnxruntime
+
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    names = sorted(state_shapes)
+    state = {name: torch.zeros(state_shapes[name]) for name in names}
+    outputs = []
+    for frame in frames:
+        feed = {name: tensor.numpy() for name, tensor in frame.items()}
+        feed.update({f"state.{name}": state[name].numpy() for name in names})
+        result = session.run(None, feed)
+        outputs.append(torch.from_numpy(result[0]))
+        state = {name: torch.from_numpy(value) for name, value in zip(names, result[1:])}
+    return outputs
+
+
+def check_export(method: Method, path: str | os.PathLike, info: dict[str, Any], frames: int = 4,
+                 seed: int = 1) -> float:
+    """The largest |exported - PyTorch| over a sequence of ``frames`` random frames (history carried; PyTorch's first
+    step without a state, the export's with zeros), in units of the tolerance: <= 1 passes."""
+    height, width = info["inputs"]["color"][2:]
+    method = method.cpu().for_inference().eval()
+    sequence = []
+    for index in range(frames):
+        inputs, _ = example_inputs(method, height, width, "diffuse" in info["inputs"], seed=seed + index)
+        sequence.append(inputs)
+    expected, state = [], None
+    with torch.no_grad():
+        for inputs in sequence:
+            output, state = method.step(_frame(inputs), state)
+            expected.append(output)
+    actual = run_exported(path, sequence, info["state"])
+    worst = 0.0
+    for got, want in zip(actual, expected):
+        allowed = TOLERANCE["atol"] + TOLERANCE["rtol"] * want.abs()
+        worst = max(worst, float(((got - want).abs() / allowed).max()))
+    return worst

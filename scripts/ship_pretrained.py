@@ -1,0 +1,57 @@
+"""Ship a trained checkpoint as a pretrained model of the repository (model/pretrained.py): the weights without
+optimizer state under pretrained/NAME/model.pt and a manifest with the training recipe, the sha256 checked on every
+load, and the held-out metrics copied from an evaluation report of the same run (else "pending").
+
+    .venv/bin/python scripts/ship_pretrained.py runs/fused-balanced-x1/best.pt --name fused-balanced-x1 \
+        --data data/reuse --dataset-script scripts/generate_reuse_data.sh \
+        --training-script scripts/reproduce_reuse_results.sh --report docs/results/reuse_x1.json
+
+--report-source is the checkpoint path as the report's row names it (default: the checkpoint argument).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from model.pretrained import PRETRAINED_DIR, PretrainedError, ship_checkpoint  # noqa: E402
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("--name", required=True, help="the model's name, METHOD-PRESET-xSCALE by convention")
+    parser.add_argument("--data", type=Path, default=None, help="the training dataset (its recipe is recorded)")
+    parser.add_argument("--dataset-script", default=None, help="the script that renders that dataset")
+    parser.add_argument("--training-script", default=None, help="the script that trained the checkpoint")
+    parser.add_argument("--report", type=Path, default=None, help="denoiser evaluate --out JSON of the held-out split")
+    parser.add_argument("--report-source", default=None, help="the checkpoint as the report's row names it")
+    parser.add_argument("--stage", type=Path, action="append", default=None, metavar="CHECKPOINT",
+                        help="an earlier training this checkpoint started from (--init-from); repeat, first to last")
+    parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
+    args = parser.parse_args()
+    report = None
+    if args.report is not None:
+        if not args.report.is_file():
+            print(f"--report {args.report} does not exist", file=sys.stderr)
+            return 2
+        report = json.loads(args.report.read_text())
+    try:
+        model = ship_checkpoint(args.checkpoint, args.name, root=args.root, dataset_dir=args.data,
+                                dataset_script=args.dataset_script, training_script=args.training_script,
+                                report=report, report_source=args.report_source,
+                                report_path=None if args.report is None else str(args.report), stages=args.stage)
+    except (PretrainedError, FileNotFoundError, ValueError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    print(f"shipped {model.name}: {model.path} ({model.manifest['bytes']} bytes, sha256 {model.sha256[:12]}..., "
+          f"step {model.manifest['training']['step']}, held-out: {model.held_out['status']})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,152 @@
+"""Pretrained models: shipping writes weights and a manifest, loading checks the sha256, damage is a clear error."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from model.checkpoint import save_checkpoint
+from model.methods.registry import build_method, example_batch
+from model.pretrained import (
+    PRETRAINED_DIR,
+    PretrainedError,
+    UnknownPretrained,
+    get_pretrained,
+    held_out_from_report,
+    load_pretrained,
+    pretrained_names,
+    ship_checkpoint,
+    verify,
+)
+
+
+def ship_tiny(root, name="wskpn-xs-x1", report=None, **options):
+    """A seeded wskpn:xs checkpoint (with optimizer state, as training writes it) shipped under ``root``."""
+    torch.manual_seed(3)
+    method = build_method("wskpn:xs", 1)
+    optimizer = torch.optim.Adam(method.parameters())
+    checkpoint = save_checkpoint(root.parent / f"{name}-source.pt", method=method, optimizer=optimizer, step=120,
+                                 train_config={"steps": 150, "seed": 7, "data": "data/demo"},
+                                 best_metric={"name": "validation/psnr", "value": 25.0, "step": 100})
+    return ship_checkpoint(checkpoint, name, root=root, report=report, report_source="runs/x/best.pt", **options)
+
+
+def report_for(source="runs/x/best.pt", scale=1):
+    def row(label, method, preset, psnr, source_=None):
+        return {"label": label, "source": source_ or label, "method": method, "preset": preset, "scale": scale,
+                "metrics": {"psnr": psnr, "flip": 0.1}, "ms_per_frame": 5.0, "time_ratio_to_oidn": 0.5}
+
+    return {"split": "test", "scale": scale, "sequences": [{"name": "moving_light_s4", "frames": 16},
+                                                           {"name": "glass_s4", "frames": 16}],
+            "methods": [row("wskpn:xs", "wskpn", "xs", 30.5, source), row("oidn:high", "oidn", "high", 31.0),
+                        row("oidn-taa:high", "oidn-taa", "high", 31.4), row("svgf", "svgf", "default", 27.0)]}
+
+
+def test_shipping_strips_training_state_and_records_the_recipe(tmp_path):
+    shipped = ship_tiny(tmp_path / "pretrained", report=report_for(), report_path="docs/results/x.json")
+    content = torch.load(shipped.path, weights_only=True)
+    assert content["optimizer"] is None and content["rng"] is None and content["step"] == 120
+    manifest = json.loads((shipped.folder / "manifest.json").read_text())
+    assert (manifest["method"], manifest["preset"], manifest["scale"]) == ("wskpn", "xs", 1)
+    assert manifest["training"]["steps"] == 150 and manifest["training"]["seed"] == 7
+    assert manifest["bytes"] == shipped.path.stat().st_size
+    held_out = manifest["held_out"]
+    assert held_out["status"] == "measured" and held_out["model"]["psnr"] == 30.5
+    assert held_out["report"] == "docs/results/x.json"
+    assert [peer["label"] for peer in held_out["peers"]] == ["oidn:high", "oidn-taa:high"]
+    assert held_out["sequences"] == ["glass_s4", "moving_light_s4"]
+    assert pretrained_names(tmp_path / "pretrained") == ["wskpn-xs-x1"]
+
+
+def test_earlier_training_stages_are_recorded(tmp_path):
+    torch.manual_seed(1)
+    first = save_checkpoint(tmp_path / "first.pt", method=build_method("wskpn:xs", 1), step=400,
+                            train_config={"steps": 400, "frames_per_sample": 8})
+    shipped = ship_tiny(tmp_path / "pretrained", stages=[first])
+    (stage,) = shipped.manifest["training"]["stages"]
+    assert stage["step"] == 400 and stage["train_config"]["frames_per_sample"] == 8
+
+
+def test_without_a_report_the_held_out_metrics_are_pending(tmp_path):
+    shipped = ship_tiny(tmp_path / "pretrained")
+    assert shipped.held_out["status"] == "pending" and shipped.held_out_row() is None
+
+
+def test_a_report_of_another_model_or_scale_is_refused(tmp_path):
+    with pytest.raises(PretrainedError, match="0 rows from 'runs/other.pt'"):
+        held_out_from_report(report_for(), "runs/other.pt", "wskpn", "xs", 1)
+    with pytest.raises(PretrainedError, match="at scale 2"):
+        held_out_from_report(report_for(scale=2), "runs/x/best.pt", "wskpn", "xs", 1)
+    with pytest.raises(PretrainedError, match="not wskpn:s"):
+        held_out_from_report(report_for(), "runs/x/best.pt", "wskpn", "s", 1)
+
+
+def test_a_shipped_model_loads_with_its_weights(tmp_path):
+    root = tmp_path / "pretrained"
+    ship_tiny(root)
+    torch.manual_seed(3)
+    original = build_method("wskpn:xs", 1).eval()
+    loaded = load_pretrained("wskpn-xs-x1", root=root)
+    frame = example_batch(16, 16)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.step(frame, None)[0], original.step(frame, None)[0])
+
+
+def test_damaged_missing_and_unknown_files_are_clear_errors(tmp_path):
+    root = tmp_path / "pretrained"
+    shipped = ship_tiny(root)
+    data = bytearray(shipped.path.read_bytes())
+    data[-100] ^= 0xFF
+    shipped.path.write_bytes(bytes(data))
+    with pytest.raises(PretrainedError, match="sha256 .* the manifest says .* damaged or was replaced"):
+        load_pretrained("wskpn-xs-x1", root=root)
+    shipped.path.unlink()
+    with pytest.raises(PretrainedError, match="weights file .* is missing"):
+        verify(get_pretrained("wskpn-xs-x1", root))
+    (shipped.folder / "manifest.json").write_text("{not json")
+    with pytest.raises(PretrainedError, match="not readable JSON"):
+        get_pretrained("wskpn-xs-x1", root)
+    with pytest.raises(UnknownPretrained, match="no pretrained model named 'nope' .*wskpn-xs-x1"):
+        get_pretrained("nope", root)
+    with pytest.raises(UnknownPretrained):
+        get_pretrained("../pretrained", root)
+
+
+@pytest.mark.parametrize("name", pretrained_names())
+def test_every_model_in_the_repository_matches_its_manifest_and_runs(name):
+    model = get_pretrained(name)
+    assert model.folder.parent == PRETRAINED_DIR
+    assert model.manifest["bytes"] < 3_000_000  # small enough to live in git
+    verify(model)
+    method = load_pretrained(name).for_inference()
+    assert (method.name, method.preset, method.scale) == (model.method, model.preset, model.scale)
+    frame = example_batch(16, 16)
+    with torch.no_grad():
+        output, state = method.step(frame, None)
+        output, _ = method.step(frame, state)
+    assert output.shape == (1, 3, 16 * model.scale, 16 * model.scale) and torch.isfinite(output).all()
+    held_out = model.held_out
+    assert held_out["status"] in ("measured", "pending")
+    if held_out["status"] == "measured":
+        assert held_out["model"]["psnr"] is not None and held_out["peers"]
+
+
+def test_evaluate_takes_a_pretrained_name(tmp_path, monkeypatch):
+    import model.pretrained as pretrained
+    from model.evaluate import resolve_method
+
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    ship_tiny(tmp_path / "pretrained")
+    method, source = resolve_method("wskpn-xs-x1", 1)
+    assert (method.label, source) == ("wskpn:xs", "pretrained:wskpn-xs-x1")
+
+
+def test_names_no_model_can_have_are_simply_not_pretrained(tmp_path):
+    from model.pretrained import is_pretrained
+
+    ship_tiny(tmp_path / "pretrained")
+    for name in ("0" * 600, "../pretrained", "Wskpn-XS-x1", "", "a/b"):
+        assert not is_pretrained(name, tmp_path / "pretrained")
+    assert is_pretrained("wskpn-xs-x1", tmp_path / "pretrained")
