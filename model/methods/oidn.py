@@ -8,6 +8,8 @@ output is bicubic-upscaled like the other baselines. Not a torch model: `paramet
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pyoidn
 import torch
@@ -17,6 +19,8 @@ from model.methods.baselines import RenderResolutionFilter
 from model.methods.registry import MethodSpec, register
 
 __all__ = ["OIDN", "QUALITIES", "oidn_albedo", "oidn_denoise"]
+
+log = logging.getLogger(__name__)
 
 QUALITIES = ("fast", "balanced", "high")
 
@@ -42,17 +46,44 @@ def oidn_denoise(frame: FrameBatch, quality: str) -> torch.Tensor:
     """OIDN's RT filter on every frame of the batch (HDR, albedo + normal, clean aux), at render resolution.
 
     The one place OIDN is called: the `oidn` peer, `oidn-taa` and the `fused` family's spatial estimate all
-    use it, so they denoise with exactly the same settings.
+    use it, so they denoise with exactly the same settings. A frame on a CUDA device is denoised by OIDN's CUDA
+    device when this pyoidn build has one, else (after one warning) on the CPU.
     """
     if quality not in QUALITIES:
         raise KeyError(f"OIDN has no quality {quality!r}; qualities: {', '.join(QUALITIES)}")
     albedo = oidn_albedo(frame)
+    if frame.device.type == "cuda" and _cuda_oidn_usable():
+        try:
+            return _denoise_cuda(frame, albedo, quality)
+        except (TypeError, ValueError, RuntimeError) as error:  # this pyoidn build has no CUDA device after all
+            _CUDA_STATE["usable"] = False
+            log.warning("OIDN's CUDA device failed (%s); denoising on the CPU from now on", error)
     outputs = []
     for index in range(frame.batch_size):
         denoised = pyoidn.denoise(_to_hwc(frame.color[index]), _to_hwc(albedo[index]),
                                   _to_hwc(frame.normal[index]), hdr=True, clean_aux=True, quality=quality)
         outputs.append(torch.from_numpy(denoised).permute(2, 0, 1))
     return torch.stack(outputs).to(device=frame.device, dtype=frame.color.dtype)
+
+
+_CUDA_STATE: dict[str, bool] = {}
+
+
+def _cuda_oidn_usable() -> bool:
+    return _CUDA_STATE.get("usable", True)
+
+
+def _denoise_cuda(frame: FrameBatch, albedo: torch.Tensor, quality: str) -> torch.Tensor:
+    """OIDN on the GPU the frame lives on (pyoidn takes CUDA tensors and runs its CUDA device on them)."""
+    outputs = []
+    for index in range(frame.batch_size):
+        def hwc(image: torch.Tensor) -> torch.Tensor:
+            return image[index].detach().to(torch.float32).permute(1, 2, 0).contiguous()
+
+        denoised = pyoidn.denoise(hwc(frame.color), hwc(albedo), hwc(frame.normal), hdr=True, clean_aux=True,
+                                  quality=quality)
+        outputs.append(torch.as_tensor(denoised, device=frame.device).permute(2, 0, 1))
+    return torch.stack(outputs).to(frame.color.dtype)
 
 
 class OIDN(RenderResolutionFilter):
