@@ -19,8 +19,9 @@ accumulated branch. Per frame:
    and predicts, per output pixel, softmax fusion weights over (``s``, ``h``, ``r``) and a 3 x 3 softmax kernel;
 5. output = kernel * (w_s s + w_h h + w_r r), back to linear radiance; it is the next frame's history.
 
-Where there is no history, ``h`` and ``r`` are ``s`` itself, so the output is OIDN's (filtered by a kernel that
-starts as identity): the method falls back to the spatial estimate by construction. The fusion head starts at
+Where there is no history (disocclusion, a cut, the first frame), ``h`` is ``s`` itself and ``r`` is ``s`` clipped to
+its own neighbourhood, so the output is made of OIDN's estimate alone: the method falls back to the spatial
+estimate by construction and cannot ghost there. The fusion head starts at
 TAA's weights (0.2 s + 0.8 r), so training starts from OIDN + TAA and learns where to trust history more
 (static, well-lit areas: longer accumulation) and where less (moving lights, highlights, disocclusions).
 
