@@ -16,6 +16,7 @@ or a run killed mid-write, never sees half a checkpoint.
 
 from __future__ import annotations
 
+import io
 import os
 import random
 import uuid
@@ -83,8 +84,12 @@ def save_checkpoint(path: str | os.PathLike, *, method: Method,
         "extra": dict(extra or {}),
     }
     temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    # Serialized in memory first: torch.save names the zip's root folder after the file it writes to, so saving
+    # straight to a randomly named temporary file made the same weights give different bytes (and sha256) each time.
+    buffer = io.BytesIO()
+    torch.save(content, buffer)
     try:
-        torch.save(content, temporary)
+        temporary.write_bytes(buffer.getvalue())
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -77,12 +78,12 @@ def test_a_failed_write_leaves_the_old_checkpoint_and_no_temporary_file(tmp_path
     path = save_checkpoint(tmp_path / "last.pt", method=method, step=1)
     before = path.read_bytes()
 
-    def broken_save(content, target):
-        with open(target, "wb") as file:
-            file.write(b"half a checkpoint")
+    def broken_write(self, data):
+        with open(self, "wb") as file:
+            file.write(data[: len(data) // 2])
         raise OSError("disk full")
 
-    monkeypatch.setattr(torch, "save", broken_save)
+    monkeypatch.setattr(Path, "write_bytes", broken_write)
     with pytest.raises(OSError, match="disk full"):
         save_checkpoint(path, method=method, step=2)
     assert path.read_bytes() == before
@@ -121,3 +122,17 @@ def test_a_scale_dependent_network_refuses_another_scale(tmp_path):
     path = save_checkpoint(tmp_path / "jnds.pt", method=build_method("jnds:xs", scale=2))
     with pytest.raises(ValueError, match="depends on its output scale; it cannot run at scale 1"):
         load_method(path, scale=1)
+
+
+def test_the_same_weights_give_the_same_bytes_wherever_they_are_saved(tmp_path):
+    # Shipped models are identified by their sha256: saving them again must not change it.
+    import hashlib
+
+    from model.checkpoint import save_checkpoint
+    from model.methods.registry import build_method
+
+    torch.manual_seed(0)
+    method = build_method("wskpn:xs")
+    first = save_checkpoint(tmp_path / "a.pt", method=method, step=3)
+    second = save_checkpoint(tmp_path / "other" / "b.pt", method=method, step=3)
+    assert hashlib.sha256(first.read_bytes()).digest() == hashlib.sha256(second.read_bytes()).digest()
