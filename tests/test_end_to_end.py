@@ -84,6 +84,8 @@ class Stack:
         self.data = root / "data"
         self.tracking_uri = f"sqlite:///{root / 'mlflow' / 'mlflow.db'}"
         (root / "mlflow").mkdir(parents=True)
+        self.parking = root / "parking"  # where a test asks a training job to park (workers.tasks.train)
+        self.parking.mkdir()
         self.queue = f"test-e2e-{uuid.uuid4().hex[:8]}"
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -100,7 +102,8 @@ class Stack:
             **keep, "DENOISER_DATA_DIR": str(self.data), "DENOISER_REDIS_URL": TEST_REDIS_URL,
             "DENOISER_TRACKING_URI": self.tracking_uri, "DENOISER_API_KEY": API_KEY,
             "DENOISER_SESSION_THREADS": "1", "E2E_QUEUE": self.queue, "PYTHONPATH": str(REPOSITORY),
-            "OMP_NUM_THREADS": "1", "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false"}
+            "OMP_NUM_THREADS": "1", "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false",
+            "DENOISER_TEST_PARKING_DIR": str(self.parking)}
 
     def create_tracking_store(self) -> None:
         """The MLflow store's tables, created while the processes start rather than by the first training (seconds
@@ -322,15 +325,20 @@ RESUMED = re.compile(r"resuming from \S+ at step (\d+) of (\d+)")
 def test_a_training_survives_its_worker_being_killed(stack, trained, lease):
     steps, every = 60, 5
     name = f"{MODEL}-resumed-{lease}"
+    # The job's first attempt parks at step 2 * every (its checkpoint written) until its worker is killed: a
+    # 60-step job can finish in under a second, so waiting to catch it running would race it.
+    (stack.parking / f"{name}.park").write_text(str(2 * every))
+    parked = stack.parking / f"{name}.parked"
     with stack.client() as client:
         job = stack.submit(client, "train", {**TRAIN, "dataset": trained["dataset"]["id"], "steps": steps,
                                              "checkpoint_every": every, "register_as": name})
         last = stack.data / "jobs" / job["id"] / "checkpoints" / "last.pt"
-        running = stack.wait_for_job(job["id"], lambda r: r["state"] == "running" and r["progress"]["current"]
-                                     >= 2 * every and last.is_file())
+        # Progress reaches the record at most every PROGRESS_INTERVAL, so the parked marker says where it is.
+        running = stack.wait_for_job(job["id"], lambda r: parked.is_file() and r["state"] == "running")
+        assert parked.read_text() == str(2 * every) and last.is_file()
         stack.kill(stack.worker)
         killed_at = stack.jobs.get(job["id"])
-        assert killed_at["state"] == "running" and killed_at["progress"]["current"] < steps, killed_at
+        assert killed_at["state"] == "running" and killed_at["progress"]["current"] <= 2 * every, killed_at
         assert running["attempts"] == 1 and running["mlflow_run_id"]
 
         lease_key = stack.jobs.lease_key(job["id"])
@@ -355,5 +363,5 @@ def test_a_training_survives_its_worker_being_killed(stack, trained, lease):
     resumed = [RESUMED.search(line) for line in logs if RESUMED.search(line)]
     assert len(resumed) == 1, logs
     step = int(resumed[0].group(1))
-    assert 0 < step < steps and step % every == 0 and int(resumed[0].group(2)) == steps
+    assert step == 2 * every and int(resumed[0].group(2)) == steps  # from the checkpoint it parked at
     assert any("attempt 2 of train job" in line for line in logs)
