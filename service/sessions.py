@@ -242,6 +242,13 @@ class _Snapshot:
     state: State | None
 
 
+def _daemon_timer(delay: float, function: Callable[[], None]) -> threading.Timer:
+    timer = threading.Timer(delay, function)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
 class _MirrorWriter:
     """One session's background writer: writes the newest snapshot handed to it, one write at a time.
 
@@ -253,9 +260,13 @@ class _MirrorWriter:
     """
 
     def __init__(self, write: Callable[[_Snapshot], None], executor: ThreadPoolExecutor,
-                 min_interval: float = 0.0) -> None:
+                 min_interval: float = 0.0, monotonic: Callable[[], float] = time.monotonic,
+                 timer: Callable[[float, Callable[[], None]], Any] | None = None) -> None:
         self._write = write
         self._executor = executor
+        # Injectable so a test drives the interval by construction (a fake clock, a timer it fires itself).
+        self._monotonic = monotonic
+        self._start_timer = timer or _daemon_timer
         self._condition = threading.Condition()
         self._pending: _Snapshot | None = None
         self._running = False
@@ -306,13 +317,11 @@ class _MirrorWriter:
 
     def _defer(self) -> bool:
         """(Under the lock.) Whether the pending write must wait for the interval; if so, a timer will start it."""
-        delay = self._not_before - time.monotonic()
+        delay = self._not_before - self._monotonic()
         if self._forced or delay <= 0:
             return False
         if self._timer is None:
-            self._timer = threading.Timer(delay, self._interval_over)
-            self._timer.daemon = True
-            self._timer.start()
+            self._timer = self._start_timer(delay, self._interval_over)
         return True
 
     def _interval_over(self) -> None:
@@ -329,7 +338,7 @@ class _MirrorWriter:
                     self._condition.notify_all()
                     return
                 self._pending = None
-                self._not_before = time.monotonic() + self._min_interval
+                self._not_before = self._monotonic() + self._min_interval
             try:
                 self._write(snapshot)
             except Exception:  # never leave the writer marked running: the session would wait forever
@@ -341,7 +350,11 @@ class SessionStore:
 
     def __init__(self, settings: Settings, *, registry: Registry | None = None,
                  redis_client: redis.Redis | None = None, prefix: str | None = None,
-                 clock: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.time,
+                 mirror_timing: tuple[Callable[[], float], Callable[[float, Callable[[], None]], Any]] | None = None
+                 ) -> None:
+        """``mirror_timing``: (monotonic clock, timer starter) of the mirror writers' interval; tests only."""
+        self.mirror_timing = mirror_timing or (time.monotonic, _daemon_timer)
         self.ttl_seconds = settings.session_ttl_seconds
         self.mirror_interval = settings.session_mirror_interval_seconds
         self.max_sessions = settings.max_sessions
@@ -675,7 +688,7 @@ class SessionStore:
             writer = self._writers.get(session.id)
             if writer is None:
                 writer = self._writers[session.id] = _MirrorWriter(self._write_mirror, self._mirror_pool,
-                                                                   self.mirror_interval)
+                                                                   self.mirror_interval, *self.mirror_timing)
         writer.submit(_Snapshot(session, session.revision, json.dumps(session.metadata()), session.state), start)
         if wait:
             writer.wait()

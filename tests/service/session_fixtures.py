@@ -138,7 +138,7 @@ def registry_settings(settings, monkeypatch):
 
 @pytest.fixture
 def make_store(registry_settings, redis_db):
-    """``make_store(**setting_changes, clock=...)``: a SessionStore on Redis db 15 under this test's own key prefix;
+    """``make_store(**setting_changes, clock=..., mirror_timing=...)``: a SessionStore on Redis db 15 under this test's own key prefix;
     every store of one test shares the prefix, so a second store plays the restarted API. It is built once the
     earlier stores' background mirror writes have landed, as after a clean shutdown."""
     from service.sessions import SessionStore
@@ -146,17 +146,58 @@ def make_store(registry_settings, redis_db):
     prefix = f"denoiser:session:test-{uuid.uuid4().hex[:8]}:"
     stores = []
 
-    def build(clock=None, **changes):
+    def build(clock=None, mirror_timing=None, **changes):
         for earlier in stores:
             assert earlier.flush(timeout=30)
         active = registry_settings.model_copy(update=changes) if changes else registry_settings
-        store = SessionStore(active, prefix=prefix, **({"clock": clock} if clock else {}))
+        extra = {"clock": clock} if clock else {}
+        if mirror_timing is not None:
+            extra["mirror_timing"] = mirror_timing
+        store = SessionStore(active, prefix=prefix, **extra)
         stores.append(store)
         return store
 
     yield build
     for store in stores:
         store.close()
+
+
+class ManualTimers:
+    """The mirror writers' (monotonic clock, timer starter) for a test that moves time itself: ``advance(s)`` moves
+    the clock, ``fire()`` runs the timers started so far (as their delay being over would)."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+        self.pending: list[tuple[float, object]] = []
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def start(self, delay: float, function):
+        entry = (delay, function)
+        self.pending.append(entry)
+        timers = self
+
+        class Handle:  # what the writer keeps, as it keeps a threading.Timer
+            @staticmethod
+            def cancel() -> None:
+                if entry in timers.pending:
+                    timers.pending.remove(entry)
+
+        return Handle()
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+    def fire(self) -> int:
+        due, self.pending = self.pending, []
+        for _, function in due:
+            function()
+        return len(due)
+
+    @property
+    def timing(self):
+        return self.monotonic, self.start
 
 
 class FakeClock:

@@ -33,6 +33,7 @@ from service.sessions import (
 from tests.service.session_fixtures import (
     MODEL_NAME,
     FakeClock,
+    ManualTimers,
     assert_same_image,
     in_process_outputs,
     shared_registry,
@@ -183,18 +184,25 @@ def test_a_frames_mirror_is_written_in_the_background_before_the_sessions_next_u
 
 
 def test_with_a_mirror_interval_frames_do_not_wait_and_redis_catches_up_when_it_is_over(make_store, redis_db):
-    store = make_store(session_mirror_interval_seconds=0.5)
+    # The interval's clock and timer are the test's: "within the interval" holds by construction, not because
+    # three steps happened to take less than the interval on this machine.
+    timers = ManualTimers()
+    store = make_store(session_mirror_interval_seconds=0.5, mirror_timing=timers.timing)
     session = store.create(MODEL_NAME)  # creation is written at once, as always
     frames = stream_frames(4)
     store.process_frame(session.id, frames[0])  # the first frame's write starts the interval
-    assert store._writer_of(session.id).wait(timeout=30)  # (test only: until that write has landed)
+    writer = store._writer_of(session.id)
+    assert writer.wait(timeout=30)  # (test only: until that write has landed)
     assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 1
     for frame in frames[1:]:
+        timers.advance(0.1)
         store.process_frame(session.id, frame)  # within the interval: deferred, newer ones replace older ones
     assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 1
-    deadline = time.monotonic() + 10
-    while redis_meta(redis_db, store, session.id)["next_frame_index"] != 4 and time.monotonic() < deadline:
-        time.sleep(0.05)  # no more frames come: the timer writes the newest when the interval is over
+    assert len(timers.pending) == 1  # one timer for the deferred writes, not one per frame
+    timers.advance(0.5)
+    assert timers.fire() == 1  # no more frames come: the timer writes the newest when the interval is over
+    with writer._condition:
+        assert writer._condition.wait_for(lambda: not writer._running and writer._pending is None, timeout=30)
     assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 4
     store.process_frame(session.id, stream_frames(1, start=4)[0])
     store.reset(session.id)  # a reset is written before it answers, interval or not
