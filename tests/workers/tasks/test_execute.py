@@ -254,9 +254,15 @@ class FakeRanks:
 def test_cancel_stops_ddp_ranks_through_training_job_stop(store, storage, settings, dataset, monkeypatch):
     monkeypatch.setattr("workers.ddp.TrainingJob", FakeRanks)
     job_id = submit(store, storage, settings, "train", **train_params(world_size=2, steps=1000))
-    threading.Timer(0.3, store.request_cancel, args=[job_id]).start()
+
+    def cancel_once_running(report: dict) -> None:
+        # Cancelled once the ranks report a step, not after a fixed delay: a cancel that landed before the job
+        # started would end it without ever reaching the ranks.
+        if report["current"] >= 1 and not store.cancel_requested(job_id):
+            store.request_cancel(job_id)
+
     started = time.monotonic()
-    record = run(store, storage, settings, job_id)
+    record = run(store, storage, settings, job_id, reports=_Calls(cancel_once_running))
     assert record["state"] == "cancelled", record["error"]
     ranks = FakeRanks.instances[-1]
     assert ranks.stopped.is_set() and ranks.config.world_size == 2 and ranks.config.resume
