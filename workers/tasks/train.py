@@ -178,7 +178,8 @@ TEST_PARKING_ENV = "DENOISER_TEST_PARKING_DIR"
 def _parked_progress(context: JobContext, params: TrainParams, progress):
     """Test-only hook: with ``$DENOISER_TEST_PARKING_DIR`` set and a file ``<register_as>.park`` in it holding a step,
     the job's first attempt writes ``<register_as>.parked`` once that step is reported (its checkpoint is already
-    written then) and waits there until its worker is killed. Later attempts and other jobs run as usual."""
+    written then) and waits there until its worker is killed (or, as in any step, a cancel or a lost lease ends
+    it). Later attempts and other jobs run as usual; unset, the progress callback is returned unchanged."""
     folder = os.environ.get(TEST_PARKING_ENV)
     if not folder or not params.register_as or int(context.record.get("attempts") or 1) != 1:
         return progress
@@ -190,8 +191,13 @@ def _parked_progress(context: JobContext, params: TrainParams, progress):
     def parked(current: int, total: int, message: str = "") -> None:
         progress(current, total, message)
         if current == park_at:
-            (Path(folder) / f"{params.register_as}.parked").write_text(str(current))
+            # Written whole, then renamed: the test reads the step as soon as the file exists.
+            marker = Path(folder) / f"{params.register_as}.parked"
+            partial = marker.with_suffix(".partial")
+            partial.write_text(str(current))
+            partial.replace(marker)
             while True:
+                context.check()
                 time.sleep(0.05)
 
     return parked

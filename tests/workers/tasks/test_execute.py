@@ -18,7 +18,7 @@ from service.schemas import JOB_PARAMS
 from tests.model.training_fixtures import TINY_METHOD, write_sequence
 from tests.workers.tasks.datasets import store_dataset
 from workers.tasks import generate as generate_module
-from workers.tasks.context import JobContext, Watchdog
+from workers.tasks.context import JobCancelled, JobContext, Watchdog
 from workers.tasks.jobs import execute
 from workers.tasks.kinds import check
 from workers.tasks.train import plugin_modules
@@ -388,3 +388,40 @@ def test_the_watchdog_notices_a_lost_lease_and_a_cancel(store, storage, settings
         store.redis.set(store.lease_key(job_id), "someone-else")
         assert context.lease_lost.wait(2)
     assert stopped
+
+
+# ----------------------------------------------------------------------------------- test-only parking
+
+def test_the_parking_hook_changes_nothing_unless_a_test_asks_and_parks_the_first_attempt_only(
+        store, storage, settings, tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from workers.tasks.train import TEST_PARKING_ENV, _parked_progress
+
+    parking = tmp_path / "parking"
+    parking.mkdir()
+    job_id = store.create("train", {}, "cpu", "cpu")["id"]
+    store.start(job_id, "me")
+    context = JobContext(store.get(job_id), store, storage, settings, "me")
+    params = SimpleNamespace(register_as="parked-model")
+    calls = []
+
+    def progress(current, total, message=""):
+        calls.append(current)
+
+    monkeypatch.delenv(TEST_PARKING_ENV, raising=False)
+    assert _parked_progress(context, params, progress) is progress  # unset: the callback itself
+    monkeypatch.setenv(TEST_PARKING_ENV, str(parking))
+    assert _parked_progress(context, params, progress) is progress  # no request for this model
+    (parking / "parked-model.park").write_text("2")
+    retried = JobContext({**store.get(job_id), "attempts": 2}, store, storage, settings, "me")
+    assert _parked_progress(retried, params, progress) is progress  # a later attempt runs on
+
+    parked = _parked_progress(context, params, progress)
+    parked(1, 4)
+    assert calls == [1] and not (parking / "parked-model.parked").exists()
+    context.cancelled.set()  # parked, the job still ends on a cancel, as in any step
+    with pytest.raises(JobCancelled):
+        parked(2, 4)
+    assert calls == [1, 2] and (parking / "parked-model.parked").read_text() == "2"
+    assert sorted(p.name for p in parking.iterdir()) == ["parked-model.park", "parked-model.parked"]
