@@ -105,10 +105,16 @@ def frame_bytes(frame: FrameBundle) -> bytes:
 
 
 def in_process_outputs(checkpoint: Path, frames: list[FrameBundle]) -> list[np.ndarray]:
-    """What the method gives in process: step over the frames from state None, outputs as (H, W, 3)."""
+    """What the checkpoint's method gives in process (see ``method_outputs``)."""
     from model.checkpoint import load_method
 
-    method = load_method(checkpoint).for_inference()
+    return method_outputs(load_method(checkpoint), frames)
+
+
+def method_outputs(method: Method, frames: list[FrameBundle]) -> list[np.ndarray]:
+    """What the method gives in process: its inference form stepped over the frames from state None, outputs as
+    (H, W, 3)."""
+    method = method.for_inference()
     outputs, state = [], None
     with torch.no_grad():
         for frame in frames:

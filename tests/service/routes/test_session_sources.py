@@ -7,25 +7,12 @@ import pytest
 
 import model.pretrained as pretrained
 from model.exr import decode_image_exr
-from model.methods.base import FrameBatch
 from model.methods.registry import build_method
 from tests.model.test_pretrained import ship_tiny
 from tests.service.routes.test_sessions import api, error_of, post_frame  # noqa: F401  (the api fixture)
-from tests.service.session_fixtures import MODEL_NAME, assert_same_image, stream_frames
+from tests.service.session_fixtures import MODEL_NAME, assert_same_image, method_outputs, stream_frames
 
 __all__ = ["api"]
-
-
-def method_outputs(method, frames):
-    import torch
-
-    method = method.for_inference()
-    outputs, state = [], None
-    with torch.no_grad():
-        for frame in frames:
-            output, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
-            outputs.append(output[0].permute(1, 2, 0).numpy().copy())
-    return outputs
 
 
 @pytest.mark.parametrize("name, scale, label", [("oidn:high", None, "oidn:high"), ("svgf", 2, "svgf:default"),
