@@ -38,8 +38,11 @@ RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml
  && rm /tmp/requirements.txt
 
 COPY model ./model
-COPY service ./service
+COPY core ./core
+COPY api ./api
 COPY workers ./workers
+COPY cli ./cli
+COPY client ./client
 # The pretrained models (weights + manifests, model/pretrained.py); the installed package finds them here.
 COPY pretrained ./pretrained
 ENV DENOISER_PRETRAINED_DIR=/app/pretrained
@@ -56,4 +59,5 @@ EXPOSE 8000
 # The API listens on every interface here: it refuses to start without a real DENOISER_API_KEY.
 ENV DENOISER_REQUIRE_API_KEY=true
 # One uvicorn process: inference sessions keep their models and history in its memory (mirrored to Redis).
-CMD ["uvicorn", "service.main:app", "--host", "0.0.0.0", "--port", "8000"]
+# --ws-max-size: a session stream's frame (one WebSocket message) may be as large as DENOISER_MAX_FRAME_BYTES.
+CMD ["uvicorn", "api.main:app", "--host", "0.0.0.0", "--port", "8000", "--ws-max-size", "268435456"]

@@ -1,31 +1,21 @@
 """Speed against accuracy: evaluation reports (``model.evaluate.evaluate``, one per scale) as one table and charts.
 
-A benchmark is one evaluation run per output scale, each timing OIDN-high on the same frames. This module turns
-those reports into rows (one per method, preset and scale: parameters, FLOPs per pixel, quality, ms per frame
-and the ratio to OIDN-high of the same run), a Markdown table, a JSON document, and two charts:
-
-- quality against time per frame (``quality_speed_figure``): PSNR and FLIP, one panel each, time on a log axis,
-  every point labelled, scale 1 and scale 2 told apart by the marker, and each scale's Pareto front drawn;
-- quality against cost (``quality_cost_figure``): PSNR and FLIP against parameters and against FLOPs per pixel.
-
-Only matplotlib's object API is used (``matplotlib.figure.Figure``, no pyplot): no global state, safe in
-worker threads. Points at 1x and 2x are scored against different references (render and target resolution),
-so each scale gets its own Pareto front.
+Rows (one per method, preset and scale), a Markdown table, a JSON document, and two charts: quality against time
+per frame with each scale's Pareto front, and quality against cost. Details: docs/benchmark.md.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
 from collections.abc import Iterable, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
 
 from matplotlib.figure import Figure
 
-from model.evaluate import UNCOUNTED_COST
+from model.evaluate import COLUMNS, UNCOUNTED_COST, run_summary
+from model.tables import cell, compact, table_row, table_rule, usable
 
 # Quality measures in the rows: key, axis label, higher is better.
 QUALITY = (("psnr", "PSNR dB (display-encoded) ↑", True), ("flip", "FLIP (display-encoded) ↓", False))
@@ -45,10 +35,6 @@ Point = tuple[float | None, float | None]
 
 # --------------------------------------------------------------------------------------------- Pareto
 
-def _usable(value: float | None) -> bool:
-    return value is not None and isinstance(value, (int, float)) and math.isfinite(value)
-
-
 def pareto_front(points: Sequence[Point], *, x_lower_is_better: bool = True,
                  y_higher_is_better: bool = True) -> list[int]:
     """Indices of the points no other point dominates, ordered by x (ascending; ties by index).
@@ -61,7 +47,7 @@ def pareto_front(points: Sequence[Point], *, x_lower_is_better: bool = True,
     sign_y = -1.0 if y_higher_is_better else 1.0
     # In (cost_x, cost_y), lower is better on both axes.
     costs = {i: (sign_x * float(x), sign_y * float(y)) for i, (x, y) in enumerate(points)
-             if _usable(x) and _usable(y)}
+             if usable(x) and usable(y)}
 
     def dominated(i: int) -> bool:
         xi, yi = costs[i]
@@ -134,48 +120,24 @@ def benchmark_rows(reports: Iterable[dict]) -> list[dict]:
     _disambiguate(rows)
     _mark_fronts(rows)
     untimed = float("inf")
-    return sorted(rows, key=lambda r: (r["scale"], r["ms_per_frame"] if _usable(r["ms_per_frame"]) else untimed))
+    return sorted(rows, key=lambda r: (r["scale"], r["ms_per_frame"] if usable(r["ms_per_frame"]) else untimed))
 
 
 # ---------------------------------------------------------------------------------------------- table
 
-_COLUMNS = (  # header, row key, format
-    ("PSNR dB ↑", "psnr", "{:.2f}"),
-    ("FLIP ↓", "flip", "{:.4f}"),
-    ("SSIM ↑", "ssim", "{:.4f}"),
-    ("temporal ↓", "temporal_error", "{:.5f}"),
-    ("JOD ↑", "fvvdp_jod", "{:.2f}"),
-    ("ms/frame", "ms_per_frame", "{:.3g}"),
-    ("time / OIDN-high", "time_ratio_to_oidn", "{:.3g}x"),
-)
-
-
-def _compact(value: float | None) -> str:
-    if not _usable(value):
-        return "-"
-    for limit, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
-        if abs(value) >= limit:
-            return f"{value / limit:.3g}{suffix}"
-    return f"{value:.3g}"
-
-
-def _cell(value: Any, fmt: str) -> str:
-    return fmt.format(value) if _usable(value) else "-"
+TABLE_COLUMNS = ("psnr", "flip", "ssim", "temporal_error", "fvvdp_jod", "ms_per_frame", "time_ratio_to_oidn")
+REFERENCE_HEADERS = {"time_ratio_to_oidn": "time / OIDN-high"}  # the benchmark's timing reference is OIDN-high
 
 
 def scale_caption(report: dict) -> str:
     """What one scale's run measured: frames, resolutions, timing conditions, OIDN-high's time."""
-    sequences = report["sequences"]
-    frames = sum(s["frames"] for s in sequences)
-    inputs = ", ".join(sorted({s["input_resolution"] for s in sequences}))
-    outputs = ", ".join(sorted({s["output_resolution"] for s in sequences}))
-    reference = report.get("timing_reference")
-    reference_text = (f"{reference['label']} {_cell(reference['ms_per_frame'], '{:.3g}')} ms/frame"
-                      if reference else "no timing reference (ratios not available)")
+    run = run_summary(report)
+    reference_text = run["reference"] or "no timing reference (ratios not available)"
     vdp = report.get("fvvdp", {})
     vdp_text = ("JOD computed" if vdp.get("available") else
                 "JOD skipped" if not vdp.get("enabled") else f"JOD unavailable: {vdp.get('reason')}")
-    return (f"x{report['scale']}: {len(sequences)} sequences, {frames} frames, input {inputs} -> output {outputs}; "
+    return (f"x{report['scale']}: {run['sequences']} sequences, {run['frames']} frames, input {run['inputs']} -> "
+            f"output {run['outputs']}; "
             f"median ms/frame after {report['warmup_frames_per_sequence']} warm-up frames per sequence, "
             f"{report['threads']} threads, {report['device']}; {reference_text}; {vdp_text}")
 
@@ -190,14 +152,14 @@ def format_benchmark_table(rows: list[dict], reports: Iterable[dict] = (), skipp
         lines += [f"Benchmark on the {first['split']} split of {first['dataset']}.", ""]
         lines += [f"- {scale_caption(report)}" for report in reports]
         lines.append("")
-    header = ["method", "scale", "params", "FLOPs/px"] + [c[0] for c in _COLUMNS] + ["front"]
-    lines += ["| " + " | ".join(header) + " |", "|" + "|".join(["---", "---:"] + ["---:"] * (len(header) - 3)
-                                                                 + ["---"]) + "|"]
+    header = (["method", "scale", "params", "FLOPs/px"]
+              + [REFERENCE_HEADERS.get(key, COLUMNS[key][0]) for key in TABLE_COLUMNS] + ["front"])
+    lines += [table_row(header), table_rule("l" + "r" * (len(header) - 2) + "l")]
     for row in rows:
-        cells = [row["label"], f"x{row['scale']}", _compact(row["params"]), _compact(row["flops_per_pixel"])]
-        cells += [_cell(row[key], fmt) for _, key, fmt in _COLUMNS]
+        cells = [row["label"], f"x{row['scale']}", compact(row["params"]), compact(row["flops_per_pixel"])]
+        cells += [cell(row[key], COLUMNS[key][1]) for key in TABLE_COLUMNS]
         cells.append(", ".join(key.upper() for key in row.get("pareto", [])) or "")
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(table_row(cells))
     skipped = list(skipped)
     if skipped:
         lines += ["", "Not run:"] + [f"- {s['method']} at x{s['scale']}: {s['reason']}" for s in skipped]
@@ -245,7 +207,7 @@ def _panel(axis, rows: list[dict], x_key: str, y_key: str, y_higher: bool, color
     """
     drawn = 0
     for scale in sorted({row["scale"] for row in rows}):
-        group = [row for row in rows if row["scale"] == scale and _usable(row[x_key]) and _usable(row[y_key])
+        group = [row for row in rows if row["scale"] == scale and usable(row[x_key]) and usable(row[y_key])
                  and (log_x != "log" or row[x_key] > 0)]
         if not group:
             continue

@@ -31,11 +31,11 @@ from typing import Any
 
 from model.exr import read_frame, write_frame
 from model.frames import FrameBundle, validate_frame
+from model.names import SPLITS
 
 SEQUENCE_FORMAT = "denoiser-sequence/1"
 DATASET_FORMAT = "denoiser-dataset/1"
 MANIFEST = "manifest.json"
-SPLITS = ("train", "validation", "test")
 
 
 class DatasetError(ValueError):
@@ -109,10 +109,13 @@ def _as_tuple(types: type | tuple[type, ...]) -> tuple[type, ...]:
     return types if isinstance(types, tuple) else (types,)
 
 
-def _check_format(manifest: dict, expected: str, path: Path) -> None:
+def _read_manifest(path: Path, what: str, expected_format: str) -> dict:
+    """A ``what`` ("sequence", "dataset") folder's manifest, refused unless it declares ``expected_format``."""
+    manifest = _read_json(path, what)
     found = manifest.get("format")
-    if found != expected:
-        raise DatasetError(f"{path}: field 'format' is {found!r}, expected {expected!r}")
+    if found != expected_format:
+        raise DatasetError(f"{path}: field 'format' is {found!r}, expected {expected_format!r}")
+    return manifest
 
 
 class Sequence:
@@ -121,8 +124,7 @@ class Sequence:
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
         self.manifest_path = self.path / MANIFEST
-        manifest = _read_json(self.manifest_path, "sequence")
-        _check_format(manifest, SEQUENCE_FORMAT, self.manifest_path)
+        manifest = _read_manifest(self.manifest_path, "sequence", SEQUENCE_FORMAT)
         where = self.manifest_path
         self.name: str = _field(manifest, "sequence", str, where, "a string")
         self.scene: str | None = _field(manifest, "scene", (str, type(None)), where, "a string or null")
@@ -347,8 +349,7 @@ class Dataset:
     def __init__(self, root: str | os.PathLike) -> None:
         self.root = Path(root)
         self.manifest_path = self.root / MANIFEST
-        manifest = _read_json(self.manifest_path, "dataset")
-        _check_format(manifest, DATASET_FORMAT, self.manifest_path)
+        manifest = _read_manifest(self.manifest_path, "dataset", DATASET_FORMAT)
         entries = _field(manifest, "sequences", dict, self.manifest_path, "an object")
         self._entries: dict[str, dict] = {}
         for name, entry in entries.items():

@@ -1,31 +1,15 @@
 """The benchmark protocol (DESIGN.md): quality and speed of methods on whole sequences of a dataset split.
 
-Every method is driven exactly as in inference, ``output, state = method.step(frame, state)`` frame by frame,
-with its history carried through the sequence (``state=None`` on the first frame; camera cuts are flagged in the
-frames and honoured by the method). The method never sees the reference: it gets ``frame.without_reference()``,
-passed through ``model.sanitize.sanitize_frame`` (NaN/Inf and out-of-range values repaired, outside the timed
-step); the repaired pixels are counted per sequence and buffer in the report (``sanitized_inputs``).
-
-Quality, per frame then averaged per sequence (``model.metrics``): PSNR, SSIM and FLIP on display-encoded images,
-SMAPE on linear HDR; per sequence: the temporal error and FovVideoVDP's JOD. A method's mean over a split
-weighs every sequence equally.
-
-Speed: wall time of ``step`` alone (no disk reads, no metrics, no host-device copies of the inputs) per frame,
-in this one process, under ``torch.inference_mode()``, the first ``warmup_frames`` frames of every sequence
-excluded (they fill the history and, on the first sequence, warm caches), median over all remaining frames.
-The input and output resolutions, torch's thread count and the device are reported with it. OIDN-high is timed
-in the same run on the same frames, and every method carries its time ratio to it (DESIGN.md: ratios, never
-bare milliseconds alone).
+Every method is driven as in inference (``method.step`` frame by frame, history carried, inputs sanitized outside
+the timed step) and scored per frame and per sequence; ``step`` alone is timed (``model.timing``), with OIDN-high
+timed in the same run for the ratios. What is measured and how, exactly: docs/evaluate.md.
 """
 
 from __future__ import annotations
 
-import math
 import os
 import statistics
-import time
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,6 +20,8 @@ from model.methods.base import FrameBatch, Method
 from model.metrics import VDP_DISPLAY, VDP_FRAMES_PER_SECOND, FovVideoVdp, frame_metrics, temporal_error
 from model.ops.tonemap import display_encode
 from model.sanitize import SanitizeReport, sanitize_frame
+from model.tables import cell, compact, table_row, table_rule
+from model.timing import median_ms, timed, torch_threads
 
 # Methods whose network runs outside torch (OIDN's native library): torch counts none of their parameters or
 # FLOPs, so tables say "-" (not counted) rather than 0, and the cost chart leaves them out.
@@ -131,11 +117,6 @@ def method_description(method: Method, source: str) -> dict:
 
 # ---------------------------------------------------------------------------------------- one sequence
 
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoVdp | None = None,
                  with_metrics: bool = True, warmup_frames: int = WARMUP_FRAMES,
                  device: torch.device | str = "cpu", keep_outputs: bool = False) -> dict:
@@ -164,12 +145,9 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
         for index, frame in enumerate(sequence.frames):
             inputs, repaired = sanitize_frame(frame.without_reference().to(device))
             sanitized = sanitized + repaired
-            _synchronize(device)
-            start = time.perf_counter()
-            output, state = method.step(inputs, state)
-            _synchronize(device)
+            (output, state), seconds = timed(lambda: method.step(inputs, state), device)
             if index >= warmup_frames:
-                step_seconds.append(time.perf_counter() - start)
+                step_seconds.append(seconds)
             keeps_history = keeps_history or bool(state)
             if not with_metrics:
                 continue
@@ -220,10 +198,6 @@ def _mean_or_none(values: Iterable[float | None]) -> float | None:
     return statistics.fmean(present) if present else None
 
 
-def _ms_per_frame(step_seconds: list[float]) -> float | None:
-    return 1000.0 * statistics.median(step_seconds) if step_seconds else None
-
-
 def _ratio(ms: float | None, reference_ms: float | None) -> float | None:
     if ms is None or reference_ms is None or reference_ms <= 0:
         return None
@@ -232,7 +206,7 @@ def _ratio(ms: float | None, reference_ms: float | None) -> float | None:
 
 def _timing(step_seconds: list[float], sequences: list[EvaluationSequence], warmup_frames: int,
             device: torch.device) -> dict:
-    return {"ms_per_frame": _ms_per_frame(step_seconds), "frames_timed": len(step_seconds),
+    return {"ms_per_frame": median_ms(step_seconds), "frames_timed": len(step_seconds),
             "warmup_frames_per_sequence": warmup_frames,
             "input_resolutions": sorted({s.input_resolution for s in sequences}),
             "output_resolutions": sorted({s.output_resolution for s in sequences}),
@@ -328,7 +302,7 @@ def evaluate(dataset_dir: str | os.PathLike, methods: list[Method | str], split:
                     entrant.method, sequence, vdp=usable_metric, with_metrics=not entrant.timing_only,
                     warmup_frames=warmup_frames, device=device)
         reference_seconds = reference.step_seconds if reference is not None else []
-        reference_ms = _ms_per_frame(reference_seconds)
+        reference_ms = median_ms(reference_seconds)
         return {
             "dataset": str(Path(dataset_dir)),
             "split": split,
@@ -366,17 +340,6 @@ class _Entrant:
         return [seconds for run in self.runs.values() for seconds in run["step_seconds"]]
 
 
-@contextmanager
-def torch_threads(threads: int | None) -> Iterator[None]:
-    previous = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 def _timing_reference(reference: Method | str | None, entrants: list[_Entrant], scale: int) -> _Entrant | None:
     """The evaluated entrant that is the timing reference, or a timing-only one, or None."""
     if reference is None:
@@ -411,40 +374,38 @@ def _vdp_section(metric: FovVideoVdp | None, entrants: list[_Entrant]) -> dict:
 
 # -------------------------------------------------------------------------------------------- table
 
-_COLUMNS = (  # header, metric key, format
-    ("PSNR dB ↑", "psnr", "{:.2f}"),
-    ("SSIM ↑", "ssim", "{:.4f}"),
-    ("FLIP ↓", "flip", "{:.4f}"),
-    ("SMAPE ↓", "smape", "{:.4f}"),
-    ("temporal ↓", "temporal_error", "{:.5f}"),
-    ("JOD ↑", "fvvdp_jod", "{:.2f}"),
-)
+# How each measure appears in tables: key -> (header, format).
+COLUMNS = {
+    "psnr": ("PSNR dB ↑", "{:.2f}"),
+    "ssim": ("SSIM ↑", "{:.4f}"),
+    "flip": ("FLIP ↓", "{:.4f}"),
+    "smape": ("SMAPE ↓", "{:.4f}"),
+    "temporal_error": ("temporal ↓", "{:.5f}"),
+    "fvvdp_jod": ("JOD ↑", "{:.2f}"),
+    "ms_per_frame": ("ms/frame", "{:.3g}"),
+    "time_ratio_to_oidn": ("time / OIDN", "{:.3g}x"),
+}
 
 
-def _compact(value: float) -> str:
-    for limit, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
-        if abs(value) >= limit:
-            return f"{value / limit:.3g}{suffix}"
-    return f"{value:.3g}"
-
-
-def _cell(value: float | None, fmt: str) -> str:
-    return "-" if value is None or (isinstance(value, float) and not math.isfinite(value)) else fmt.format(value)
+def run_summary(report: dict) -> dict:
+    """What an evaluation report's run covered, for captions: "sequences" and "frames" (counts), "inputs" and
+    "outputs" (resolutions), "reference" (the timing reference's label and time, None without one)."""
+    sequences = report["sequences"]
+    reference = report.get("timing_reference")
+    return {"sequences": len(sequences), "frames": sum(s["frames"] for s in sequences),
+            "inputs": ", ".join(sorted({s["input_resolution"] for s in sequences})),
+            "outputs": ", ".join(sorted({s["output_resolution"] for s in sequences})),
+            "reference": (f"{reference['label']} {cell(reference['ms_per_frame'], '{:.3g}')} ms/frame"
+                          if reference else None)}
 
 
 def format_table(report: dict) -> str:
     """The report as a Markdown table, one row per method, with a line stating what was measured and how."""
-    sequences = report["sequences"]
-    frames = sum(s["frames"] for s in sequences)
-    inputs = ", ".join(sorted({s["input_resolution"] for s in sequences}))
-    outputs = ", ".join(sorted({s["output_resolution"] for s in sequences}))
-    reference = report["timing_reference"]
-    reference_text = (f"{reference['label']} {_cell(reference['ms_per_frame'], '{:.3g}')} ms/frame"
-                      if reference else "no timing reference")
-    caption = (f"{report['split']} split of {report['dataset']}: {len(sequences)} sequences, {frames} frames, "
-               f"input {inputs} -> output {outputs} (scale {report['scale']}); time per frame = median after "
-               f"{report['warmup_frames_per_sequence']} warm-up frames per sequence, {report['threads']} threads, "
-               f"{report['device']}; {reference_text}")
+    run = run_summary(report)
+    caption = (f"{report['split']} split of {report['dataset']}: {run['sequences']} sequences, {run['frames']} "
+               f"frames, input {run['inputs']} -> output {run['outputs']} (scale {report['scale']}); time per frame "
+               f"= median after {report['warmup_frames_per_sequence']} warm-up frames per sequence, "
+               f"{report['threads']} threads, {report['device']}; {run['reference'] or 'no timing reference'}")
     repaired = {name: counts["total"] for name, counts in report.get("sanitized_inputs", {}).items()
                 if counts["total"]}
     if repaired:
@@ -454,15 +415,20 @@ def format_table(report: dict) -> str:
         caption += "; FovVideoVDP skipped"
     elif not report["fvvdp"]["available"]:
         caption += f"; FovVideoVDP unavailable: {report['fvvdp']['reason']}"
-    header = ["method", "params", "FLOPs/px"] + [c[0] for c in _COLUMNS] + ["ms/frame", "time / OIDN"]
-    alignment = "|" + "|".join(["---"] + ["---:"] * (len(header) - 1)) + "|"
-    lines = [caption, "", "| " + " | ".join(header) + " |", alignment]
+    columns = [*METRICS, "ms_per_frame", "time_ratio_to_oidn"]
+    header = ["method", "params", "FLOPs/px"] + [COLUMNS[key][0] for key in columns]
+    lines = [caption, "", table_row(header), table_rule("l" + "r" * (len(header) - 1))]
+    labels = [entry["label"] for entry in report["methods"]]
     for entry in report["methods"]:
         ratio = entry["time_ratio_to_oidn"]
         counted = entry.get("method") not in UNCOUNTED_COST
-        cells = [entry["label"]] + ([_compact(entry["params"]), _compact(entry["flops_per_pixel"])] if counted
+        name = entry["label"]
+        # Several models of one method (a pretrained one, a fine-tune, ...) would make identical rows: name the source.
+        if labels.count(name) > 1 and entry.get("source") not in (None, name):
+            name = f"{name} ({entry['source']})"
+        cells = [name] + ([compact(entry["params"]), compact(entry["flops_per_pixel"])] if counted
                                     else ["-", "-"])
-        cells += [_cell(entry["metrics"][key], fmt) for _, key, fmt in _COLUMNS]
-        cells += [_cell(entry["ms_per_frame"], "{:.3g}"), _cell(ratio, "{:.3g}x")]
-        lines.append("| " + " | ".join(cells) + " |")
+        values = {**entry["metrics"], "ms_per_frame": entry["ms_per_frame"], "time_ratio_to_oidn": ratio}
+        cells += [cell(values[key], COLUMNS[key][1]) for key in columns]
+        lines.append(table_row(cells))
     return "\n".join(lines)

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import torch
 
+from model.names import TONEMAPS
 from model.ops.tonemap import log_tonemap, mulaw
 
-TONEMAPS = ("log", "mulaw", "linear")
 SMAPE_EPS = 0.01  # as in WSKPN and Vogels et al. 2018: bounds the loss of near-black pixels
 
 

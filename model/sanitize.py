@@ -155,11 +155,18 @@ def _unit_range(name: str, tensor: torch.Tensor, report: SanitizeReport) -> torc
     return tensor
 
 
-def _normal(normal: torch.Tensor, report: SanitizeReport) -> torch.Tensor:
-    bad = _bad_pixels(normal)
-    report.non_finite["normal"] = _count(bad)
+def _zeroed_bad_pixels(name: str, tensor: torch.Tensor, report: SanitizeReport) -> torch.Tensor:
+    """The tensor with every pixel that has a NaN or Inf in any channel set to 0 in all channels, counted as
+    non-finite: the repair of normal ("nothing hit") and motion (no motion), see the module docstring."""
+    bad = _bad_pixels(tensor)
+    report.non_finite[name] = _count(bad)
     if bool(bad.any()):
-        normal = torch.where(bad, torch.zeros((), dtype=normal.dtype, device=normal.device), normal)
+        tensor = torch.where(bad, torch.zeros((), dtype=tensor.dtype, device=tensor.device), tensor)
+    return tensor
+
+
+def _normal(normal: torch.Tensor, report: SanitizeReport) -> torch.Tensor:
+    normal = _zeroed_bad_pixels("normal", normal, report)
     length = torch.linalg.vector_norm(normal.double(), dim=1, keepdim=True)
     off = (length > 0) & ((length - 1).abs() > NORMAL_LENGTH_TOLERANCE)
     report.out_of_range["normal"] = _count(off)
@@ -177,14 +184,6 @@ def _depth(depth: torch.Tensor, report: SanitizeReport) -> torch.Tensor:
         depth = torch.where(bad, farthest.expand_as(depth), depth)
     depth, report.out_of_range["depth"] = _clamp_counted(depth, 0.0, None, BUFFERS["depth"].tolerance)
     return depth
-
-
-def _motion(motion: torch.Tensor, report: SanitizeReport) -> torch.Tensor:
-    bad = _bad_pixels(motion)
-    report.non_finite["motion"] = _count(bad)
-    if bool(bad.any()):
-        motion = torch.where(bad, torch.zeros((), dtype=motion.dtype, device=motion.device), motion)
-    return motion
 
 
 def _jitter(jitter: torch.Tensor, report: SanitizeReport) -> torch.Tensor:
@@ -238,7 +237,7 @@ def sanitize_frame(frame: FrameBatch) -> tuple[FrameBatch, SanitizeReport]:
             changes[name] = _unit_range(name, tensor, report)
     changes["normal"] = _normal(frame.normal, report)
     changes["depth"] = _depth(frame.depth, report)
-    changes["motion"] = _motion(frame.motion, report)
+    changes["motion"] = _zeroed_bad_pixels("motion", frame.motion, report)
     changes["jitter"] = _jitter(frame.jitter, report)
     changes = {name: tensor for name, tensor in changes.items() if tensor is not getattr(frame, name)}
     return (replace(frame, **changes) if changes else frame), report

@@ -2,7 +2,7 @@
 
 One step (nanoGPT-style, one ``master_process`` flag guards every log, validation and checkpoint):
 
-1. Take the global batch of ``batch_size`` samples for this step from ``SampleStream`` (a seeded permutation per
+1. Take the global batch of ``batch`` samples for this step from ``SampleStream`` (a seeded permutation per
    epoch); rank r of w takes every w-th of them, like ``DistributedSampler``, so w ranks see the same global batch
    as one process.
 2. Unroll the T frames of each sample through ``method.step``, carrying the recurrent state from frame to frame,
@@ -24,7 +24,7 @@ a function of (seed, epoch), so a run restarted from step k sees exactly the bat
 from step k on, and ends with the same weights (on CPU bit-for-bit; on a GPU up to non-deterministic kernels).
 
 Tracking goes through a ``Tracker`` (the protocol below); this module never imports MLflow
-(``workers.tracking.MLflowTracker`` implements it).
+(``core.tracking.MLflowTracker`` implements it).
 """
 
 from __future__ import annotations
@@ -33,7 +33,6 @@ import math
 import random
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -46,14 +45,13 @@ from model import metrics
 from model.checkpoint import capture_rng, load_checkpoint, restore_rng, save_checkpoint
 from model.data.crops import FrameCache, SequenceCrops, collate_crops
 from model.dataset import Dataset
-from model.losses import TONEMAPS, SequenceLoss
+from model.losses import SequenceLoss
 from model.methods.base import FrameBatch, Method
 from model.methods.registry import build_method, inference_cost
 from model.ops.tonemap import display_encode
 from model.spatial_cache import SpatialEstimateCache
+from model.training_settings import TrainConfig
 
-SCHEDULES = ("cosine", "step", "constant")
-DEVICES = ("auto", "cpu", "cuda")
 LAST_CHECKPOINT = "last.pt"
 BEST_CHECKPOINT = "best.pt"
 GRID_SAMPLES = 4  # crops shown in the logged noisy / output / reference grid
@@ -61,97 +59,8 @@ GRID_SAMPLES = 4  # crops shown in the logged noisy / output / reference grid
 Progress = Callable[[int, int, str], None]  # (current step, total steps, message)
 
 
-@dataclass
-class TrainConfig:
-    method: str  # NAME or NAME:PRESET, as the registry knows it
-    data: str  # dataset folder
-    scale: int = 1  # output / render resolution
-    train_split: str = "train"
-    validation_split: str = "validation"
-    crop_size: int = 64  # render-resolution pixels
-    frames_per_sample: int = 4  # T, frames unrolled per sample
-    batch_size: int = 4  # global: split evenly over the ranks
-    steps: int | None = 1000  # exactly one of steps and epochs
-    epochs: int | None = None
-    lr: float = 1e-3
-    schedule: str = "cosine"  # cosine | step | constant, after warmup_steps of linear warm-up
-    warmup_steps: int = 50
-    lr_step_every: int | None = None  # step schedule: decay every N steps (None: every third of the training)
-    lr_step_gamma: float = 0.3
-    min_lr_ratio: float = 0.01  # cosine schedule: the learning rate ends at lr * min_lr_ratio
-    grad_clip: float = 1.0  # max gradient norm (0: no clipping)
-    spatial_weight: float | None = None  # None: the method's own default (Method.loss_weights)
-    temporal_weight: float | None = None
-    tonemap: str = "log"  # what the loss compares: log | mulaw | linear radiance (see model.losses)
-    loss_skip_frames: int = 0  # leave the first k frames of each sample out of the loss
-    augment: bool = True  # flips and brightness
-    seed: int = 0
-    out: str = "runs/train"  # checkpoints (last.pt, best.pt) go here
-    resume: bool = True  # continue from out/last.pt when it exists
-    device: str = "auto"  # auto | cpu | cuda
-    world_size: int = 1  # DDP ranks (workers.ddp launches them)
-    checkpoint_every: int = 500  # steps (0: only at the end)
-    validate_every: int = 500  # steps (0: only at the end)
-    validation_frames: int | None = None  # frames per validation sequence (None: all)
-    num_threads: int | None = None  # torch threads per rank (None: torch's default)
-    tracking_uri: str | None = None  # None: $DENOISER_TRACKING_URI, else a local SQLite file (workers.tracking)
-    experiment: str = "denoiser"
-    register_as: str | None = None  # registered model name (None: METHOD-PRESET-xSCALE)
-    init_from: str | None = None  # checkpoint whose weights start a fresh run (e.g. float32 JNDS -> its int8 QAT)
-
-    def check(self) -> None:
-        """Raise ValueError naming the first field that is out of range."""
-        positive = {"crop_size": self.crop_size, "frames_per_sample": self.frames_per_sample,
-                    "batch_size": self.batch_size, "world_size": self.world_size}
-        for name, value in positive.items():
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if (self.steps is None) == (self.epochs is None):
-            raise ValueError(f"give exactly one of steps and epochs (got steps={self.steps}, epochs={self.epochs})")
-        for name in ("steps", "epochs", "lr_step_every", "validation_frames", "num_threads"):
-            value = getattr(self, name)
-            if value is not None and value < 1:
-                raise ValueError(f"{name} must be at least 1 when given, got {value}")
-        for name in ("warmup_steps", "checkpoint_every", "validate_every", "loss_skip_frames", "grad_clip",
-                     "spatial_weight", "temporal_weight"):
-            if getattr(self, name) is not None and getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not self.lr > 0:
-            raise ValueError(f"lr must be positive, got {self.lr}")
-        if self.scale not in (1, 2):
-            raise ValueError(f"scale must be 1 or 2, got {self.scale}")
-        if self.batch_size % self.world_size:
-            raise ValueError(f"batch size {self.batch_size} does not split evenly over {self.world_size} ranks")
-        if self.loss_skip_frames >= self.frames_per_sample:
-            raise ValueError(f"loss_skip_frames ({self.loss_skip_frames}) must be below frames_per_sample "
-                             f"({self.frames_per_sample}): some frame must count")
-        for name, value, allowed in (("schedule", self.schedule, SCHEDULES), ("device", self.device, DEVICES),
-                                     ("tonemap", self.tonemap, TONEMAPS)):
-            if value not in allowed:
-                raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
-        if not 0 <= self.min_lr_ratio <= 1 or not 0 < self.lr_step_gamma <= 1:
-            raise ValueError("min_lr_ratio must be in [0, 1] and lr_step_gamma in (0, 1]")
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown training settings: {', '.join(unknown)}")
-        return cls(**values)
-
-    def frame_weights(self) -> list[float]:
-        return [0.0] * self.loss_skip_frames + [1.0] * (self.frames_per_sample - self.loss_skip_frames)
-
-    def total_steps(self, samples: int) -> int:
-        return self.steps if self.steps is not None else self.epochs * math.ceil(samples / self.batch_size)
-
-
 class Tracker(Protocol):
-    """What training reports to (rank 0 only). ``workers.tracking.MLflowTracker`` and ``NullTracker`` implement it."""
+    """What training reports to (rank 0 only). ``core.tracking.MLflowTracker`` and ``NullTracker`` implement it."""
 
     @property
     def run_id(self) -> str | None: ...
@@ -287,7 +196,7 @@ def prepare(config: TrainConfig) -> tuple[SequenceCrops, list[FrameCache], Metho
     torch.manual_seed(config.seed)  # the same initial weights in every rank and every run
     method = build_method(config.method, config.scale)
     spatial = SpatialEstimateCache(method.spatial_prior, dataset.root) if method.spatial_prior else None
-    crops = SequenceCrops(dataset, config.train_split, config.crop_size, config.frames_per_sample,
+    crops = SequenceCrops(dataset, config.train_split, config.crop, config.frames_per_sample,
                           scale=config.scale, seed=config.seed, augment=config.augment, spatial=spatial)
     validation = [FrameCache(sequence, config.scale, spatial)
                   for sequence in dataset.sequences(config.validation_split)]
@@ -341,8 +250,8 @@ def train(config: TrainConfig, tracker: Tracker | None = None, rank: int = 0, wo
     if world_size != config.world_size:
         raise ValueError(f"train() called with world_size={world_size} for a config with {config.world_size}")
     device = resolve_device(config.device, rank)
-    if config.num_threads:
-        torch.set_num_threads(config.num_threads)
+    if config.threads:
+        torch.set_num_threads(config.threads)
     own_group = world_size > 1 and not dist.is_initialized()
     if own_group:
         if device.type == "cuda":
@@ -435,10 +344,10 @@ class _Training:
 
     @property
     def epoch(self) -> float:
-        return self.step * self.config.batch_size / len(self.crops)
+        return self.step * self.config.batch / len(self.crops)
 
     def _batch(self, step: int) -> list[FrameBatch]:
-        picks = self.stream.batch(step, self.config.batch_size, self.rank, self.world_size)
+        picks = self.stream.batch(step, self.config.batch, self.rank, self.world_size)
         frames = collate_crops([self.crops.sample(index, epoch) for epoch, index in picks])
         return [frame.to(self.device) for frame in frames]
 

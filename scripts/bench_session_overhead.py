@@ -1,4 +1,5 @@
-"""What a session costs over HTTP: per-frame round trip of POST /sessions/{id}/frames against method.step in process.
+"""What a session costs over the network: per-frame round trip of POST /sessions/{id}/frames and of the session's
+WebSocket (GET /sessions/{id}/stream) against method.step in process.
 
     .venv/bin/python scripts/bench_session_overhead.py                          # jnds:xs, 128x128 -> 256x256
     .venv/bin/python scripts/bench_session_overhead.py --method munet:xs --frames 60 --threads 1
@@ -7,7 +8,7 @@
         --checkpoint jnds-s.pt --api-key "$DENOISER_API_KEY"
 
 Without ``--url`` the API is started here on a free port, on a temporary data folder and MLflow store: by default
-as its own process (``uvicorn service.main:app``), as in a deployment, so client and server share no Python
+as its own process (``uvicorn api.main:app``), as in a deployment, so client and server share no Python
 interpreter; ``--server thread`` runs it in a thread of this process instead (client and server then share one
 GIL, which inflates the round trip). The method (``--method`` preset with seeded random weights, or
 ``--checkpoint``) is saved, registered there, and a session is opened on it by name. Timing does not depend on the
@@ -15,20 +16,23 @@ weights. With ``--url``, the model must already be registered on that server (``
 or ``NAME@ALIAS``) and ``--checkpoint`` gives the same weights for the in-process side.
 
 Frames are synthetic valid frame bundles (or the first sequence of ``--data``, cycled and renumbered). The client
-is service.client.DenoiserClient. Timed per frame, after ``--warmup`` frames, median over ``--frames``:
+is client.rest.DenoiserClient. Timed per frame, after ``--warmup`` frames, median over ``--frames``:
 
-- client encode: the frame bundle to EXR bytes (service.client.frame_bytes, ``--compression``);
-- round trip: send_frame_raw's POST until the whole output EXR has arrived (upload, server, download);
+- client encode: the frame bundle to EXR bytes (client.rest.frame_bytes, ``--compression``), or to a stream
+  message (model.stream_codec.encode_bundle, ``--stream-dtype``);
+- HTTP round trip: send_frame_raw's POST until the whole output EXR has arrived (upload, server, download);
+- WebSocket round trip: SessionStream.send of the packed message until the whole output message has arrived
+  (float32 or ``--stream-dtype`` both ways);
 - server: the X-Server-Ms header (body read, EXR decode, step, EXR encode; the Redis mirror is written in the
-  background);
-- step: the X-Inference-Ms header (method.step in the session);
+  background), or the output message's server_ms (unpack, step);
+- step: the X-Inference-Ms header or the output's inference_ms (method.step in the session);
 - in process: method.step on the same frames, here, with the same torch thread count, history carried.
 
-The two run in alternating blocks, ``--rounds`` times (HTTP stream, in-process stream, HTTP stream, ...; a new
-session and a new history each round), and each median is over every timed frame of its blocks: blocks, not
-frame-by-frame interleaving, because the server's work after answering a frame (its Redis mirror write) would
-otherwise run beside the in-process step on a 2-core machine and slow it, while a client stepping nothing at that
-moment does not feel it. Alternating still spreads slow drifts of other load over both sides.
+The three run in alternating blocks, ``--rounds`` times (HTTP stream, WebSocket stream, in-process stream, HTTP
+stream, ...; a new session and a new history each round), and each median is over every timed frame of its blocks:
+blocks, not frame-by-frame interleaving, because the server's work after answering a frame (its Redis mirror
+write) would otherwise run beside the in-process step on a 2-core machine and slow it, while a client stepping
+nothing at that moment does not feel it. Alternating still spreads slow drifts of other load over all sides.
 
 The overhead ratio is round trip / in-process step; client encode is reported beside it, not in it. Round trip /
 step in session is printed too (the same step, timed inside the server).
@@ -37,6 +41,7 @@ step in session is printed too (the same step, timed inside the server).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
 import socket
@@ -58,7 +63,9 @@ from model.exr import decode_image_exr  # noqa: E402
 from model.frames import FrameBundle  # noqa: E402
 from model.methods.base import FrameBatch  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
-from service.client import FRAME_COMPRESSIONS, DenoiserClient, frame_bytes  # noqa: E402
+from client.rest import FRAME_COMPRESSIONS, DenoiserClient, frame_bytes  # noqa: E402
+from model.stream_codec import DTYPES, encode_bundle  # noqa: E402
+from model.synthetic import moving_pattern_frames  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -75,7 +82,9 @@ def parse_args() -> argparse.Namespace:
                         help="without --url: run the API as its own uvicorn process (default) or in a thread here")
     parser.add_argument("--compression", choices=sorted(FRAME_COMPRESSIONS), default=None,
                         help="EXR compression of the frames sent (default: the client's, "
-                             "service.client.FRAME_COMPRESSION)")
+                             "client.rest.FRAME_COMPRESSION)")
+    parser.add_argument("--stream-dtype", choices=sorted(DTYPES), default="float32",
+                        help="dtype of the WebSocket's frames and outputs (default float32: outputs equal HTTP's)")
     parser.add_argument("--api-key", default=os.environ.get("DENOISER_API_KEY"), help="X-API-Key for --url")
     parser.add_argument("--redis-url", default=os.environ.get("DENOISER_REDIS_URL", "redis://127.0.0.1:6379/0"),
                         help="Redis of the in-process API (session mirror)")
@@ -93,23 +102,7 @@ def parse_args() -> argparse.Namespace:
 
 
 def synthetic_frames(count: int, size: int, seed: int = 0) -> list[FrameBundle]:
-    """Valid frames of a smooth moving pattern: noisy color, random unit normals, depth, small motion."""
-    rng = np.random.default_rng(seed)
-    ys, xs = np.mgrid[0:size, 0:size].astype(np.float32)
-    frames = []
-    for index in range(count):
-        clean = np.stack([0.5 + 0.4 * np.sin(0.05 * (xs + index) + 0.03 * ys + phase) for phase in (0, 2, 4)], 2)
-        color = (clean * rng.exponential(1.0, size=clean.shape)).astype(np.float32)
-        normal = rng.normal(size=(size, size, 3)).astype(np.float32)
-        normal /= np.linalg.norm(normal, axis=2, keepdims=True)
-        diffuse = (color * rng.uniform(0.2, 0.8, size=color.shape)).astype(np.float32)
-        frames.append(FrameBundle(
-            color=color, albedo=rng.uniform(0, 1, size=color.shape).astype(np.float32), normal=normal,
-            depth=rng.uniform(1, 5, size=(size, size)).astype(np.float32),
-            motion=np.full((size, size, 2), -1.0, np.float32),
-            jitter=tuple(float(v) for v in rng.uniform(-0.5, 0.5, size=2)), frame_index=index,
-            diffuse=diffuse, specular=color - diffuse))
-    return frames
+    return moving_pattern_frames(count, size, np.random.default_rng(seed))
 
 
 def dataset_frames(path: Path, count: int) -> list[FrameBundle]:
@@ -142,7 +135,7 @@ def register_checkpoint(work: Path, args: argparse.Namespace, checkpoint: Path) 
            "DENOISER_REDIS_URL": args.redis_url, "DENOISER_SESSION_THREADS": str(args.threads)}
     model = args.model
     if model is None:
-        from workers.tracking import MLflowTracker
+        from core.tracking import MLflowTracker
 
         method = load_method(checkpoint)
         tracker = MLflowTracker(tracking_uri, experiment="bench")
@@ -170,7 +163,7 @@ def wait_until_up(url: str, alive, what: str) -> None:
 
 
 class ProcessApi:
-    """``uvicorn service.main:app`` as a child process (the deployment's program), stopped on ``stop()``."""
+    """``uvicorn api.main:app`` as a child process (the deployment's program), stopped on ``stop()``."""
 
     def __init__(self, env: dict) -> None:
         port = free_port()
@@ -178,7 +171,7 @@ class ProcessApi:
         environment.pop("DENOISER_API_KEY", None)
         environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), environment.get("PYTHONPATH")]))
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "service.main:app", "--host", "127.0.0.1", "--port", str(port),
+            [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1", "--port", str(port),
              "--log-level", "warning", "--no-access-log"], cwd=REPO, env=environment)
         self.url = f"http://127.0.0.1:{port}"
         try:
@@ -205,10 +198,10 @@ class ThreadApi:
 
         os.environ.update(env)
         os.environ.pop("DENOISER_API_KEY", None)
-        from service.settings import get_settings
+        from core.settings import get_settings
 
         get_settings.cache_clear()
-        from service.main import create_app
+        from api.main import create_app
 
         port = free_port()
         self.server = uvicorn.Server(uvicorn.Config(create_app(), host="127.0.0.1", port=port, log_level="warning"))
@@ -252,44 +245,75 @@ class InProcess:
         return outputs, times
 
 
-def http_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], compression: str | None) -> dict:
-    """Each frame encoded and sent over HTTP in a new session: outputs and per-frame times."""
+def timed_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], encode, open_sender) -> dict:
+    """Each frame encoded (``encode(frame) -> bytes``) and sent to a new session (``open_sender(session_id)``: a
+    context manager giving ``send(bytes) -> (output, FrameInfo)``): outputs and per-frame times."""
     times: dict[str, list[float]] = {"encode": [], "round_trip": [], "server": [], "inference": []}
     outputs, sizes = [], []
-    options = {} if compression is None else {"compression": compression}
     session = client.create_session(**session_body(model), on_gap="reject")
     try:
-        for frame in frames:
-            started = time.perf_counter()
-            body = frame_bytes(frame, **options)
-            times["encode"].append((time.perf_counter() - started) * 1000)
-            data, info = client.send_frame_raw(session["id"], body)
-            outputs.append(data)
-            sizes.append(len(body))
-            times["round_trip"].append(info.round_trip_ms)
-            times["server"].append(info.server_ms)
-            times["inference"].append(info.inference_ms)
+        with open_sender(session["id"]) as send:
+            for frame in frames:
+                started = time.perf_counter()
+                body = encode(frame)
+                times["encode"].append((time.perf_counter() - started) * 1000)
+                output, info = send(body)
+                outputs.append(output)
+                sizes.append(len(body))
+                times["round_trip"].append(info.round_trip_ms)
+                times["server"].append(info.server_ms)
+                times["inference"].append(info.inference_ms)
     finally:
         client.delete_session(session["id"])
-    return {"session": session, "times": times, "outputs": outputs, "bytes_in": sizes[-1],
-            "bytes_out": len(outputs[-1])}
+    return {"session": session, "times": times, "outputs": outputs, "bytes_in": sizes[-1]}
+
+
+def http_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], compression: str | None) -> dict:
+    """Each frame encoded as an EXR and POSTed; outputs are the answers' EXR bytes."""
+    options = {} if compression is None else {"compression": compression}
+    result = timed_stream(client, model, frames, lambda frame: frame_bytes(frame, **options),
+                          lambda session_id: contextlib.nullcontext(
+                              lambda body: client.send_frame_raw(session_id, body)))
+    return {**result, "bytes_out": len(result["outputs"][-1])}
+
+
+def websocket_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], dtype: str) -> dict:
+    """Each frame packed and sent over one WebSocket; outputs are (H, W, 3) float32 arrays."""
+    @contextlib.contextmanager
+    def sender(session_id: str):
+        with client.open_stream(session_id, dtype=dtype, output_dtype=dtype) as stream:
+            yield stream.send
+
+    result = timed_stream(client, model, frames,
+                          lambda frame: encode_bundle(frame, dtype=dtype, output_dtype=dtype), sender)
+    return {**result, "bytes_out": result["outputs"][-1].size * np.dtype(dtype).itemsize}
 
 
 def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, warmup: int, rounds: int,
-        api_key: str | None, compression: str | None) -> dict:
-    """``rounds`` x (the stream over HTTP, then in process); times of frames after ``warmup`` in each stream."""
-    times: dict[str, list[float]] = {"encode": [], "round_trip": [], "server": [], "inference": [], "local": []}
-    difference = 0.0
+        api_key: str | None, compression: str | None, stream_dtype: str) -> dict:
+    """``rounds`` x (the stream over HTTP, over the WebSocket, then in process); times of frames after ``warmup``
+    in each stream."""
+    names = ("encode", "round_trip", "server", "inference")
+    times = {transport: {name: [] for name in names} for transport in ("http", "websocket")}
+    times["local"] = []
+    difference = {"http": 0.0, "websocket": 0.0}
     with DenoiserClient(url, api_key=api_key, timeout=120) as client:
         for _ in range(rounds):
             http = http_stream(client, model, frames, compression)
+            websocket = websocket_stream(client, model, frames, stream_dtype)
             expected, local_times = local.stream(frames)
-            for name, values in http["times"].items():
-                times[name] += values[warmup:]
+            for transport, result in (("http", http), ("websocket", websocket)):
+                for name, values in result["times"].items():
+                    times[transport][name] += values[warmup:]
             times["local"] += local_times[warmup:]
-            difference = max([difference] + [float(np.abs(decode_image_exr(data) - image).max())
-                                             for data, image in zip(http["outputs"], expected)])
-    return {**http, "times": times, "difference": difference}
+            outputs = {"http": [decode_image_exr(data) for data in http["outputs"]],
+                       "websocket": websocket["outputs"]}
+            for transport, images in outputs.items():
+                difference[transport] = max([difference[transport]] + [
+                    float(np.abs(image - reference).max()) for image, reference in zip(images, expected)])
+    return {"session": http["session"], "times": times, "difference": difference,
+            "bytes": {"http": (http["bytes_in"], http["bytes_out"]),
+                      "websocket": (websocket["bytes_in"], websocket["bytes_out"])}}
 
 
 def main() -> None:
@@ -318,33 +342,36 @@ def main() -> None:
             url = server.url
         local = InProcess(checkpoint)
         try:
-            http = run(url, model, frames, local, args.warmup, args.rounds, args.api_key, args.compression)
+            result = run(url, model, frames, local, args.warmup, args.rounds, args.api_key, args.compression,
+                         args.stream_dtype)
         finally:
             if server is not None:
                 server.stop()
 
-    scale = http["session"]["model"]["scale"]
+    scale = result["session"]["model"]["scale"]
     height, width = frames[0].height, frames[0].width
-    difference = http["difference"]
     median = statistics.median
-    times = http["times"]
-    round_trip, server_ms, step_ms, local_ms = (median(times[name])
-                                                for name in ("round_trip", "server", "inference", "local"))
+    times = result["times"]
+    local_ms = median(times["local"])
     where = f"server {url}" if args.url else f"API in {'its own process' if args.server == 'process' else 'a thread'}"
     print(f"{label} ({model}) {width}x{height} -> {width * scale}x{height * scale}, {args.rounds} x {args.frames} "
-          f"timed frames after {args.warmup}, {args.threads} torch thread(s), frame EXR "
-          f"({args.compression or 'client default'}) {http['bytes_in'] / 1e6:.2f} MB in, "
-          f"{http['bytes_out'] / 1e6:.2f} MB out, {where}")
-    print(f"  client encode            median {median(times['encode']):8.2f} ms/frame (not in the round trip)")
-    print(f"  HTTP round trip          median {round_trip:8.2f} ms/frame")
-    print(f"    server (X-Server-Ms)   median {server_ms:8.2f} ms   (client + transfer: {round_trip - server_ms:.2f})")
-    print(f"    step (X-Inference-Ms)  median {step_ms:8.2f} ms   (server outside the step: "
-          f"{server_ms - step_ms:.2f})")
+          f"timed frames after {args.warmup}, {args.threads} torch thread(s), {where}")
     print(f"  in-process step          median {local_ms:8.2f} ms/frame")
-    print(f"  overhead ratio (round trip / in-process step) {round_trip / local_ms:.2f}x, "
-          f"+{round_trip - local_ms:.2f} ms/frame")
-    print(f"    (round trip / step in session {round_trip / step_ms:.2f}x: the same step, timed in the server)")
-    print(f"  max |session output - in-process output| over the stream: {difference:.3g}")
+    labels = {"http": f"HTTP POST, frame EXR ({args.compression or 'client default'})",
+              "websocket": f"WebSocket, {args.stream_dtype} arrays"}
+    for transport, label_text in labels.items():
+        numbers = times[transport]
+        round_trip, server_ms, step_ms = (median(numbers[name]) for name in ("round_trip", "server", "inference"))
+        bytes_in, bytes_out = result["bytes"][transport]
+        print(f"  {label_text}: {bytes_in / 1e6:.2f} MB in, {bytes_out / 1e6:.2f} MB out")
+        print(f"    client encode          median {median(numbers['encode']):8.2f} ms/frame (not in the round trip)")
+        print(f"    round trip             median {round_trip:8.2f} ms/frame   {round_trip / local_ms:.2f}x the "
+              f"in-process step, +{round_trip - local_ms:.2f} ms/frame")
+        print(f"    server                 median {server_ms:8.2f} ms   (client + transfer: "
+              f"{round_trip - server_ms:.2f})")
+        print(f"    step in the session    median {step_ms:8.2f} ms   (server outside the step: "
+              f"{server_ms - step_ms:.2f}; round trip / this step {round_trip / step_ms:.2f}x)")
+        print(f"    max |session output - in-process output| over the stream: {result['difference'][transport]:.3g}")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from service.client import ApiClientError, DenoiserClient  # noqa: E402
+from client.rest import ApiClientError, DenoiserClient  # noqa: E402
 
 DATASET = "demo"
 MODEL = "demo-wskpn-xs"

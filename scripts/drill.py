@@ -49,9 +49,10 @@ from model.checkpoint import load_method, save_checkpoint  # noqa: E402
 from model.dataset import Dataset, SequenceWriter  # noqa: E402
 from model.exr import encode_frame_exr  # noqa: E402
 from model.frames import FrameBundle  # noqa: E402
-from model.methods.base import FrameBatch  # noqa: E402
+from model.methods.base import inference_outputs  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
-from service.client import DenoiserClient  # noqa: E402
+from model.synthetic import moving_pattern_frames  # noqa: E402
+from client.rest import DenoiserClient  # noqa: E402
 
 MODEL = "drill-jnds-xs-x2"
 
@@ -76,36 +77,12 @@ def parse_args() -> argparse.Namespace:
 def frames_of(seed: int, count: int, size: int, references: bool = False) -> list[FrameBundle]:
     """Valid frames of a moving pattern, different for every seed (so crossed histories show)."""
     rng = np.random.default_rng(seed)
-    ys, xs = np.mgrid[0:size, 0:size].astype(np.float32)
-    phase = rng.uniform(0, 6, size=3)
-    frames = []
-    for index in range(count):
-        clean = np.stack([0.5 + 0.4 * np.sin(0.2 * (xs + index) + 0.1 * ys + p) for p in phase], 2).astype(np.float32)
-        color = (clean * rng.exponential(1.0, size=clean.shape)).astype(np.float32)
-        normal = rng.normal(size=(size, size, 3)).astype(np.float32)
-        normal /= np.linalg.norm(normal, axis=2, keepdims=True)
-        diffuse = (color * rng.uniform(0.2, 0.8, size=color.shape)).astype(np.float32)
-        frames.append(FrameBundle(
-            color=color, albedo=rng.uniform(0, 1, size=color.shape).astype(np.float32), normal=normal,
-            depth=rng.uniform(1, 5, size=(size, size)).astype(np.float32),
-            motion=np.full((size, size, 2), -1.0, np.float32),
-            jitter=tuple(float(v) for v in rng.uniform(-0.5, 0.5, size=2)), frame_index=index,
-            diffuse=diffuse, specular=color - diffuse, references={1: clean} if references else {}))
-    return frames
-
-
-def in_process(checkpoint: Path, frames: list[FrameBundle]) -> list[np.ndarray]:
-    method = load_method(checkpoint).for_inference()
-    outputs, state = [], None
-    with torch.no_grad():
-        for frame in frames:
-            output, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
-            outputs.append(output[0].permute(1, 2, 0).numpy().copy())
-    return outputs
+    phases = rng.uniform(0, 6, size=3)
+    return moving_pattern_frames(count, size, rng, phases=phases, frequency=(0.2, 0.1), references=references)
 
 
 def register_model(work: Path, tracking_uri: str) -> Path:
-    from workers.tracking import MLflowTracker
+    from core.tracking import MLflowTracker
 
     torch.manual_seed(0)
     method = build_method("jnds:xs", scale=2)
@@ -163,7 +140,7 @@ class Stack:
         self._wait(lambda: client.ping(), "Redis")
 
     def start_api(self) -> None:
-        self._start("api", [sys.executable, "-m", "uvicorn", "service.main:app", "--host", "127.0.0.1", "--port",
+        self._start("api", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1", "--port",
                             str(self.args.api_port), "--log-level", "warning", "--no-access-log"])
         self._wait(lambda: httpx.get(f"{self.url}/health", timeout=1).status_code == 200, "the API")
 
@@ -487,7 +464,7 @@ def main() -> None:
     checkpoint = register_model(args.work, f"sqlite:///{args.work / 'data' / 'mlflow' / 'mlflow.db'}")
     streams_frames = [frames_of(seed, args.frames, args.size) for seed in range(args.sessions)]
     streams = [[encode_frame_exr(frame) for frame in frames] for frames in streams_frames]
-    expected = [in_process(checkpoint, frames) for frames in streams_frames]
+    expected = [inference_outputs(load_method(checkpoint), frames) for frames in streams_frames]
     try:
         stack.start_redis()
         stack.start_api()
@@ -499,7 +476,7 @@ def main() -> None:
             if args.big_size:
                 big = frames_of(999, args.frames, args.big_size)
                 sessions_phase(stack, args, streams[:-1] + [[encode_frame_exr(f) for f in big]],
-                               expected[:-1] + [in_process(checkpoint, big)],
+                               expected[:-1] + [inference_outputs(load_method(checkpoint), big)],
                                f"alone, {len(streams) - 1} timed beside one at {args.big_size}x{args.big_size}",
                                results, measured=len(streams) - 1)
         if "training" not in args.skip:

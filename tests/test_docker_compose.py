@@ -123,8 +123,8 @@ def test_mlflow_server_command(services):
 
 def test_the_denoiser_console_script_and_its_serving_commands_exist():
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts["denoiser"] == "service.cli:main"
-    from service.cli import build_parser
+    assert scripts["denoiser"] == "cli.main:main"
+    from cli.main import build_parser
 
     commands = build_parser()._subparsers._group_actions[0].choices
     assert {"serve", "worker", "mlflow-ui"} <= set(commands)
@@ -170,7 +170,7 @@ def test_state_lives_on_named_declared_volumes(compose, services):
 
 
 def test_service_settings(services):
-    from service.settings import Settings
+    from core.settings import Settings
 
     known = {f"DENOISER_{field.upper()}" for field in Settings.model_fields}
     for name in ("api", "worker", "worker-gpu"):
@@ -208,7 +208,7 @@ def test_dockerfile_installs_the_project():
             assert (ROOT / source).exists(), f"COPY {source}: not in the repository"
     ignored = [line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()
                if line.strip() and not line.startswith("#")]
-    for needed in ("pyproject.toml", "README.md", "model", "service", "workers"):
+    for needed in ("pyproject.toml", "README.md", "model", "core", "api", "workers", "cli", "client"):
         assert needed not in ignored, f".dockerignore leaves out {needed}, which the image needs"
     assert {".venv", ".git", "data"} <= set(ignored)
 

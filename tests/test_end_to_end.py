@@ -1,6 +1,6 @@
 """The whole service end to end: a real API process (uvicorn), a real Celery worker process, real Redis (db 15).
 
-One stack per module (``stack``): the API is ``service.main:app`` served by uvicorn on a free port, with an API
+One stack per module (``stack``): the API is ``api.main:app`` served by uvicorn on a free port, with an API
 key, a temporary data folder and a temporary SQLite MLflow store; the worker is ``celery -A workers.celery_app
 worker -P solo`` on the same settings. Both are configured by DENOISER_* environment variables only, as deployed.
 Changed for the test: the API sends jobs to a queue named for this module, which only this module's worker
@@ -10,10 +10,10 @@ while it starts (``-I``) and this process creates the MLflow store's tables mean
 pays both, 10-15 s on a busy machine).
 
 Everything lives in Redis db 15 under the service's own key names (job records, session mirrors), removed at the
-end. ``tests/service/conftest.py``'s ``redis_db`` fixture flushes db 15, so another test run on the same Redis at
+end. ``tests/api/conftest.py``'s ``redis_db`` fixture flushes db 15, so another test run on the same Redis at
 the same time wipes this module's jobs and sessions (the tests then fail with "job ... does not exist").
 
-- ``test_upload_train_register_and_stream``: the path a user takes, through ``service.client.DenoiserClient``:
+- ``test_upload_train_register_and_stream``: the path a user takes, through ``client.rest.DenoiserClient``:
   upload a dataset folder, train wskpn:xs for a few steps, find the registered model, open a session by name and
   stream a sequence; the streamed outputs equal ``method.step`` run in this process with the registered checkpoint.
 - ``test_a_session_continues_on_a_restarted_api``: the API is killed (SIGKILL) mid-stream and another started on
@@ -47,11 +47,11 @@ from pathlib import Path
 import pytest
 
 from model.dataset import Dataset, Sequence
-from service.client import DenoiserClient, decode_rgb_exr
-from tests.model.training_fixtures import write_sequence, write_tiny_dataset
-from tests.service.session_fixtures import assert_same_image, in_process_outputs
+from client.rest import DenoiserClient, decode_rgb_exr
+from tests.builders import write_sequence, write_tiny_dataset
+from tests.api.session_fixtures import assert_same_image, in_process_outputs
 from tests.workers.tasks.fixtures import TEST_REDIS_URL, redis_client
-from workers.job_store import JobStore
+from core.job_store import JobStore
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 API_KEY = "e2e-api-key"
@@ -64,9 +64,9 @@ TRAIN = {"method": "wskpn:xs", "scale": 1, "crop": 8, "batch": 2, "frames_per_sa
 # The API process: the production app, with this module's queue for every job (see the module notes).
 API_SERVER = """
 import os, sys, uvicorn
-import service.routes.jobs as jobs
+import api.routes.jobs as jobs
 jobs.QUEUE_FOR_DEVICE = {"cpu": os.environ["E2E_QUEUE"], "gpu": os.environ["E2E_QUEUE"]}
-uvicorn.run("service.main:app", host="127.0.0.1", port=int(sys.argv[1]), log_level="info")
+uvicorn.run("api.main:app", host="127.0.0.1", port=int(sys.argv[1]), log_level="info")
 """
 
 
@@ -108,7 +108,7 @@ class Stack:
     def create_tracking_store(self) -> None:
         """The MLflow store's tables, created while the processes start rather than by the first training (seconds
         of SQLite migrations; MLflowTracker creates them under a file lock, so a process racing this one waits)."""
-        from workers.tracking import MLflowTracker
+        from core.tracking import MLflowTracker
 
         MLflowTracker(self.tracking_uri).client
 
@@ -131,7 +131,7 @@ class Stack:
             "--concurrency", "1", "-n", f"{self.queue}-{self._starts['worker']}@%h", "--without-gossip",
             "--without-mingle", "--without-heartbeat", "--loglevel", "INFO",
             # Imported while the worker starts rather than by its first job (seconds on a busy machine).
-            "-I", "model.train,workers.tracking,workers.tasks.train"])
+            "-I", "model.train,core.tracking,workers.tasks.train"])
 
     def wait_for_api(self, timeout: float = 90.0) -> None:
         import httpx
@@ -236,7 +236,7 @@ def dataset_folder(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def trained(stack, dataset_folder, tmp_path_factory) -> dict:
     """Upload + train + registration, once for the module: {"dataset", "job", "checkpoint" (as registered)}."""
-    from workers.tracking import download_registered_checkpoint
+    from core.tracking import download_registered_checkpoint
 
     with stack.client() as client:
         dataset = client.upload_dataset(dataset_folder, name="e2e-tiny")
@@ -299,7 +299,7 @@ def test_a_session_continues_on_a_restarted_api(stack, trained, dataset_folder):
             output, info = client.send_frame(session["id"], frames[index])
             assert info.history == ("started" if index == 0 else "continued")
             assert_same_image(output, expected[index])
-        # A frame's mirror is written just after its response (service.sessions); the API is killed once the
+        # A frame's mirror is written just after its response (api.sessions); the API is killed once the
         # last one has landed, as any time after that frame's response would leave it.
         deadline = time.monotonic() + 10
         while mirrored_frame(stack, session["id"]) != half and time.monotonic() < deadline:

@@ -44,7 +44,7 @@ def test_a_moving_object_render_imports_and_its_motion_reprojects(tmp_path):
 def test_a_users_blend_file_renders_at_a_non_square_size_and_its_depth_lands_on_the_floor(tmp_path):
     import json
 
-    from tests.model.layouts.test_blender_cycles import _floor_hits
+    from tests.model.layouts.exr_builders import floor_hits
 
     blend = tmp_path / "user.blend"
     make = (f"import sys, bpy; sys.path.insert(0, {str(SCRIPT.parent)!r}); import render_blender; "
@@ -60,4 +60,4 @@ def test_a_users_blend_file_renders_at_a_non_square_size_and_its_depth_lands_on_
         assert frame.resolution == (24, 16)
         floor = frame.normal[..., 2] > 0.999
         # The field of view in the metadata note, with Blender's sensor fit, turns planar depth into ray distance.
-        assert np.median(np.abs(_floor_hits(frame, camera, frame.depth)[floor])) < 1e-4
+        assert np.median(np.abs(floor_hits(frame, camera, frame.depth)[floor])) < 1e-4

@@ -1,1 +1,1 @@
-"""Celery workers that run dataset-generation, training, evaluation and benchmark jobs."""
+"""Celery workers that run the jobs (generate, train, evaluate, benchmark, infer, fit); see docs/architecture.md."""

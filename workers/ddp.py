@@ -31,9 +31,9 @@ from pathlib import Path
 from typing import Any
 
 from model.train import Progress, TrainConfig
+from core.jobs.files import DDP_LOG_FILE
 
 MESSAGE_PREFIX = "denoiser-ddp "  # marks protocol lines on the launcher's stdout
-LOG_FILE = "ddp.log"
 REPOSITORY_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -50,7 +50,7 @@ def free_port(host: str = "127.0.0.1") -> int:
 class TrainingJob:
     """One training job's ranks, launched from this (non-daemon) process; ``start``, then ``wait`` or ``stop``.
 
-    ``track``: rank 0 logs to MLflow (``workers.tracking.MLflowTracker`` at ``config.tracking_uri``).
+    ``track``: rank 0 logs to MLflow (``core.tracking.MLflowTracker`` at ``config.tracking_uri``).
     ``imports``: modules each rank imports before building the method, for methods registered outside
     ``model.methods.registry.METHOD_MODULES`` (plugins, tests).
     """
@@ -60,7 +60,7 @@ class TrainingJob:
         self.config = config
         self.track = track
         self.imports = tuple(imports)
-        self.log_path = Path(config.out) / LOG_FILE
+        self.log_path = Path(config.out) / DDP_LOG_FILE
         self.port: int | None = None
         self.process: subprocess.Popen | None = None
         self._messages: queue.Queue = queue.Queue()
@@ -213,7 +213,7 @@ def _torchrun_rank(config: TrainConfig, track: bool, imports: list[str]) -> int:
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
     tracker = None
     if track and rank == 0:
-        from workers.tracking import MLflowTracker
+        from core.tracking import MLflowTracker
 
         tracker = MLflowTracker(config.tracking_uri, config.experiment)
     result = train(config, tracker=tracker, rank=rank, world_size=world_size)
@@ -235,12 +235,12 @@ def _rank_main(rank: int, config_values: dict[str, Any], track: bool, imports: l
     for module in imports:
         importlib.import_module(module)
     config = TrainConfig.from_dict(config_values)
-    if config.num_threads is None and config.device != "cuda":
+    if config.threads is None and config.device != "cuda":
         # Ranks on one CPU share its cores; torch would otherwise give every rank all of them.
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // config.world_size))
     tracker = None
     if track and rank == 0:
-        from workers.tracking import MLflowTracker
+        from core.tracking import MLflowTracker
 
         tracker = MLflowTracker(config.tracking_uri, config.experiment)
 

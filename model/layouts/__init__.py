@@ -13,7 +13,14 @@ from model.layouts.layout import (
     parse_layout,
     read_layout_file,
 )
-from model.layouts.read import LayoutFrame, read_layout_frame, read_layout_frame_bytes, read_layout_reference
+from model.layouts.read import (
+    LayoutFrame,
+    read_bundle_buffers,
+    read_layout_frame,
+    read_layout_frame_bytes,
+    read_layout_reference,
+)
 
 __all__ = ["BUILTIN_LAYOUTS", "Layout", "LayoutError", "LayoutFrame", "layout_from_value", "load_layout",
-           "parse_layout", "read_layout_file", "read_layout_frame", "read_layout_frame_bytes", "read_layout_reference"]
+           "parse_layout", "read_bundle_buffers", "read_layout_file", "read_layout_frame", "read_layout_frame_bytes",
+           "read_layout_reference"]

@@ -269,15 +269,7 @@ def _read(exr: OpenEXR.File, source: str, layout: Layout, mode: Mode, fov_overri
     if jitter_repair:
         repairs.append(jitter_repair)
     buffers.update(_converted(buffers, layout, channels.headers, jitter, fov_override, source))
-    normal, count, worst = renormalise_normals(buffers["normal"], buffers["depth"])
-    if count and mode == "strict":  # stored data is not repaired, but the refusal says what to do
-        raise FrameValidationError(
-            source, "normal", f"{count} pixels are off unit length by up to {abs(worst - 1):.3g} (|n| = {worst:.3g}), "
-                              f"as lossy compression (DWAA, B44) leaves them; store normals losslessly (ZIP, PIZ) or "
-                              f"convert with denoiser import, which renormalises them")
-    if count:
-        buffers["normal"] = normal
-        repairs.append(f"normal: {count} pixels renormalised (worst |n| = {worst:.3g}; lossy compression?)")
+    repairs += _renormalised(buffers, mode, source)
 
     frame_index = _frame_index(channels.headers, layout, source)
     sequence = _attribute(channels.headers, "sequence")
@@ -291,6 +283,42 @@ def _read(exr: OpenEXR.File, source: str, layout: Layout, mode: Mode, fov_overri
     ignored = sorted(name for name in channels.planes if name not in used and not layout.is_ignored(name))
     ignored += [name for name in channels.unmergeable if not layout.is_ignored(name.split(" (")[0])]
     return LayoutFrame(frame, tuple(ignored), tuple(repairs), frame_index is not None)
+
+
+def read_bundle_buffers(buffers: dict[str, np.ndarray], *, jitter: tuple[float, float], frame_index: int,
+                        camera_cut: bool = False, source: str = "<buffers>", mode: Mode = "live") -> LayoutFrame:
+    """A frame given as arrays in the frame bundle's own conventions rather than as an EXR (the session stream's
+    frames): (H, W, C) or (H, W) arrays of any float dtype, render-resolution buffers only. The same conversions,
+    repairs and checks as reading an EXR of the ``denoiser`` layout in ``mode``, so a frame reaches a session the
+    same way whichever transport carried it; FrameError naming ``source`` on any problem."""
+    from model.layouts.builtin import BUILTIN_LAYOUTS
+
+    layout = BUILTIN_LAYOUTS["denoiser"]
+    for buffer in RENDER_BUFFERS:
+        if BUFFERS[buffer].required and buffers.get(buffer) is None:
+            raise FrameFormatError(source, buffer, "required buffer is missing")
+    # As _assemble gives them: float32, C-contiguous (H, W, C).
+    arrays = {name: np.ascontiguousarray(array, dtype=np.float32) for name, array in buffers.items()
+              if array is not None}
+    arrays.update(_converted(arrays, layout, [], jitter, None, source))
+    repairs = _renormalised(arrays, mode, source)
+    frame = FrameBundle(**arrays, jitter=jitter, frame_index=frame_index, camera_cut=camera_cut)
+    return LayoutFrame(validate_frame(frame, source, sanitizable=mode == "live"), (), tuple(repairs))
+
+
+def _renormalised(buffers: dict[str, np.ndarray], mode: Mode, source: str) -> list[str]:
+    """Normals off unit length by lossy compression renormalised in ``buffers`` (refused in strict mode); the
+    repair to report, if any."""
+    normal, count, worst = renormalise_normals(buffers["normal"], buffers["depth"])
+    if count and mode == "strict":  # stored data is not repaired, but the refusal says what to do
+        raise FrameValidationError(
+            source, "normal", f"{count} pixels are off unit length by up to {abs(worst - 1):.3g} (|n| = {worst:.3g}), "
+                              f"as lossy compression (DWAA, B44) leaves them; store normals losslessly (ZIP, PIZ) or "
+                              f"convert with denoiser import, which renormalises them")
+    if not count:
+        return []
+    buffers["normal"] = normal
+    return [f"normal: {count} pixels renormalised (worst |n| = {worst:.3g}; lossy compression?)"]
 
 
 def _converted(buffers: dict[str, np.ndarray], layout: Layout, headers: list[dict], jitter: tuple[float, float],

@@ -189,3 +189,15 @@ class Method(nn.Module, abc.ABC):
     def config(self) -> dict[str, Any]:
         """What reconstructs this method: registry name, preset, scale (checkpoints store it)."""
         return {"method": self.name, "preset": self.preset, "scale": self.scale}
+
+
+def inference_outputs(method: Method, frames: Iterable[FrameBundle]) -> list[np.ndarray]:
+    """The method's inference form stepped over ``frames`` from a new history, outputs as (H, W, 3) arrays: what a
+    session on this method must answer for the same frames, to compare a server's outputs against."""
+    method = method.for_inference()
+    outputs, state = [], None
+    with torch.no_grad():
+        for frame in frames:
+            output, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
+            outputs.append(output[0].permute(1, 2, 0).numpy().copy())
+    return outputs

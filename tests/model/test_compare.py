@@ -12,12 +12,12 @@ from model.compare import comparison_panels, save_comparison
 from model.dataset import Dataset
 from model.methods.base import FrameBatch
 from model.metrics import frame_metrics
-from tests.model.test_evaluate import write_tiny_dataset
+from tests.builders import write_gradient_dataset
 
 
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory):
-    return Dataset(write_tiny_dataset(tmp_path_factory.mktemp("compare") / "data")).sequence("a")
+    return Dataset(write_gradient_dataset(tmp_path_factory.mktemp("compare") / "data")).sequence("a")
 
 
 def test_panels_are_input_methods_reference_with_the_protocols_scores(sequence):

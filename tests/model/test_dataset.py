@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 
 import numpy as np
@@ -10,26 +11,14 @@ import pytest
 from model.dataset import Dataset, DatasetError, Sequence, SequenceWriter
 from model.frames import FrameValidationError
 
-from .test_frames import make_frame
+from tests.builders import frame_sequence, make_frame, write_frame_sequence
 
-
-def frames(count: int, *, height: int = 4, width: int = 6, scales=(1, 2), cuts=(0,), seed: int = 0):
-    for index in range(count):
-        frame = make_frame(seed + index, height, width, scales=scales, frame_index=index)
-        frame.sequence = ""
-        frame.camera_cut = index in cuts
-        yield frame
-
-
-def write_sequence(path, name, count=3, *, scene="cornell", **frame_options):
-    with SequenceWriter(path, name, scene=scene, metadata={"spp_reference": 64}) as writer:
-        for frame in frames(count, **frame_options):
-            writer.add(frame)
-    return Sequence(path)
+# Sequences of make_frame frames, with a scene and metadata as a renderer writes them.
+write_sequence = functools.partial(write_frame_sequence, scene="cornell", metadata={"spp_reference": 64})
 
 
 def test_sequence_round_trip(tmp_path):
-    written = list(frames(3, cuts=(0, 2)))
+    written = list(frame_sequence(3, cuts=(0, 2)))
     with SequenceWriter(tmp_path / "seq", "seq", scene="cornell", metadata={"spp_reference": 64}) as writer:
         for frame in written:
             writer.add(frame)
@@ -53,16 +42,16 @@ def test_sequence_round_trip(tmp_path):
 def test_exception_mid_sequence_leaves_nothing(tmp_path):
     with pytest.raises(RuntimeError, match="renderer crashed"):
         with SequenceWriter(tmp_path / "seq", "seq") as writer:
-            for frame in frames(2):
+            for frame in frame_sequence(2):
                 writer.add(frame)
             raise RuntimeError("renderer crashed")
     assert list(tmp_path.iterdir()) == []
 
 
 def test_failed_overwrite_leaves_the_old_sequence_intact(tmp_path):
-    write_sequence(tmp_path / "seq", "seq", count=2)
+    write_sequence(tmp_path, "seq", count=2)
     before = {p.name: p.read_bytes() for p in (tmp_path / "seq").iterdir()}
-    broken = list(frames(2, seed=10))
+    broken = list(frame_sequence(2, seed=10))
     broken[1].color[0, 0, 0] = np.inf
     with pytest.raises(FrameValidationError, match=r"seq/frame_0001.exr: buffer 'color': 1 pixels are not finite"):
         with SequenceWriter(tmp_path / "seq", "seq", overwrite=True) as writer:
@@ -73,9 +62,9 @@ def test_failed_overwrite_leaves_the_old_sequence_intact(tmp_path):
 
 
 def test_overwrite_replaces_the_old_sequence(tmp_path):
-    write_sequence(tmp_path / "seq", "seq", count=3)
+    write_sequence(tmp_path, "seq", count=3)
     with SequenceWriter(tmp_path / "seq", "seq", overwrite=True) as writer:
-        for frame in frames(2, height=2, width=2, scales=()):
+        for frame in frame_sequence(2, height=2, width=2, scales=()):
             writer.add(frame)
     sequence = Sequence(tmp_path / "seq")
     assert (len(sequence), sequence.width, sequence.scales) == (2, 2, ())
@@ -105,7 +94,7 @@ def test_unserializable_metadata_is_refused_before_rendering(tmp_path):
     ids=["index gap", "scales change", "foreign sequence"],
 )
 def test_frames_must_continue_the_sequence(tmp_path, change, problem):
-    first, second = frames(2)
+    first, second = frame_sequence(2)
     change(second)
     with pytest.raises(DatasetError, match=problem):
         with SequenceWriter(tmp_path / "seq", "seq") as writer:
@@ -150,7 +139,7 @@ def _edit_manifest(path, edit):
     ],
 )
 def test_bad_sequence_manifest_names_file_and_field(tmp_path, edit, problem):
-    write_sequence(tmp_path / "seq", "seq", count=2)
+    write_sequence(tmp_path, "seq", count=2)
     _edit_manifest(tmp_path / "seq" / "manifest.json", edit)
     with pytest.raises(DatasetError, match=rf"seq/manifest.json: .*{problem}"):
         Sequence(tmp_path / "seq")
@@ -165,7 +154,7 @@ def test_missing_or_broken_manifest_is_named(tmp_path):
 
 
 def test_frame_disagreeing_with_manifest_is_named(tmp_path):
-    sequence = write_sequence(tmp_path / "seq", "seq", count=2)
+    sequence = Sequence(write_sequence(tmp_path, "seq", count=2))
     _edit_manifest(sequence.manifest_path, lambda m: m["frames"][1].update(camera_cut=True))
     with pytest.raises(DatasetError, match=r"frame_0001.exr: camera_cut is False but .*manifest.json says True"):
         Sequence(tmp_path / "seq")[1]
@@ -173,9 +162,9 @@ def test_frame_disagreeing_with_manifest_is_named(tmp_path):
 
 def test_dataset_registers_sequences_with_splits(tmp_path):
     dataset = Dataset.create(tmp_path / "data")
-    write_sequence(dataset.root / "a", "a", count=3, scene="cornell")
-    write_sequence(dataset.root / "b", "b", count=2, scene="kitchen", height=2, width=2, scales=(1,))
-    write_sequence(dataset.root / "c", "c", count=1, scene="cornell")
+    write_sequence(dataset.root, "a", count=3, scene="cornell")
+    write_sequence(dataset.root, "b", count=2, scene="kitchen", height=2, width=2, scales=(1,))
+    write_sequence(dataset.root, "c", count=1, scene="cornell")
     dataset.add_sequence_dir("a", "train")
     dataset.add_sequence_dir("b", "train")
     dataset.add_sequence_dir("c", "validation")
@@ -205,7 +194,7 @@ def test_dataset_registers_sequences_with_splits(tmp_path):
 
 def test_dataset_errors(tmp_path):
     dataset = Dataset.create(tmp_path)
-    write_sequence(tmp_path / "a", "a", count=1)
+    write_sequence(tmp_path, "a", count=1)
     with pytest.raises(ValueError, match=r"unknown split 'training'; allowed: train, validation, test"):
         dataset.add_sequence_dir("a", "training")
     dataset.add_sequence_dir("a", "train")

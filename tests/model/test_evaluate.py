@@ -12,68 +12,17 @@ import numpy as np
 import pytest
 import torch
 
-from model.dataset import Dataset, DatasetError, SequenceWriter
+from model.dataset import Dataset, DatasetError
 from model.evaluate import EvaluationSequence, evaluate, evaluate_method, format_table, run_sequence
-from model.frames import FrameBundle, box_downsample
-from model.methods.base import FrameBatch, Method, State, drop_history
+from model.methods.base import FrameBatch, State
 from model.metrics import frame_metrics
-
-SIZE = 16
-FRAMES = 4
-
-
-def synthetic_frame(index: int, seed: int, scales: tuple[int, ...], camera_cut: bool = False) -> FrameBundle:
-    """A smooth moving gradient as reference; the noisy color is the scale-1 reference plus seeded noise."""
-    rng = np.random.default_rng(seed * 100 + index)
-    fine = 2 * SIZE
-    y, x = np.mgrid[0:fine, 0:fine].astype(np.float32) / fine
-    base = np.stack([x + 0.05 * index, y, 0.5 * (x + y)], axis=2) * (0.5 + 0.2 * seed)
-    reference2 = np.ascontiguousarray(base, dtype=np.float32)
-    reference1 = box_downsample(reference2, 2)
-    noise = rng.normal(0.0, 0.2, reference1.shape).astype(np.float32)
-    references = {1: reference1, 2: reference2}
-    return FrameBundle(
-        color=np.clip(reference1 + noise, 0.0, None),
-        albedo=np.full((SIZE, SIZE, 3), 0.5, np.float32),
-        normal=np.broadcast_to(np.array([0, 0, 1], np.float32), (SIZE, SIZE, 3)).copy(),
-        depth=np.ones((SIZE, SIZE), np.float32),
-        motion=np.zeros((SIZE, SIZE, 2), np.float32),
-        jitter=(0.0, 0.0), frame_index=index, camera_cut=camera_cut,
-        references={s: references[s] for s in scales})
-
-
-def write_tiny_dataset(root: Path, scales: tuple[int, ...] = (1, 2), split: str = "test") -> Path:
-    """Two sequences of 4 frames at 16x16; sequence 'b' has a camera cut before frame 2."""
-    dataset = Dataset.create(root)
-    for seed, name in enumerate(("a", "b")):
-        with SequenceWriter(root / name, name) as writer:
-            for index in range(FRAMES):
-                writer.add(synthetic_frame(index, seed, scales, camera_cut=(name == "b" and index == 2)))
-        dataset.add_sequence_dir(name, split)
-    return root
+from tests.builders import GRADIENT_FRAMES as FRAMES
+from tests.builders import NoisyInput, write_gradient_dataset
 
 
 @pytest.fixture(scope="module")
 def dataset_dir(tmp_path_factory) -> Path:
-    return write_tiny_dataset(tmp_path_factory.mktemp("eval") / "data")
-
-
-class NoisyInput(Method):
-    """The noisy color, nearest-upscaled to the output scale; records what each step saw."""
-
-    name = "noisy_input"
-
-    def __init__(self, preset: str = "default", scale: int = 1):
-        super().__init__(preset, scale)
-        self.seen: list[dict] = []
-
-    def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
-        state = drop_history(state, frame)
-        self.seen.append({"history": None if state is None else int(state["count"].max()),
-                          "cut": bool(frame.camera_cut[0]), "reference": frame.reference is not None})
-        count = torch.ones(frame.batch_size, 1, 1, 1) if state is None else state["count"] + 1
-        output = frame.color.repeat_interleave(self.scale, dim=2).repeat_interleave(self.scale, dim=3)
-        return output, {"count": count}
+    return write_gradient_dataset(tmp_path_factory.mktemp("eval") / "data")
 
 
 class NaNOutput(NoisyInput):
@@ -211,7 +160,7 @@ def test_bad_input_is_reported_before_any_frame_is_read(tmp_path, dataset_dir):
         run(tmp_path / "missing", [NoisyInput()])
     with pytest.raises(ValueError, match=r"no sequences in split 'validation' \(splits present: test \(2\)\)"):
         run(dataset_dir, [NoisyInput()], split="validation")
-    only_scale_one = write_tiny_dataset(tmp_path / "scale1", scales=(1,))
+    only_scale_one = write_gradient_dataset(tmp_path / "scale1", scales=(1,))
     with pytest.raises(ValueError, match="sequence 'a' .* has no references at scale 2 .*1 more"):
         run(only_scale_one, [NoisyInput(scale=2)], scale=2)
     with pytest.raises(KeyError, match="unknown method 'no_such_method'"):
@@ -234,6 +183,15 @@ def test_markdown_table_has_a_row_per_method_and_states_the_conditions(dataset_d
     assert len(rows) == 2
     cells = [cell.strip() for cell in rows[0].strip("|").split("|")]
     assert cells[3] == f"{report['methods'][0]['metrics']['psnr']:.2f}" and cells[-1].endswith("x")
+
+
+def test_rows_of_one_method_from_several_sources_name_their_source(dataset_dir):
+    report = run(dataset_dir, [NoisyInput()], timing_reference=NoisyInput())
+    first = report["methods"][0]
+    report["methods"] = [{**first, "source": "pretrained-x1"}, {**first, "source": "models:/mine@champion"},
+                         {**first, "source": "noisy_input"}]
+    names = [line.split("|")[1].strip() for line in format_table(report).splitlines()[4:]]
+    assert names == ["noisy_input (pretrained-x1)", "noisy_input (models:/mine@champion)", "noisy_input"]
 
 
 def test_the_table_says_not_counted_for_a_network_torch_does_not_run(dataset_dir):

@@ -51,11 +51,18 @@ def test_the_history_is_carried_through_the_state_outputs(tmp_path):
 
 
 @pytest.mark.parametrize("name", pretrained_names())
-def test_a_shipped_fused_model_exports_its_network_with_oidn_as_an_input(tmp_path, name):
+def test_every_shipped_model_exports_and_matches_pytorch_or_says_why(tmp_path, name):
     method = load_pretrained(name)
-    info = export_step(method, tmp_path / "fused.onnx", height=16, width=16)
-    assert SPATIAL_INPUT in info["inputs"] and "OIDN" in info["spatial_estimate"]
-    assert check_export(method, tmp_path / "fused.onnx", info, frames=3) <= 1
+    if method.preset.endswith("-int8"):
+        with pytest.raises(ExportError, match="eager-mode int8 quantized modules"):
+            export_step(method, tmp_path / "model.onnx", height=16, width=16)
+        return
+    info = export_step(method, tmp_path / "model.onnx", height=16, width=16)
+    # The fused family's OIDN runs outside the exported network: its output is an input of the export.
+    assert (SPATIAL_INPUT in info["inputs"]) == (method.name == "fused")
+    if method.name == "fused":
+        assert "OIDN" in info["spatial_estimate"]
+    assert check_export(method, tmp_path / "model.onnx", info, frames=3) <= 1
 
 
 @pytest.mark.parametrize("name, scale, words", [

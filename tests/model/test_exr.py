@@ -9,7 +9,7 @@ import pytest
 from model.exr import FrameFormatError, encode_frame_exr, read_frame, read_frame_bytes, write_frame
 from model.frames import BUFFERS, TARGET_FIELDS, FrameBundle, FrameValidationError
 
-from .test_frames import make_frame
+from tests.builders import make_frame, zero_bomb
 
 ARRAY_FIELDS = ("color", "albedo", "normal", "depth", "motion", "diffuse", "specular", "specular_albedo", "roughness")
 
@@ -312,16 +312,6 @@ def test_invalid_contents_are_validated_on_read(tmp_path):
 
 
 # --- declared size, checked before decoding ----------------------------------------------------------------
-
-
-def zero_bomb(width: int, height: int) -> bytes:
-    """An all-zero ZIP-compressed EXR declaring width x height: a few kilobytes that decode to megabytes."""
-    import io
-
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    stream = io.BytesIO()
-    OpenEXR.File(header, {"color": np.zeros((height, width, 3), np.float32)}).write(stream)
-    return stream.getvalue()
 
 
 def test_a_frame_declaring_more_pixels_than_the_limit_is_refused_before_decoding(monkeypatch):

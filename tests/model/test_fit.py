@@ -8,22 +8,22 @@ from pathlib import Path
 
 import pytest
 
-from model import fit as fit_module
-from model.fit import (
+from model.fit.choice import (
     REUSED_CHECKPOINT,
     REUSED_REGISTRY,
     SKIPPED,
     TRAINED,
     Candidate,
-    FitConfig,
     Measurement,
     Obtained,
-    Target,
-    fit,
-    format_ladder,
     run_ladder,
 )
-from tests.model.training_fixtures import TINY_METHOD, write_tiny_dataset
+from model.fit.plan import FitConfig, plan_fit
+from model.fit.report import format_ladder
+from model.fit.runner import fit
+from model.fit.target import Target
+from tests.builders import write_tiny_dataset
+from tests.model.training_fixtures import TINY_METHOD
 
 # A four-preset family, given out of order: the ladder sorts by FLOPs per pixel.
 CANDIDATES = [Candidate("l", 8000.0, 800), Candidate("xs", 1000.0, 100), Candidate("m", 4000.0, 400),
@@ -246,7 +246,7 @@ def tiny_data(tmp_path_factory):
 
 def tiny_config(data, out, **changes) -> FitConfig:
     values = dict(family=TINY_METHOD, data=str(data), target="within=100", presets=["default", "dropout"],
-                  steps=2, crop_size=8, frames_per_sample=2, batch_size=2, warmup_steps=0, device="cpu",
+                  steps=2, crop=8, frames_per_sample=2, batch=2, warmup_steps=0, device="cpu",
                   out=str(out), time_at=(16, 16), timing_frames=2, timing_warmup=1, register_as="tiny-fit")
     values.update(changes)
     return FitConfig(**values)
@@ -308,9 +308,9 @@ def test_a_fit_stops_before_training_what_the_target_does_not_need(tiny_data, tm
     ({"presets": ["huge"]}, KeyError, "no preset 'huge'"),
     ({"target": "speed=1"}, ValueError, "is not one of"),
     ({"validation_split": "test"}, ValueError, "no sequences in the validation split 'test'"),
-    ({"crop_size": 64}, ValueError, "smaller than the 64x64 crop"),
+    ({"crop": 64}, ValueError, "smaller than the 64x64 crop"),
     ({"alias": "latest"}, ValueError, "alias 'latest' is not usable"),
 ])
 def test_a_fit_is_checked_before_anything_trains(tiny_data, tmp_path, changes, error, message):
     with pytest.raises(error, match=message):
-        fit_module.plan_fit(tiny_config(tiny_data, tmp_path / "bad", **changes))
+        plan_fit(tiny_config(tiny_data, tmp_path / "bad", **changes))

@@ -9,66 +9,12 @@ import pytest
 
 from model.frames import (
     BUFFERS,
-    FrameBundle,
     FrameError,
     FrameValidationError,
     box_downsample,
     validate_frame,
 )
-
-
-def make_frame(
-    seed: int = 0,
-    height: int = 4,
-    width: int = 6,
-    *,
-    scales: tuple[int, ...] = (1, 2),
-    split: bool = True,
-    frame_index: int = 3,
-    albedo_references: bool = False,
-) -> FrameBundle:
-    """A tiny valid frame: random buffers honouring every convention, one background pixel at (0, 0).
-
-    diffuse + specular == color exactly, normals are unit length where depth > 0, and the scale-1
-    reference is the 2x2 mean of the scale-2 one. ``albedo_references`` adds reference albedos and
-    specular albedos at every reference scale, box-downsampled the same way.
-    """
-    rng = np.random.default_rng(seed)
-    f32 = np.float32
-    diffuse = rng.uniform(0, 4, (height, width, 3)).astype(f32)
-    specular = rng.uniform(0, 2, (height, width, 3)).astype(f32)
-    normal = rng.normal(size=(height, width, 3))
-    normal = (normal / np.linalg.norm(normal, axis=2, keepdims=True)).astype(f32)
-    depth = rng.uniform(0.5, 20, (height, width)).astype(f32)
-    depth[0, 0] = 0.0  # the background: nothing hit, zero normal
-    normal[0, 0] = 0.0
-    top = max(scales, default=1)
-    finest = rng.uniform(0, 5, (height * top, width * top, 3)).astype(f32)
-    def pyramid(finest: np.ndarray) -> dict[int, np.ndarray]:
-        return {scale: box_downsample(finest, top // scale) if scale < top else finest for scale in scales}
-
-    references = pyramid(finest)
-    target_shape = (height * top, width * top, 3)
-    reference_albedos = pyramid(rng.uniform(0, 1, target_shape).astype(f32)) if albedo_references else {}
-    reference_specular_albedos = pyramid(rng.uniform(0, 1, target_shape).astype(f32)) if albedo_references else {}
-    return FrameBundle(
-        color=diffuse + specular,
-        albedo=rng.uniform(0, 1, (height, width, 3)).astype(f32),
-        normal=normal,
-        depth=depth,
-        motion=rng.uniform(-3, 3, (height, width, 2)).astype(f32),
-        jitter=(float(rng.uniform(-0.5, 0.5)), float(rng.uniform(-0.5, 0.5))),
-        frame_index=frame_index,
-        sequence="tiny",
-        camera_cut=True,
-        diffuse=diffuse if split else None,
-        specular=specular if split else None,
-        specular_albedo=rng.uniform(0, 1, (height, width, 3)).astype(f32),
-        roughness=rng.uniform(0, 1, (height, width)).astype(f32),
-        references=references,
-        reference_albedos=reference_albedos,
-        reference_specular_albedos=reference_specular_albedos,
-    )
+from tests.builders import make_frame
 
 
 def test_valid_frame_passes_and_properties_describe_it():

@@ -15,9 +15,9 @@ from model.frames import box_downsample
 from model.importer import import_sequence
 from model.layouts import BUILTIN_LAYOUTS, read_layout_frame
 from model.layouts.builtin import BLENDER_CYCLES
-from service.cli import main
+from cli.main import main
+from tests.builders import synthetic_frame
 from tests.model.layouts.exr_builders import BLENDER_ORBIT, bundle_channels, write_channels
-from tests.model.training_fixtures import synthetic_frame
 
 CYCLES, GENERIC = BUILTIN_LAYOUTS["blender-cycles"], BUILTIN_LAYOUTS["generic"]
 

@@ -17,31 +17,9 @@ from model.pretrained import (
     held_out_from_report,
     load_pretrained,
     pretrained_names,
-    ship_checkpoint,
     verify,
 )
-
-
-def ship_tiny(root, name="wskpn-xs-x1", report=None, **options):
-    """A seeded wskpn:xs checkpoint (with optimizer state, as training writes it) shipped under ``root``."""
-    torch.manual_seed(3)
-    method = build_method("wskpn:xs", 1)
-    optimizer = torch.optim.Adam(method.parameters())
-    checkpoint = save_checkpoint(root.parent / f"{name}-source.pt", method=method, optimizer=optimizer, step=120,
-                                 train_config={"steps": 150, "seed": 7, "data": "data/demo"},
-                                 best_metric={"name": "validation/psnr", "value": 25.0, "step": 100})
-    return ship_checkpoint(checkpoint, name, root=root, report=report, report_source="runs/x/best.pt", **options)
-
-
-def report_for(source="runs/x/best.pt", scale=1):
-    def row(label, method, preset, psnr, source_=None):
-        return {"label": label, "source": source_ or label, "method": method, "preset": preset, "scale": scale,
-                "metrics": {"psnr": psnr, "flip": 0.1}, "ms_per_frame": 5.0, "time_ratio_to_oidn": 0.5}
-
-    return {"split": "test", "scale": scale, "sequences": [{"name": "moving_light_s4", "frames": 16},
-                                                           {"name": "glass_s4", "frames": 16}],
-            "methods": [row("wskpn:xs", "wskpn", "xs", 30.5, source), row("oidn:high", "oidn", "high", 31.0),
-                        row("oidn-taa:high", "oidn-taa", "high", 31.4), row("svgf", "svgf", "default", 27.0)]}
+from tests.builders import report_for, ship_tiny
 
 
 def test_shipping_strips_training_state_and_records_the_recipe(tmp_path):

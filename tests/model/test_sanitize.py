@@ -158,9 +158,9 @@ def test_the_evaluation_path_sanitizes_and_counts_per_sequence():
 
 def test_the_evaluation_report_lists_the_sanitized_counts(tmp_path):
     from model.evaluate import evaluate
-    from tests.model.test_evaluate import NoisyInput, write_tiny_dataset
+    from tests.builders import NoisyInput, write_gradient_dataset
 
-    report = evaluate(write_tiny_dataset(tmp_path / "data"), [NoisyInput()], vdp=False, timing_reference=None,
+    report = evaluate(write_gradient_dataset(tmp_path / "data"), [NoisyInput()], vdp=False, timing_reference=None,
                       frame_limit=2)
     # Data read from disk is validated, so there is nothing to repair; the counts are there all the same.
     assert report["sanitized_inputs"] == {name: {"frames": 2, "total": 0, "non_finite": {}, "out_of_range": {}}

@@ -18,17 +18,19 @@ from model.metrics import PSNR_CAP_DB
 from model.methods.base import FrameBatch, Method, State
 from model.methods.registry import build_method
 from model.stability import (DERIVED_SCENARIOS, EXPOSURE_BRIGHT, MIN_DROP_DB, SCENARIOS, SCENE_SCENARIOS, Scenario,
-                             build_scenarios, derive_scenarios, fails_worst, run_suite, scale_exposure,
-                             write_report)
-from service.cli import main
-from tests.model.test_evaluate import FRAMES, SIZE, synthetic_frame
+                             build_scenarios, derive_scenarios, fails_worst, run_suite, scale_exposure)
+from model.stability_report import write_report
+from cli.main import main
+from tests.builders import GRADIENT_FRAMES as FRAMES
+from tests.builders import GRADIENT_SIZE as SIZE
+from tests.builders import gradient_frame
 
 CHEAP_METHODS = ("identity", "accumulation", "svgf")
 
 
 def full_frame(index: int, seed: int, camera_cut: bool = False):
     """The evaluation tests' synthetic frame with every optional buffer (diffuse + specular == color)."""
-    frame = synthetic_frame(index, seed, (1, 2), camera_cut=camera_cut)
+    frame = gradient_frame(index, seed, (1, 2), camera_cut=camera_cut)
     diffuse = (frame.color * 0.75).astype(np.float32)
     return dataclasses.replace(frame, diffuse=diffuse, specular=(frame.color - diffuse).astype(np.float32),
                                specular_albedo=np.full((SIZE, SIZE, 3), 0.04, np.float32),
@@ -324,7 +326,7 @@ def test_the_report_has_a_ghosting_table(ghost_suite):
 # -------------------------------------------------------------------------------------------------- CLI
 
 def test_command_writes_the_report_and_rejects_bad_input(data_dir, tmp_path, capsys):
-    from service.commands import stability as command
+    from cli.commands import stability as command
 
     assert command.SCENARIOS == SCENARIOS
     out = tmp_path / "report"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import pytest
@@ -22,7 +21,8 @@ from model.train import (
     train,
     validate,
 )
-from tests.model.training_fixtures import TINY_METHOD, write_tiny_dataset
+from tests.builders import write_tiny_dataset
+from tests.model.training_fixtures import TINY_METHOD
 
 requires_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 
@@ -37,7 +37,7 @@ def data(tmp_path_factory):
 
 
 def tiny_config(data, out, **changes) -> TrainConfig:
-    values = dict(method=TINY_METHOD, data=str(data), crop_size=8, frames_per_sample=3, batch_size=2, steps=4,
+    values = dict(method=TINY_METHOD, data=str(data), crop=8, frames_per_sample=3, batch=2, steps=4,
                   lr=0.01, warmup_steps=1, out=str(out), checkpoint_every=2, validate_every=2, device="cpu")
     values.update(changes)
     return TrainConfig(**values)
@@ -56,7 +56,7 @@ def test_resumed_training_ends_with_exactly_the_uninterrupted_weights(data, tmp_
         if step == 2:
             raise Interrupted
 
-    interrupted = dataclasses.replace(config, out=str(tmp_path / "interrupted"))
+    interrupted = config.model_copy(update={"out": str(tmp_path / "interrupted")})
     with pytest.raises(Interrupted):
         train(interrupted, progress=stop_at_step_2)
     assert load_checkpoint(tmp_path / "interrupted" / LAST_CHECKPOINT)["step"] == 2
@@ -71,7 +71,7 @@ def test_resumed_training_ends_with_exactly_the_uninterrupted_weights(data, tmp_
     assert torch.equal(first_state["exp_avg_sq"], resumed_state["exp_avg_sq"])
 
     # Without resume the same folder starts over from step 0 (resuming would refuse: step 4 >= 2 steps).
-    restarted = train(dataclasses.replace(interrupted, resume=False, steps=2))
+    restarted = train(interrupted.model_copy(update={"resume": False, "steps": 2}))
     assert restarted["steps"] == 2 and load_checkpoint(restarted["checkpoint"])["step"] == 2
 
 
@@ -130,25 +130,37 @@ def test_frame_weights_skip_the_first_frames():
 
 
 @pytest.mark.parametrize("changes, message", [
-    ({"batch_size": 3, "world_size": 2}, "does not split evenly over 2 ranks"),
+    ({"batch": 3, "world_size": 2}, "does not split evenly over 2 ranks"),
     ({"steps": None}, "exactly one of steps and epochs"),
-    ({"epochs": 2}, "exactly one of steps and epochs"),
-    ({"crop_size": 0}, "crop_size must be a positive integer"),
-    ({"schedule": "linear"}, "schedule must be one of cosine, step, constant"),
+    ({"steps": 10, "epochs": 2}, "exactly one of steps and epochs"),
+    ({"crop": 0}, r"crop\s+Input should be greater than or equal to 1"),
+    ({"schedule": "linear"}, r"schedule\s+Input should be 'cosine', 'step' or 'constant'"),
     ({"loss_skip_frames": 4}, "some frame must count"),
-    ({"lr": 0.0}, "lr must be positive"),
+    ({"lr": 0.0}, r"lr\s+Input should be greater than 0"),
+    ({"seed": -1}, r"seed\s+Input should be greater than or equal to 0"),
 ])
 def test_bad_settings_name_the_field(changes, message):
-    config = TrainConfig(method="m", data="d", **changes)
     with pytest.raises(ValueError, match=message):
+        TrainConfig(method="m", data="d", **changes)
+
+
+def test_check_finds_fields_changed_in_place():
+    config = TrainConfig(method="m", data="d")
+    config.lr = -1.0
+    with pytest.raises(ValueError, match=r"lr\s+Input should be greater than 0"):
         config.check()
+
+
+def test_epochs_alone_replace_the_default_steps():
+    config = TrainConfig(method="m", data="d", epochs=2)
+    assert (config.steps, config.epochs, config.total_steps(10)) == (None, 2, 2 * math.ceil(10 / config.batch))
 
 
 def test_bad_runs_fail_before_training(data, tmp_path):
     with pytest.raises(KeyError, match="unknown method 'nope'"):
         train(tiny_config(data, tmp_path / "a", method="nope"))
     with pytest.raises(ValueError, match="smaller than the 32x32 crop"):
-        train(tiny_config(data, tmp_path / "a", crop_size=32))
+        train(tiny_config(data, tmp_path / "a", crop=32))
     with pytest.raises(ValueError, match="unknown training settings: colour"):
         TrainConfig.from_dict({**tiny_config(data, tmp_path).to_dict(), "colour": 1})
     done = tiny_config(data, tmp_path / "done", steps=1, validate_every=0)
@@ -156,14 +168,14 @@ def test_bad_runs_fail_before_training(data, tmp_path):
     with pytest.raises(ValueError, match="already at step 1 of 1"):
         train(done)
     with pytest.raises(ValueError, match="is a checkpoint of"):
-        train(dataclasses.replace(done, method=f"{TINY_METHOD}:dropout", steps=2))
+        train(done.model_copy(update={"method": f"{TINY_METHOD}:dropout", "steps": 2}))
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA device"):
             train(tiny_config(data, tmp_path / "b", device="cuda"))
 
 
 def test_epochs_set_the_number_of_steps(data, tmp_path):
-    result = train(tiny_config(data, tmp_path / "epochs", steps=None, epochs=1, batch_size=4, validate_every=0))
+    result = train(tiny_config(data, tmp_path / "epochs", steps=None, epochs=1, batch=4, validate_every=0))
     assert result["steps"] == math.ceil(5 / 4)
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import socket
 
@@ -11,7 +10,8 @@ import torch
 
 from model.checkpoint import load_checkpoint
 from model.train import TrainConfig, prepare, train
-from tests.model.training_fixtures import TINY_METHOD, write_tiny_dataset
+from tests.builders import write_tiny_dataset
+from tests.model.training_fixtures import TINY_METHOD
 from workers.ddp import RankError, TrainingJob, free_port, launch
 
 FIXTURES = "tests.model.training_fixtures"  # registers the tiny method inside the rank processes
@@ -27,7 +27,7 @@ def data(tmp_path_factory):
 
 
 def tiny_config(data, out, **changes) -> TrainConfig:
-    values = dict(method=TINY_METHOD, data=str(data), crop_size=8, frames_per_sample=3, batch_size=4, steps=3,
+    values = dict(method=TINY_METHOD, data=str(data), crop=8, frames_per_sample=3, batch=4, steps=3,
                   lr=0.01, warmup_steps=0, out=str(out), checkpoint_every=0, validate_every=0, device="cpu")
     values.update(changes)
     return TrainConfig(**values)
@@ -89,7 +89,7 @@ def test_free_port_is_bindable():
 
 def test_config_is_checked_before_anything_starts(data, tmp_path):
     with pytest.raises(ValueError, match="does not split evenly"):
-        TrainingJob(dataclasses.replace(tiny_config(data, tmp_path), world_size=3))
+        TrainingJob(tiny_config(data, tmp_path, world_size=3))
 
 
 @pytest.mark.slow

@@ -21,12 +21,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service.settings import Settings
-from service.storage import Storage
-from workers.job_store import JobStore
+from core.settings import Settings
+from core.storage import Storage
+from core.job_store import JobStore
 from workers.redis_retry import with_retry
 
-LOG_FILE = "job.log"
 PROGRESS_INTERVAL = 0.5  # seconds between progress writes to Redis
 LOG_INTERVAL = 10.0  # seconds between progress lines in the job log
 HEARTBEAT_INTERVAL = 5.0  # seconds between lease refreshes (the lease lives LEASE_TTL_SECONDS)
@@ -181,7 +180,7 @@ def mlflow_url(settings: Settings, run_id: str, experiment_id: str | None = None
 
 def _experiment_of(settings: Settings, run_id: str) -> str | None:
     try:
-        from workers.tracking import MLflowTracker
+        from core.tracking import MLflowTracker
 
         return MLflowTracker(settings.resolved_tracking_uri()).client.get_run(run_id).info.experiment_id
     except Exception:  # only a link is at stake
@@ -234,18 +233,3 @@ class JobLogHandler(logging.FileHandler):
         self.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
 
 
-def tail_lines(path: Path, count: int, block: int = 64 * 1024) -> list[str]:
-    """The last ``count`` lines of a text file, read from its end (a training log can grow large)."""
-    if count <= 0 or not path.is_file():
-        return []
-    with path.open("rb") as handle:
-        handle.seek(0, 2)
-        position = handle.tell()
-        data = b""
-        while position > 0 and data.count(b"\n") <= count:
-            step = min(block, position)
-            position -= step
-            handle.seek(position)
-            data = handle.read(step) + data
-    lines = data.decode("utf-8", errors="replace").splitlines()
-    return lines[-count:]

@@ -17,61 +17,17 @@ import re
 from pathlib import Path
 from typing import Any
 
-from service.errors import ApiError
-from service.schemas import BenchmarkParams, EvaluateParams
-from service.storage import Storage
-from workers.tasks.checks import open_dataset, split_sequences
+from core.jobs.evaluate import default_methods
+from core.jobs.files import CHART, REPORT_JSON, REPORT_MARKDOWN
+from core.jobs.methods import is_model_ref, runnable
+from core.jobs.specs import BenchmarkParams, EvaluateParams
+from core.jobs.checks import open_dataset, split_sequences
 from workers.tasks.context import JobContext
-from workers.tasks.methods import check_method, is_model_ref, looks_like_path, runnable
 
-DEFAULT_BENCHMARK_METHODS = ("identity", "accumulation", "svgf", "oidn:fast", "oidn:balanced", "oidn:high")
 EXPERIMENT = "denoiser-evaluation"
-REPORT_JSON = "report.json"
-REPORT_MARKDOWN = "report.md"
-CHART = "quality_speed.png"
 ARTIFACTS = (REPORT_JSON, REPORT_MARKDOWN, CHART)
 SUMMARY_KEYS = ("label", "source", "method", "preset", "scale", "params", "flops_per_pixel", "ms_per_frame",
                 "time_ratio_to_oidn")
-
-
-def default_methods(scale: int) -> list[str]:
-    from model.methods.registry import method_spec, parse_method_name
-
-    return [m for m in DEFAULT_BENCHMARK_METHODS if scale in method_spec(parse_method_name(m)[0]).scales]
-
-
-def check(params: EvaluateParams, storage: Storage) -> dict[str, Any]:
-    dataset = open_dataset(storage, params.dataset)
-    split_sequences(dataset, params.dataset, params.split, params.scale)
-    methods = list(params.methods if params.methods is not None else default_methods(params.scale))
-    benchmark = isinstance(params, BenchmarkParams)
-    if benchmark:
-        for text in params.include_learned or []:
-            if not (is_model_ref(text) or looks_like_path(text)):
-                raise ApiError(422, "invalid_request", f"include_learned: {text!r} is not a trained model; give a "
-                               "model reference (models:/NAME@ALIAS) or a checkpoint file")
-            if text not in methods:
-                methods.append(text)
-    for method in methods:
-        check_method(method, params.scale, storage)
-        if benchmark:
-            _refuse_untrained(method)
-    checked = {**params.model_dump(), "methods": methods}
-    if benchmark:
-        checked["include_learned"] = None  # merged into methods above
-    return checked
-
-
-def _refuse_untrained(text: str) -> None:
-    """A benchmark runs learned methods only from trained weights: a registry name of one would be untrained."""
-    from model.methods.registry import method_spec, parse_method_name
-
-    if is_model_ref(text) or looks_like_path(text):
-        return
-    name = parse_method_name(text)[0]
-    if method_spec(name).learned:
-        raise ApiError(422, "untrained_method", f"method {text!r} is learned and a registry preset has no trained "
-                       f"weights; benchmark a model reference (models:/NAME@ALIAS) or a checkpoint instead")
 
 
 def run(context: JobContext) -> dict[str, Any]:
@@ -160,7 +116,7 @@ def _metric_key(text: str) -> str:
 
 
 def _start_tracking(context: JobContext, params: EvaluateParams, methods: list[str]):
-    from workers.tracking import MLflowTracker
+    from core.tracking import MLflowTracker
 
     tracker = MLflowTracker(context.settings.resolved_tracking_uri(), EXPERIMENT,
                             run_name=f"{context.record['kind']} {params.dataset}/{params.split} "
@@ -192,7 +148,7 @@ def _tag_registered_versions(context: JobContext, report: dict, evaluated_on: st
     if not refs:
         return
     try:
-        from service.registry import get_registry
+        from core.registry import get_registry
 
         registry = get_registry()
         for entry in refs:

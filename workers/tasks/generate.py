@@ -1,7 +1,7 @@
 """The ``generate`` job: render scene recipes (model.data.generate) into a stored dataset, creating it if needed.
 
 Each sequence is rendered into the job's own folder (``jobs/<id>/render/<sequence>``) and then moved into the
-dataset under the dataset's lock (``service.datasets.dataset_lock``, the one uploads take), so the stored dataset
+dataset under the dataset's lock (``core.dataset_lock``, the one uploads take), so the stored dataset
 only ever gains complete sequences and never races an upload's manifest change. Sequences already published are
 listed in ``jobs/<id>/generated.json``: a job resumed after its worker was lost renders only the rest.
 """
@@ -16,32 +16,11 @@ from pathlib import Path
 from typing import Any
 
 from model.dataset import MANIFEST, Dataset
-from service.errors import ApiError
-from service.schemas import GenerateParams
-from service.storage import Storage
-from workers.tasks.checks import dataset_root
+from core.jobs.specs import GenerateParams
+from core.storage import Storage
 from workers.tasks.context import JobContext
 
 PUBLISHED_FILE = "generated.json"
-
-
-def check(params: GenerateParams, storage: Storage) -> dict[str, Any]:
-    from model.data.generate import default_sequence_name
-    from model.data.scenes import SCENES
-
-    scenes = sorted(SCENES) if "all" in params.scenes else list(dict.fromkeys(params.scenes))
-    unknown = [s for s in scenes if s not in SCENES]
-    if unknown:
-        raise ApiError(422, "unknown_scene", f"unknown scene {', '.join(map(repr, unknown))}; known scenes: "
-                       f"{', '.join(sorted(SCENES))}")
-    root = dataset_root(storage, params.dataset)
-    if (root / MANIFEST).is_file() and not params.overwrite:
-        existing = set(Dataset(root).names())
-        taken = [name for name in (default_sequence_name(s, params.seed) for s in scenes) if name in existing]
-        if taken:
-            raise ApiError(409, "sequence_exists", f"dataset {params.dataset!r} already has sequence(s) "
-                           f"{', '.join(taken)}; use another seed or set overwrite")
-    return {**params.model_dump(), "scenes": scenes}
 
 
 def run(context: JobContext) -> dict[str, Any]:
@@ -85,7 +64,7 @@ def run(context: JobContext) -> dict[str, Any]:
 
 def publish(storage: Storage, dataset_id: str, folder: Path, split: str, *, replace: bool) -> None:
     """Move a finished sequence folder into the stored dataset (created when missing) and register it."""
-    from service.datasets import dataset_lock
+    from core.dataset_lock import dataset_lock
 
     name = folder.name
     with dataset_lock(storage, dataset_id):

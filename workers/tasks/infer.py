@@ -14,42 +14,10 @@ import statistics
 import time
 from typing import Any
 
-from model.dataset import Sequence, frame_file_name
-from service.errors import ApiError
-from service.schemas import InferParams
-from service.storage import Storage
-from workers.tasks.checks import open_dataset, split_sequences
+from model.dataset import frame_file_name
+from core.jobs.infer import selected_sequences
+from core.jobs.specs import InferParams
 from workers.tasks.context import JobContext
-from workers.tasks.methods import check_registry_method, check_rescalable, checkpoint_method, checkpoint_source
-
-
-def selected_sequences(params: InferParams, storage: Storage) -> list[Sequence]:
-    dataset = open_dataset(storage, params.dataset)
-    if params.split is not None:
-        return split_sequences(dataset, params.dataset, params.split)
-    if params.sequences is not None:
-        known = set(dataset.names())
-        unknown = [name for name in params.sequences if name not in known]
-        if unknown:
-            raise ApiError(404, "sequence_not_found", f"dataset {params.dataset!r} has no sequence(s) "
-                           f"{', '.join(map(repr, unknown))}")
-        return [dataset.sequence(name) for name in dict.fromkeys(params.sequences)]
-    sequences = dataset.sequences()
-    if not sequences:
-        raise ApiError(422, "empty_dataset", f"dataset {params.dataset!r} has no sequences")
-    return sequences
-
-
-def check(params: InferParams, storage: Storage) -> dict[str, Any]:
-    selected_sequences(params, storage)
-    path = checkpoint_source(params.model, storage)
-    if path is None:
-        check_registry_method(params.model, params.scale or 1)
-    else:
-        config = checkpoint_method(path, params.model)
-        if params.scale is not None and config.get("scale") != params.scale:
-            check_rescalable(params.model, config, params.scale)
-    return params.model_dump()
 
 
 def run(context: JobContext) -> dict[str, Any]:
@@ -57,7 +25,7 @@ def run(context: JobContext) -> dict[str, Any]:
 
     from model.exr import write_image
     from model.methods.base import FrameBatch
-    from workers.tasks.methods import build_for_inference
+    from core.jobs.methods import build_for_inference
 
     params = InferParams.model_validate(context.params)
     sequences = selected_sequences(params, context.storage)

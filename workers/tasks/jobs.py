@@ -1,6 +1,6 @@
 """The Celery task that runs every job, the execution around each kind, and recovery when a worker starts.
 
-``run_job(job_id)`` takes only the id (the record in Redis has the rest, ``workers.job_store``). An execution:
+``run_job(job_id)`` takes only the id (the record in Redis has the rest, ``core.job_store``). An execution:
 
 1. takes the job's lease (``JobStore.start``); a job that finished, was cancelled while queued, is unknown or
    is being run by another live execution is not run again: the task returns at once (duplicate deliveries);
@@ -24,14 +24,16 @@ from typing import Any
 from celery import Celery
 from celery.signals import worker_ready, worker_shutdown
 
-from service.errors import ApiError
-from service.heartbeats import Heartbeat
-from service.settings import Settings, get_settings
-from service.storage import Storage, get_storage
-from workers.celery_app import QUEUES, app
-from workers.job_store import JobStore, execution_owner, get_job_store
+from core.errors import DomainError
+from core.heartbeats import Heartbeat
+from core.jobs.dispatch import TASK_NAME, CeleryDispatcher
+from core.jobs.files import LOG_FILE
+from core.names import QUEUES
+from core.settings import Settings, get_settings
+from core.storage import Storage, get_storage
+from workers.celery_app import app
+from core.job_store import JobStore, execution_owner, get_job_store
 from workers.tasks.context import (
-    LOG_FILE,
     JobCancelled,
     JobContext,
     JobFailure,
@@ -42,8 +44,6 @@ from workers.tasks.context import (
 )
 from workers.tasks.kinds import module_for
 from workers.tasks.recovery import RECOVERY_INTERVAL, recover_orphaned_jobs, waiting_task_ids
-
-TASK_NAME = "workers.tasks.jobs.run_job"
 
 log = logging.getLogger("denoiser.jobs")
 # The job log wants the INFO lines of this project's loggers whatever level the worker's root logger has.
@@ -108,7 +108,7 @@ def _run(context: JobContext) -> dict[str, Any]:
     except JobCancelled:
         logger.info("cancelled")
         final = store.finish(job_id, "cancelled")
-    except (JobFailure, ApiError) as error:  # the input's fault, found only now (e.g. a dataset deleted since)
+    except (JobFailure, DomainError) as error:  # the input's fault, found only now (e.g. a dataset deleted since)
         logger.error("failed: %s", error.message)
         final = store.finish(job_id, "failed", error={"code": error.code, "message": error.message})
     except Exception as error:
@@ -134,29 +134,6 @@ def _error_code(error: Exception) -> str:
     if isinstance(error, (ValueError, KeyError, FileNotFoundError, FileExistsError, FrameError)):
         return "invalid_input"  # e.g. the dataset changed between submission and run
     return "internal_error"
-
-
-# ---------------------------------------------------------------------------------------- dispatching
-
-class CeleryDispatcher:
-    """How the API queues and revokes jobs (a dependency, so tests can swap it)."""
-
-    def __init__(self, celery: Celery) -> None:
-        self.celery = celery
-
-    def send(self, job_id: str, queue: str) -> None:
-        # run_job.apply_async by name (the API need not import the task's app): the task id is the job id, so
-        # Celery's result (and a revoke) for the job are found by it.
-        self.celery.send_task(TASK_NAME, args=[job_id], queue=queue, task_id=job_id)
-
-    def revoke(self, job_id: str) -> None:
-        # Workers drop a revoked message when it arrives; a worker that starts later does not know it, and the
-        # job record (already cancelled) makes that execution return at once anyway.
-        self.celery.control.revoke(job_id)
-
-
-def get_dispatcher() -> CeleryDispatcher:
-    return CeleryDispatcher(app)
 
 
 # ------------------------------------------------------------------------------------------ recovery
@@ -194,7 +171,7 @@ _heartbeat: Heartbeat | None = None
 
 @worker_ready.connect
 def _start_heartbeat(sender: Any = None, **_: Any) -> None:
-    """The worker's liveness for the API (service.heartbeats): a thread, so a long job does not silence it."""
+    """The worker's liveness for the API (core.heartbeats): a thread, so a long job does not silence it."""
     global _heartbeat
     hostname = getattr(sender, "hostname", None) or f"celery@{socket.gethostname()}"
     _heartbeat = Heartbeat(get_job_store().redis, hostname, _consumed_queues(sender),

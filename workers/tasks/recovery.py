@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import redis
 
-from workers.job_store import JobStore, age_seconds
+from core.job_store import JobStore, age_seconds
 
 RECOVERY_INTERVAL = 60.0
 QUEUED_GRACE_SECONDS = 120.0

@@ -18,92 +18,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from model.dataset import Dataset
-from service.errors import ApiError
-from service.schemas import TrainParams
-from service.settings import Settings
-from service.storage import Storage
-from workers.tasks.checks import invalid, open_dataset, split_sequences
+from core.jobs.files import CHECKPOINT_FOLDER
+from core.jobs.specs import TrainParams
+from core.jobs.train import initial_weights, train_config
 from workers.tasks.context import JobContext
-from workers.tasks.methods import check_registry_method, checkpoint_method, checkpoint_source
-
-CHECKPOINT_FOLDER = "checkpoints"
-
-
-def train_config(params: TrainParams, storage: Storage, settings: Settings, out: Path, device: str,
-                 init_from: Path | None = None):
-    """``init_from``: the local checkpoint ``params.init_from`` stands for (``initial_weights``)."""
-    from model.train import TrainConfig
-
-    return TrainConfig(
-        method=params.method, data=str(storage.dataset(params.dataset)), scale=params.scale,
-        train_split=params.train_split, validation_split=params.validation_split, crop_size=params.crop,
-        frames_per_sample=params.frames_per_sample, batch_size=params.batch, steps=params.steps, lr=params.lr,
-        schedule=params.schedule, warmup_steps=params.warmup_steps, seed=params.seed, out=str(out), resume=True,
-        device=device, world_size=params.world_size, checkpoint_every=params.checkpoint_every,
-        validate_every=params.validate_every, validation_frames=params.validation_frames,
-        num_threads=params.threads or rank_threads(settings, params.world_size),
-        tracking_uri=settings.resolved_tracking_uri(), experiment=params.experiment,
-        register_as=params.register_as, init_from=str(init_from) if init_from else None)
-
-
-def initial_weights(params: TrainParams, storage: Storage) -> Path | None:
-    """The checkpoint ``init_from`` names (a registered model, a pretrained model or a stored checkpoint), checked
-    to hold the job's method family at its scale; ApiError 404 / 422 otherwise."""
-    if params.init_from is None:
-        return None
-    path = checkpoint_source(params.init_from, storage)
-    if path is None:
-        from model.pretrained import pretrained_names
-
-        raise ApiError(404, "init_from_not_found", f"init_from {params.init_from!r} is no registered model "
-                       f"(models:/NAME@ALIAS), pretrained model or checkpoint (a method name has no weights); "
-                       f"pretrained models: {', '.join(pretrained_names()) or 'none'}")
-    source = checkpoint_method(path, f"init_from {params.init_from!r}")
-    family = params.method.partition(":")[0]
-    if source.get("method") != family or source.get("scale") != params.scale:
-        raise ApiError(422, "invalid_init_from", f"init_from {params.init_from!r} holds {source.get('method')}:"
-                       f"{source.get('preset')} at scale {source.get('scale')}; it cannot start {params.method} at "
-                       f"scale {params.scale}")
-    return path
-
-
-def rank_threads(settings: Settings, world_size: int) -> int | None:
-    """Each rank's share of DENOISER_JOB_THREADS (None: unset, each rank takes its share of the cores)."""
-    if not settings.job_threads:
-        return None
-    return max(1, settings.job_threads // max(1, world_size))
-
-
-def check(params: TrainParams, storage: Storage, settings: Settings) -> dict[str, Any]:
-    """Everything ``model.train.prepare`` would refuse, found from manifests alone (no frame is decoded)."""
-    from model.data.crops import sample_windows
-
-    dataset = open_dataset(storage, params.dataset)
-    check_registry_method(params.method, params.scale, learned=True)
-    init_from = initial_weights(params, storage)
-    try:
-        train_config(params, storage, settings, storage.jobs / "_check", "cpu", init_from).check()
-    except ValueError as error:
-        raise invalid(error) from None
-    sequences = split_sequences(dataset, params.dataset, params.train_split, params.scale)
-    small = [s for s in sequences if s.width < params.crop or s.height < params.crop]
-    if small:
-        raise ApiError(422, "crop_too_large", f"sequence '{small[0].name}' is {small[0].width}x{small[0].height}, "
-                       f"smaller than the {params.crop}x{params.crop} crop; use a smaller crop")
-    if not any(sample_windows(s.cuts, len(s), params.frames_per_sample) for s in sequences):
-        raise ApiError(422, "sequences_too_short", f"no sequence of split {params.train_split!r} has "
-                       f"{params.frames_per_sample} consecutive frames without a camera cut; use fewer "
-                       f"frames_per_sample")
-    _check_validation_split(dataset, params)
-    return params.model_dump()
-
-
-def _check_validation_split(dataset: Dataset, params: TrainParams) -> None:
-    missing = [s.name for s in dataset.sequences(params.validation_split) if params.scale not in s.scales]
-    if missing:
-        raise ApiError(422, "missing_scale", f"validation sequence(s) {', '.join(missing[:5])} have no references "
-                       f"at scale {params.scale}")
 
 
 def run(context: JobContext) -> dict[str, Any]:
@@ -119,8 +37,10 @@ def run(context: JobContext) -> dict[str, Any]:
         checkpoint = load_checkpoint(last)
         context.baseline = int(checkpoint["step"])
         context.set_mlflow_run(checkpoint["extra"].get("tracking_run_id"))
-        context.logger.info("resuming from %s at step %d of %d", last, checkpoint["step"], params.steps)
-        if checkpoint["step"] >= params.steps:
+        # Under epochs the number of steps is known once the data is read: the checkpoint carries it.
+        total = checkpoint["extra"].get("total_steps") or params.steps
+        context.logger.info("resuming from %s at step %d of %s", last, checkpoint["step"], total)
+        if total is not None and checkpoint["step"] >= total:
             return _relative(context, _completed(context, params, checkpoint, last))
     if params.world_size == 1:
         result = _train_here(context, config, params.track, params)
@@ -164,7 +84,7 @@ class _JobTracker:
 def _tracker(context: JobContext, config, track: bool):
     if not track:
         return None
-    from workers.tracking import MLflowTracker
+    from core.tracking import MLflowTracker
 
     return _JobTracker(MLflowTracker(config.tracking_uri, config.experiment,
                                      run_name=f"{config.method} (job {context.job_id[:8]})"), context)
@@ -264,7 +184,7 @@ def _register_once(context: JobContext, params: TrainParams, checkpoint: dict, l
     from model.checkpoint import load_method
     from model.methods.registry import inference_cost
     from model.train import default_registered_name
-    from workers.tracking import MLflowTracker
+    from core.tracking import MLflowTracker
 
     tracker = MLflowTracker(context.settings.resolved_tracking_uri(), params.experiment)
     if run_id:

@@ -14,7 +14,7 @@ from model.data.crops import BRIGHTNESS_RANGE, SequenceCrops, collate_crops, sam
 from model.dataset import Dataset, SequenceWriter
 from model.frames import box_downsample
 from model.ops.warp import backward_warp
-from tests.model.training_fixtures import synthetic_frame, write_sequence, write_tiny_dataset
+from tests.builders import synthetic_frame, write_sequence, write_tiny_dataset
 
 
 @pytest.fixture(scope="module")

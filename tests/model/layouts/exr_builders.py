@@ -76,3 +76,17 @@ def upscaled_copy(source: Path, destination: Path, factor: int) -> Path:
                     for name, channel in part.channels.items()}
         parts.append((part.name(), channels, {}))
     return write_parts(destination, parts)
+
+
+def floor_hits(frame, camera: dict, depth: np.ndarray, jitter=(0.0, 0.0)) -> np.ndarray:
+    """World z of the hit point of every pixel's ray through (x + 0.5 + jitter) at distance ``depth`` along it."""
+    matrix = np.array(camera["matrix_world"])
+    height, width = depth.shape
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    xs, ys = xs + jitter[0], ys + jitter[1]
+    # Blender's camera looks down its -z axis with y up; its matrix's columns are right, up, backward.
+    direction = np.stack([(xs / width * 2 - 1) * np.tan(camera["fov_x"] / 2),
+                          (1 - ys / height * 2) * np.tan(camera["fov_y"] / 2), -np.ones_like(xs)], axis=-1)
+    direction = direction @ matrix[:3, :3].T
+    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+    return (matrix[:3, 3] + depth[..., None] * direction)[..., 2]

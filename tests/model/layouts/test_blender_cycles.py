@@ -17,7 +17,7 @@ import pytest
 
 from model.layouts import BUILTIN_LAYOUTS, read_layout_frame, read_layout_reference
 from model.layouts.checks import reprojection_psnr
-from tests.model.layouts.exr_builders import BLENDER_ORBIT
+from tests.model.layouts.exr_builders import BLENDER_ORBIT, floor_hits
 
 LAYOUT = BUILTIN_LAYOUTS["blender-cycles"]
 FRAMES = sorted(BLENDER_ORBIT.glob("frame_*.exr"))
@@ -70,31 +70,17 @@ def test_vector_zw_looks_at_the_next_frame_so_the_layout_ignores_it():
     assert np.abs(raw(last, "ViewLayer.Vector.Z")).max() < 1e-4 and np.abs(raw(last, "ViewLayer.Vector.X")).max() > 1
 
 
-def _floor_hits(frame, camera: dict, depth: np.ndarray, jitter=(0.0, 0.0)) -> np.ndarray:
-    """World z of the hit point of every pixel's ray through (x + 0.5 + jitter) at distance ``depth`` along it."""
-    matrix = np.array(camera["matrix_world"])
-    height, width = depth.shape
-    ys, xs = np.mgrid[0:height, 0:width] + 0.5
-    xs, ys = xs + jitter[0], ys + jitter[1]
-    # Blender's camera looks down its -z axis with y up; its matrix's columns are right, up, backward.
-    direction = np.stack([(xs / width * 2 - 1) * np.tan(camera["fov_x"] / 2),
-                          (1 - ys / height * 2) * np.tan(camera["fov_y"] / 2), -np.ones_like(xs)], axis=-1)
-    direction = direction @ matrix[:3, :3].T
-    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
-    return (matrix[:3, 3] + depth[..., None] * direction)[..., 2]
-
-
 def test_depth_pass_is_planar_and_the_import_turns_it_into_distance_along_the_ray(frames):
     for index, (frame, camera) in enumerate(zip(frames, CAMERAS)):
         floor = frame.normal[..., 2] > 0.999
-        on_floor = floor & (np.abs(_floor_hits(frame, camera, frame.depth)) < 1e-3)
+        on_floor = floor & (np.abs(floor_hits(frame, camera, frame.depth)) < 1e-3)
         assert on_floor.sum() > 0.9 * floor.sum() > 200  # box tops face up too, a few pixels
         # The raw pass read as a ray distance misses the floor by a quarter of a unit or more...
         raw_depth = raw(FRAMES[index], "ViewLayer.Depth.Z")
-        assert np.median(np.abs(_floor_hits(frame, camera, raw_depth)[on_floor])) > 0.1
+        assert np.median(np.abs(floor_hits(frame, camera, raw_depth)[on_floor])) > 0.1
         # ... and the sample is at the pixel centre: a quarter-pixel offset misses the floor too.
-        shifted = _floor_hits(frame, camera, frame.depth, jitter=(0.25, 0.25))
-        assert np.median(np.abs(shifted[on_floor])) > 10 * np.median(np.abs(_floor_hits(frame, camera,
+        shifted = floor_hits(frame, camera, frame.depth, jitter=(0.25, 0.25))
+        assert np.median(np.abs(shifted[on_floor])) > 10 * np.median(np.abs(floor_hits(frame, camera,
                                                                                             frame.depth)[on_floor]))
         assert np.abs(frame.depth - raw_depth).max() > 0.1  # the conversion did something
 
@@ -102,7 +88,7 @@ def test_depth_pass_is_planar_and_the_import_turns_it_into_distance_along_the_ra
 def test_normals_are_world_space(frames):
     # The floor's normal is (0, 0, 1) in every frame while the camera turns by 12 degrees over the clip.
     for frame, camera in zip(frames, CAMERAS):
-        on_floor = np.abs(_floor_hits(frame, camera, frame.depth)) < 1e-3
+        on_floor = np.abs(floor_hits(frame, camera, frame.depth)) < 1e-3
         np.testing.assert_allclose(frame.normal[on_floor], np.tile([0.0, 0.0, 1.0], (on_floor.sum(), 1)), atol=1e-3)
 
 

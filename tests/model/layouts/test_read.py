@@ -12,8 +12,8 @@ import pytest
 from model.exr import FrameFormatError
 from model.frames import FrameValidationError
 from model.layouts import BUILTIN_LAYOUTS, load_layout, read_layout_frame, read_layout_frame_bytes
+from tests.builders import synthetic_frame
 from tests.model.layouts.exr_builders import bundle_channels, write_channels, write_parts
-from tests.model.training_fixtures import synthetic_frame
 
 DENOISER, GENERIC = BUILTIN_LAYOUTS["denoiser"], BUILTIN_LAYOUTS["generic"]
 

@@ -7,32 +7,9 @@ import torch
 
 from model.methods.afn import AFN, AFN_PRESETS, scale_composite
 from model.ops.demodulate import demodulate
-from model.methods.base import FrameBatch
 from model.methods.registry import build_method, example_batch, flops_per_pixel, method_spec
+from tests.builders import sample, static_frame
 from tests.model.methods.overfitting import overfit_l1
-
-
-def static_frame(batch: int = 1, size: int = 16, seed: int = 0, cut: bool | list[bool] = False) -> FrameBatch:
-    """A frame of a static scene (flat wall facing the camera, no motion): history always passes the geometry
-    test, so accumulation really happens and camera cuts are observable. Only the noisy color varies by seed."""
-    g = torch.Generator().manual_seed(seed)
-    shape = (batch, 1, size, size)
-    normal = torch.zeros(batch, 3, size, size)
-    normal[:, 2] = 1.0
-    albedo = torch.full((batch, 3, size, size), 0.5)
-    cuts = torch.tensor(cut if isinstance(cut, list) else [cut] * batch, dtype=torch.bool)
-    return FrameBatch(color=torch.rand(batch, 3, size, size, generator=g) * 2, albedo=albedo, normal=normal,
-                      depth=torch.full(shape, 2.0), motion=torch.zeros(batch, 2, size, size),
-                      jitter=torch.zeros(batch, 2), camera_cut=cuts)
-
-
-def sample(frame: FrameBatch, i: int) -> FrameBatch:
-    return FrameBatch(**{name: t[i : i + 1] for name, t in frame.tensors().items()})
-
-
-@pytest.fixture(autouse=True)
-def seeded():
-    torch.manual_seed(0)
 
 
 def test_registry_entry():

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from model.methods.base import FrameBatch
-from tests.model.test_frames import make_frame
+from tests.builders import make_frame
 
 TARGETS = ("reference", "reference_albedo", "reference_specular_albedo")
 

@@ -10,6 +10,7 @@ import torch
 from model.methods.base import FrameBatch
 from model.methods.baselines import SVGF, TemporalAccumulation, bicubic_upscale
 from model.methods.registry import build_method, example_batch, flops_per_pixel, method_spec
+from tests.builders import mse, noisy_constant, plane_frame
 
 HEIGHT, WIDTH = 16, 16
 BASELINES = ("identity", "accumulation", "accumulation:fast", "svgf")
@@ -18,31 +19,6 @@ BASELINES = ("identity", "accumulation", "accumulation:fast", "svgf")
 def devices() -> list:
     cuda = pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"))
     return ["cpu", cuda]
-
-
-def plane_frame(color: torch.Tensor, depth: torch.Tensor | None = None, albedo: float = 0.5,
-                motion: tuple[float, float] = (0.0, 0.0), jitter: tuple[float, float] = (0.0, 0.0),
-                camera_cut: list[bool] | None = None) -> FrameBatch:
-    """A frame of a surface facing the camera (normal +z), depth 1 unless given, uniform motion and jitter."""
-    n, _, h, w = color.shape
-    normal = torch.zeros(n, 3, h, w, dtype=color.dtype, device=color.device)
-    normal[:, 2] = 1.0
-    if depth is None:
-        depth = torch.ones(n, 1, h, w, dtype=color.dtype, device=color.device)
-    motion_field = torch.tensor(motion, dtype=color.dtype, device=color.device).view(1, 2, 1, 1).expand(n, 2, h, w)
-    cut = torch.tensor(camera_cut if camera_cut is not None else [False] * n, device=color.device)
-    return FrameBatch(color=color, albedo=torch.full_like(color, albedo), normal=normal, depth=depth,
-                      motion=motion_field.contiguous(), jitter=torch.tensor([jitter] * n, device=color.device),
-                      camera_cut=cut)
-
-
-def noisy_constant(truth: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """Unbiased non-negative noise: truth * 2U with U uniform in [0, 1) (relative standard deviation 0.58)."""
-    return truth * 2.0 * torch.rand(truth.shape, generator=generator).to(truth.device)
-
-
-def mse(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a - b).square().mean())
 
 
 def run(method, frames: list[FrameBatch]):

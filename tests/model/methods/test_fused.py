@@ -10,7 +10,7 @@ from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, inference_cost, method_spec
 from model.ops.rectify import variance_clip
-from tests.model.methods.test_baselines import noisy_constant, plane_frame
+from tests.builders import noisy_constant, plane_frame
 
 SIZE = 16
 

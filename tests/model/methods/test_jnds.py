@@ -4,6 +4,7 @@ against the fake-quantized model, and a short overfit."""
 
 import copy
 import dataclasses
+import functools
 
 import pytest
 import torch
@@ -25,7 +26,11 @@ from model.methods.jnds import (
 )
 from model.methods.quantization import convert_to_int8, has_fake_quantization
 from model.methods.registry import build_method, example_batch, flops_per_pixel, method_spec
+from tests.builders import static_frame as _static_frame
 from tests.model.methods.overfitting import overfit_l1
+
+# A static scene, diffuse + specular, both set.
+static_frame = functools.partial(_static_frame, split=True)
 
 # Int8 output against the fake-quantized (QAT) model it was converted from. QAT rounds weights and every
 # convolution's output as int8 does, but not the outputs of pooling and bilinear resizing, which int8 rounds to
@@ -33,25 +38,6 @@ from tests.model.methods.overfitting import overfit_l1
 # of the largest output value at scale 2 (0.05% / 0.5% at scale 1).
 INT8_MEAN_TOLERANCE = 0.01  # mean |int8 - QAT| / mean |QAT|
 INT8_MAX_TOLERANCE = 0.05  # max |int8 - QAT| / max |QAT|
-
-
-@pytest.fixture(autouse=True)
-def seeded():
-    torch.manual_seed(0)
-
-
-def static_frame(batch: int = 1, size: int = 16, seed: int = 0, cut: bool | list[bool] = False,
-                 jitter: tuple[float, float] = (0.0, 0.0)) -> FrameBatch:
-    """A flat wall facing a static camera: no motion, so history stays inside the image and is used."""
-    g = torch.Generator().manual_seed(seed)
-    normal = torch.zeros(batch, 3, size, size)
-    normal[:, 2] = 1.0
-    diffuse = torch.rand(batch, 3, size, size, generator=g)
-    specular = torch.rand(batch, 3, size, size, generator=g) * 0.3
-    cuts = torch.tensor(cut if isinstance(cut, list) else [cut] * batch, dtype=torch.bool)
-    return FrameBatch(color=diffuse + specular, albedo=torch.full((batch, 3, size, size), 0.5), normal=normal,
-                      depth=torch.full((batch, 1, size, size), 2.0), motion=torch.zeros(batch, 2, size, size),
-                      jitter=torch.tensor([jitter] * batch), camera_cut=cuts, diffuse=diffuse, specular=specular)
 
 
 def calibrated_qat(preset: str, scale: int, frames: list[FrameBatch]) -> JNDS:

@@ -2,12 +2,12 @@
 blocks (sinusoidal encoding, partial convolution, unjitter, history reprojection, sample count, pyramid),
 gradients through unrolled steps, the albedo loss, and a short overfit."""
 
+import functools
 import math
 
 import pytest
 import torch
 
-from model.methods.base import FrameBatch
 from model.methods.munet import (
     GEOMETRY_CHANNELS,
     HISTORY_CHANNELS,
@@ -27,36 +27,14 @@ from model.methods.munet_blocks import (
 )
 from model.methods.registry import build_method, example_batch, flops_per_pixel, method_spec
 from model.ops.kernels import apply_pixel_kernels
+from tests.builders import sample
+from tests.builders import static_frame as _static_frame
 from tests.model.methods.overfitting import overfit_l1
 
+# A static scene, with specular albedo and roughness.
+static_frame = functools.partial(_static_frame, material=True)
+
 PAPER_PARAMETERS = 0.644e6
-
-
-def static_frame(batch: int = 1, size: int = 16, seed: int = 0, cut: bool | list[bool] = False,
-                 jitter: tuple[float, float] = (0.0, 0.0)) -> FrameBatch:
-    """A static scene (flat wall facing a still camera): motion 0 (the sample's surface point was at the same
-    image position), so history maps pixel to pixel and is always valid. Only the noisy color varies by seed."""
-    g = torch.Generator().manual_seed(seed)
-    normal = torch.zeros(batch, 3, size, size)
-    normal[:, 2] = 1.0
-    jitter_t = torch.tensor([jitter] * batch)
-    cuts = torch.tensor(cut if isinstance(cut, list) else [cut] * batch, dtype=torch.bool)
-    return FrameBatch(color=torch.rand(batch, 3, size, size, generator=g) * 2,
-                      albedo=torch.full((batch, 3, size, size), 0.5), normal=normal,
-                      depth=torch.full((batch, 1, size, size), 2.0),
-                      motion=torch.zeros(batch, 2, size, size),
-                      jitter=jitter_t, camera_cut=cuts,
-                      specular_albedo=torch.full((batch, 3, size, size), 0.04),
-                      roughness=torch.full((batch, 1, size, size), 0.5))
-
-
-def sample(frame: FrameBatch, i: int) -> FrameBatch:
-    return FrameBatch(**{name: t[i : i + 1] for name, t in frame.tensors().items()})
-
-
-@pytest.fixture(autouse=True)
-def seeded():
-    torch.manual_seed(0)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ import torch
 
 from model.methods.oidn import OIDN, QUALITIES, oidn_albedo
 from model.methods.registry import build_method, example_batch, flops_per_pixel, method_spec
-from tests.model.methods.test_baselines import mse, plane_frame
+from tests.builders import mse, plane_frame
 
 HEIGHT, WIDTH = 16, 16
 

@@ -8,7 +8,7 @@ import torch
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import OIDNTAA, reinhard, reinhard_inverse
 from model.methods.registry import build_method, method_spec
-from tests.model.methods.test_baselines import mse, noisy_constant, plane_frame
+from tests.builders import mse, noisy_constant, plane_frame
 
 SIZE = 24
 

@@ -5,24 +5,7 @@ import torch
 from torch import nn
 
 from model.methods.repvgg import RepVGGBlock, reparameterize
-
-
-@pytest.fixture(autouse=True)
-def seeded():
-    torch.manual_seed(0)
-
-
-def randomize_batch_norms(module: nn.Module, seed: int = 1) -> None:
-    """Give every BatchNorm non-trivial affine parameters and running statistics, as after training."""
-    g = torch.Generator().manual_seed(seed)
-    for bn in module.modules():
-        if isinstance(bn, nn.BatchNorm2d):
-            c = bn.num_features
-            with torch.no_grad():
-                bn.weight.copy_(torch.rand(c, generator=g) * 1.5 + 0.25)
-                bn.bias.copy_(torch.randn(c, generator=g) * 0.5)
-                bn.running_mean.copy_(torch.randn(c, generator=g) * 0.5)
-                bn.running_var.copy_(torch.rand(c, generator=g) * 2.0 + 0.1)
+from tests.builders import randomize_batch_norms
 
 
 @pytest.mark.parametrize(

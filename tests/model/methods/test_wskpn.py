@@ -8,30 +8,11 @@ import pytest
 import torch
 from torch import nn
 
-from model.methods.base import FrameBatch
 from model.methods.registry import build_method, example_batch, flops_per_pixel, method_spec
 from model.methods.wskpn import ACCUMULATION_ALPHA, INPUT_CHANNELS, PRESETS, WSKPN
 from model.ops.demodulate import demodulation_divisor
+from tests.builders import randomize_batch_norms, static_frame
 from tests.model.methods.overfitting import overfit_l1
-from tests.model.methods.test_repvgg import randomize_batch_norms
-
-
-@pytest.fixture(autouse=True)
-def seeded():
-    torch.manual_seed(0)
-
-
-def static_frame(batch: int = 1, size: int = 16, seed: int = 0, cut: bool | list[bool] = False) -> FrameBatch:
-    """A static scene (flat wall facing the camera, no motion): history always passes the geometry test, so
-    accumulation really happens and cuts are observable. Only the noisy color changes with the seed."""
-    g = torch.Generator().manual_seed(seed)
-    normal = torch.zeros(batch, 3, size, size)
-    normal[:, 2] = 1.0
-    cuts = torch.tensor(cut if isinstance(cut, list) else [cut] * batch, dtype=torch.bool)
-    return FrameBatch(color=torch.rand(batch, 3, size, size, generator=g) * 2,
-                      albedo=torch.full((batch, 3, size, size), 0.5), normal=normal,
-                      depth=torch.full((batch, 1, size, size), 2.0), motion=torch.zeros(batch, 2, size, size),
-                      jitter=torch.zeros(batch, 2), camera_cut=cuts)
 
 
 def test_registry_entry():

@@ -4,13 +4,9 @@ import pytest
 import torch
 
 from model.ops.accumulate import accumulate, accumulate_moments, update_count
+from tests.builders import rand
 
 LUMA = (0.2126, 0.7152, 0.0722)
-
-
-def rand(*shape, seed=0, lo=0.0, hi=1.0):
-    g = torch.Generator().manual_seed(seed)
-    return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=torch.float64)
 
 
 def naive_accumulate(cur, hist, hcount, valid, alpha_min, max_count):

@@ -7,11 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from model.ops.kernels import apply_pixel_kernels, kernel_offsets
-
-
-def rand(*shape, seed=0, lo=0.0, hi=1.0):
-    g = torch.Generator().manual_seed(seed)
-    return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=torch.float64)
+from tests.builders import rand
 
 
 def naive_apply(image, kernels, k, dilation, normalize):

@@ -6,11 +6,7 @@ import pytest
 import torch
 
 from model.ops.pyramid import build_pyramid, downsample2x, upsample2x
-
-
-def rand(*shape, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    return torch.rand(*shape, generator=g, dtype=torch.float64)
+from tests.builders import rand
 
 
 def naive_down(x):

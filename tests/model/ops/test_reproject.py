@@ -5,11 +5,7 @@ import math
 import torch
 
 from model.ops.reproject import disocclusion_mask
-
-
-def rand(*shape, seed=0, lo=0.0, hi=1.0):
-    g = torch.Generator().manual_seed(seed)
-    return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=torch.float64)
+from tests.builders import rand
 
 
 def unit_normals(n, h, w, seed):

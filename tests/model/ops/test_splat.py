@@ -5,11 +5,7 @@ import torch
 
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.splat import box_sum, fuse_kernel_sizes, weight_sharing_filter, weight_sharing_fused
-
-
-def rand(*shape, seed=0, lo=0.0, hi=1.0):
-    g = torch.Generator().manual_seed(seed)
-    return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=torch.float64)
+from tests.builders import rand
 
 
 def naive_ws(image, weight, k):

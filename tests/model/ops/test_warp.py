@@ -6,13 +6,9 @@ import pytest
 import torch
 
 from model.ops.warp import backward_warp, dilate_motion_by_depth, upscale_motion
+from tests.builders import rand
 
 A = -0.75  # torch's bicubic coefficient
-
-
-def rand(*shape, seed=0, lo=0.0, hi=1.0, dtype=torch.float64):
-    g = torch.Generator().manual_seed(seed)
-    return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)
 
 
 def _tap(img, n, c, x, y, padding):

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from model.dataset import Dataset
-from service.storage import Storage
-from tests.model.training_fixtures import write_sequence, write_tiny_dataset
+from core.storage import Storage
+from tests.builders import write_sequence, write_tiny_dataset
 
 
 def store_dataset(storage: Storage, dataset_id: str = "tiny", test_frames: int = 4) -> Path:

@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
+import os
 import uuid
 
 import pytest
 import redis
 
-from service.settings import Settings
-from service.storage import Storage
-from workers.job_store import JobStore
+from core.settings import Settings
+from core.storage import Storage
+from core.job_store import JobStore
 
-TEST_REDIS_URL = "redis://127.0.0.1:6379/15"
+TEST_REDIS_URL = os.environ.get("DENOISER_TEST_REDIS_URL", "redis://127.0.0.1:6379/15")
 
 
 def redis_client() -> redis.Redis:

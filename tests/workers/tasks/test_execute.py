@@ -14,13 +14,15 @@ import torch
 from model.dataset import Dataset
 from model.methods.base import FrameBatch
 from model.methods.registry import build_method
-from service.schemas import JOB_PARAMS
-from tests.model.training_fixtures import TINY_METHOD, write_sequence
+from core.jobs.specs import JOB_PARAMS
+from tests.builders import write_sequence
+from tests.model.training_fixtures import TINY_METHOD
 from tests.workers.tasks.datasets import store_dataset
 from workers.tasks import generate as generate_module
 from workers.tasks.context import JobCancelled, JobContext, Watchdog
 from workers.tasks.jobs import execute
-from workers.tasks.kinds import check
+from core.errors import DomainError, Invalid, NotFound
+from core.jobs.kinds import check
 from workers.tasks.train import plugin_modules
 
 
@@ -152,7 +154,7 @@ def test_a_training_starts_from_a_pretrained_model_or_a_registered_one(store, st
     assert any(not torch.allclose(from_scratch[key], initial[key]) for key in initial)
     # The registered result is a models:/ reference a next fine-tune can start from (references resolve through
     # the configured settings, as in the API).
-    from service.settings import get_settings
+    from core.settings import get_settings
 
     monkeypatch.setenv("DENOISER_TRACKING_URI", settings.tracking_uri)
     monkeypatch.setenv("DENOISER_DATA_DIR", str(settings.data_dir))
@@ -164,15 +166,42 @@ def test_a_training_starts_from_a_pretrained_model_or_a_registered_one(store, st
         get_settings.cache_clear()
 
 
-@pytest.mark.parametrize("init_from, status, code, words", [
-    ("nothing-here", 404, "init_from_not_found", "pretrained models: tiny-x1"),
-    ("identity", 404, "init_from_not_found", "a method name has no weights"),
-    ("models:/no-such-model@pretrained", 404, "model_not_found", "does not exist"),
-    ("wskpn-xs-x1", 422, "invalid_init_from", "holds wskpn:xs at scale 1; it cannot start tiny_test"),
+def test_int8_jnds_trains_from_a_float_checkpoint_with_every_training_option(store, storage, settings, dataset):
+    """Quantization-aware training of jnds:xs-int8 from a float32 jnds:xs job's checkpoint, through the job code
+    with the options only the CLI used to have (epochs, loss weights, tone map, skipped frames, schedule)."""
+    from model.checkpoint import load_checkpoint
+
+    float_job = run(store, storage, settings, submit(store, storage, settings, "train",
+                                                     **train_params(method="jnds:xs", crop=16, steps=1)))
+    assert float_job["state"] == "succeeded", float_job["error"]
+    float_checkpoint = float_job["result"]["checkpoint"]
+    options = dict(method="jnds:xs-int8", init_from=float_checkpoint, crop=16, epochs=1, lr=1e-12,
+                   schedule="constant", spatial_weight=1.0, temporal_weight=0.5, tonemap="mulaw",
+                   loss_skip_frames=1, grad_clip=0.5, augment=False, min_lr_ratio=0.1)
+    params = train_params(**options)
+    del params["steps"]  # epochs instead
+    job_id = submit(store, storage, settings, "train", **params)
+    stored = store.get(job_id)["params"]
+    assert stored["steps"] is None and {key: stored[key] for key in options} == options
+    record = run(store, storage, settings, job_id)
+    assert record["state"] == "succeeded", record["error"]
+    tuned = load_checkpoint(storage.root / record["result"]["checkpoint"])
+    assert tuned["method"]["preset"] == "xs-int8"
+    assert tuned["train_config"]["tonemap"] == "mulaw" and tuned["train_config"]["loss_skip_frames"] == 1
+    assert tuned["step"] == record["result"]["steps"] >= 1  # one epoch of the 2 training sequences' windows
+    start = load_checkpoint(storage.root / float_checkpoint)["model"]
+    for key, value in start.items():  # a tiny learning rate: the int8 model starts from the float weights
+        torch.testing.assert_close(tuned["model"][key], value, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("init_from, error_type, code, words", [
+    ("nothing-here", NotFound, "init_from_not_found", "pretrained models: tiny-x1"),
+    ("identity", NotFound, "init_from_not_found", "a method name has no weights"),
+    ("models:/no-such-model@pretrained", NotFound, "model_not_found", "does not exist"),
+    ("wskpn-xs-x1", Invalid, "invalid_init_from", "holds wskpn:xs at scale 1; it cannot start tiny_test"),
 ])
 def test_a_bad_init_from_is_refused_before_queueing(store, storage, settings, dataset, tmp_path, monkeypatch,
-                                                    init_from, status, code, words):
-    from service.errors import ApiError
+                                                    init_from, error_type, code, words):
 
     _shipped_tiny(tmp_path, monkeypatch)
     if init_from == "wskpn-xs-x1":  # another family
@@ -180,9 +209,9 @@ def test_a_bad_init_from_is_refused_before_queueing(store, storage, settings, da
         from model.checkpoint import save_checkpoint
 
         pretrained.ship_checkpoint(save_checkpoint(tmp_path / "w.pt", method=build_method("wskpn:xs", 1)), init_from)
-    with pytest.raises(ApiError) as caught:
+    with pytest.raises(DomainError) as caught:
         submit(store, storage, settings, "train", **train_params(init_from=init_from))
-    assert (caught.value.status, caught.value.code) == (status, code)
+    assert (type(caught.value), caught.value.code) == (error_type, code)
     assert words in str(caught.value)
 
 

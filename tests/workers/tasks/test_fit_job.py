@@ -7,12 +7,12 @@ import json
 
 import pytest
 
-from service.errors import ApiError
-from service.schemas import JOB_PARAMS
+from core.errors import DomainError, Invalid, NotFound
+from core.jobs.specs import JOB_PARAMS
 from tests.model.training_fixtures import TINY_METHOD
 from tests.workers.tasks.datasets import store_dataset
 from workers.tasks.jobs import execute
-from workers.tasks.kinds import check
+from core.jobs.kinds import check
 
 
 @pytest.fixture
@@ -59,16 +59,16 @@ def test_a_target_no_preset_meets_fails_the_job_with_the_closest(store, storage,
     assert f"(ladder: GET /jobs/{job_id}/artifacts/ladder.md or ladder.json" in record["error"]["message"]
 
 
-@pytest.mark.parametrize("changes, status, code, words", [
-    ({"target": "fast"}, 422, "invalid_target", "is not one of psnr=DB"),
-    ({"method": "identity"}, 422, "not_trainable", "only learned methods train"),
-    ({"method": "nope"}, 422, "unknown_method", "unknown method 'nope'"),
-    ({"presets": ["huge"]}, 422, "unknown_preset", "no preset 'huge'"),
-    ({"dataset": "missing"}, 404, "dataset_not_found", "'missing' does not exist"),
-    ({"validation_split": "train", "train_split": "test", "crop": 32}, 422, "crop_too_large", "32x32 crop"),
-    ({"alias": "v3"}, 422, "invalid_params", "reserved by MLflow"),
+@pytest.mark.parametrize("changes, error_type, code, words", [
+    ({"target": "fast"}, Invalid, "invalid_target", "is not one of psnr=DB"),
+    ({"method": "identity"}, Invalid, "not_trainable", "only learned methods train"),
+    ({"method": "nope"}, Invalid, "unknown_method", "unknown method 'nope'"),
+    ({"presets": ["huge"]}, Invalid, "unknown_preset", "no preset 'huge'"),
+    ({"dataset": "missing"}, NotFound, "dataset_not_found", "'missing' does not exist"),
+    ({"validation_split": "train", "train_split": "test", "crop": 32}, Invalid, "crop_too_large", "32x32 crop"),
+    ({"alias": "v3"}, Invalid, "invalid_params", "reserved by MLflow"),
 ])
-def test_bad_fits_are_refused_before_queueing(store, storage, settings, dataset, changes, status, code, words):
-    with pytest.raises(ApiError) as caught:
+def test_bad_fits_are_refused_before_queueing(store, storage, settings, dataset, changes, error_type, code, words):
+    with pytest.raises(DomainError) as caught:
         submit(store, storage, settings, **fit_params(**changes))
-    assert (caught.value.status, caught.value.code) == (status, code) and words in caught.value.message
+    assert (type(caught.value), caught.value.code) == (error_type, code) and words in caught.value.message

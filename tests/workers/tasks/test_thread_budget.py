@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from service.schemas import JOB_PARAMS
+from core.jobs.specs import JOB_PARAMS
 from workers.tasks.jobs import apply_job_threads
-from workers.tasks.train import rank_threads, train_config
+from core.jobs.train import rank_threads, train_config
 
 
 def test_the_job_budget_is_set_in_the_worker(settings):
@@ -24,6 +24,6 @@ def test_ranks_share_the_budget_and_a_jobs_own_threads_win(settings, storage, tm
     budget = settings.model_copy(update={"job_threads": 4})
     assert rank_threads(budget, 2) == 2 and rank_threads(budget, 8) == 1 and rank_threads(settings, 2) is None
     params = JOB_PARAMS["train"].model_validate({"dataset": "d", "method": "wskpn:xs", "world_size": 2})
-    assert train_config(params, storage, budget, tmp_path, "cpu").num_threads == 2
+    assert train_config(params, storage, budget, tmp_path, "cpu").threads == 2
     own = JOB_PARAMS["train"].model_validate({"dataset": "d", "method": "wskpn:xs", "world_size": 2, "threads": 3})
-    assert train_config(own, storage, budget, tmp_path, "cpu").num_threads == 3
+    assert train_config(own, storage, budget, tmp_path, "cpu").threads == 3

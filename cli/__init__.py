@@ -1,0 +1,1 @@
+"""The ``denoiser`` command line (``cli.main``) and its subcommands (``cli.commands``)."""

@@ -1,0 +1,220 @@
+"""`denoiser benchmark`: speed against accuracy for every method and preset at 1x and 2x (model/benchmark.py)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cli.commands.evaluate import add_run_options
+from cli.main import UsageError
+from core.names import SPLITS
+
+MODEL_REF_PREFIX = "models:/"
+# OIDN fast / balanced / high, alone and with TAA, are the reference points of every benchmark: a method built on
+# OIDN is compared with both at its own OIDN quality.
+ALWAYS_ALL_PRESETS = ("oidn", "oidn-taa")
+
+LEARNED_RULE = """\
+learned methods:
+  Learned methods (WSKPN, AFN, MUNet, JNDS, ...) are benchmarked only from trained weights that you give with
+  --include-learned: checkpoint files (runs/wskpn-s/best.pt) or registered models (models:/NAME/VERSION,
+  models:/NAME@ALIAS, models:/NAME for the latest version, from --tracking-uri's store). Their
+  registry presets are never run: untrained, they would be timed and scored as if they were trained, so
+  --method refuses a learned method (exit 2). A checkpoint runs at every requested scale it supports: one
+  whose network works at render resolution (WSKPN, AFN) also runs at 2x as "method + bicubic" with the same
+  weights; a joint denoise+upscale checkpoint (MUNet, JNDS) runs only at the scale it was trained for, and is
+  listed as not run at the other.
+
+outputs (in --out):
+  benchmark.json    one row per method/preset/scale (params, FLOPs/px, PSNR, FLIP, SSIM, SMAPE, temporal
+                    error, JOD, ms/frame, time / OIDN-high, Pareto flags), what was not run and why, and
+                    every scale's full evaluation report
+  benchmark.md      the same rows as a Markdown table, with each scale's measuring conditions
+  quality_speed.png PSNR and FLIP against ms per frame (log scale), Pareto front per scale, every point
+                    labelled, x1 and x2 told apart by the marker
+  quality_cost.png  PSNR and FLIP against parameters and against FLOPs per output pixel
+"""
+
+
+def add_commands(commands) -> None:
+    parser = commands.add_parser(
+        "benchmark", help="speed against accuracy: every method and preset at 1x and 2x, table and charts",
+        description="Run the evaluation protocol ('denoiser evaluate') once per output scale on the held-out "
+                    "sequences of a split, for the non-learned baselines (identity, accumulation, SVGF: every "
+                    "non-learned registry method), OIDN fast / balanced / high, and the trained models you "
+                    "include. "
+                    "OIDN-high is timed in each run on the same frames and every row carries its time ratio "
+                    "to it. Writes a JSON and a Markdown table and two charts (see below).",
+        epilog=LEARNED_RULE, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset folder")
+    parser.add_argument("--split", choices=SPLITS, default="test", help="split to benchmark on (default: test)")
+    parser.add_argument("--scale", choices=("1", "2", "both"), default="both",
+                        help="output / render resolution ratio; 'both' runs 1 and 2 (default); the data needs "
+                             "references at every scale run")
+    parser.add_argument("--method", action="append", default=None, metavar="NAME[:PRESET]",
+                        help="a non-learned registry method to run (repeatable; default: every non-learned "
+                             "method at its default preset, and the three presets of oidn and oidn-taa); "
+                             "see 'denoiser methods'")
+    parser.add_argument("--all-presets", action="store_true",
+                        help="every preset of each non-learned method (of the --method ones when given)")
+    parser.add_argument("--include-learned", nargs="+", action="extend", default=[], metavar="CHECKPOINT",
+                        help="trained models to benchmark: checkpoint files or models:/ references "
+                             "(the only way learned methods are run)")
+    parser.add_argument("--tracking-uri", default=None, metavar="URI",
+                        help="MLflow store of the models:/ references; none given: $DENOISER_TRACKING_URI, "
+                             "else sqlite:///./mlruns/mlflow.db (where 'denoiser train' registers)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for the table and charts")
+    add_run_options(parser)
+    parser.add_argument("--vdp", action="store_true",
+                        help="also compute FovVideoVDP JOD (slow on a CPU; off by default, the column is then '-')")
+    parser.add_argument("--no-oidn-timing", action="store_true",
+                        help="do not time OIDN-high as the speed reference (ratios are then null); OIDN presets "
+                             "in the method list still run")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    parser.set_defaults(run=_run_benchmark)
+
+
+# ------------------------------------------------------------------------------------------- the plan
+
+@dataclass
+class Entrant:
+    """One thing to benchmark: what the model library runs (``runnable``), what the user wrote (``source``)."""
+
+    source: str
+    runnable: str
+    scales: tuple[int, ...]
+    learned: bool
+    skipped: dict[int, str] = field(default_factory=dict)  # scale -> why it is not run there
+
+
+def _scales(text: str) -> tuple[int, ...]:
+    return (1, 2) if text == "both" else (int(text),)
+
+
+def baseline_texts(methods: list[str] | None, all_presets: bool) -> list[str]:
+    """The non-learned ``NAME:PRESET`` texts to run; UsageError for a learned method, KeyError for unknown ones."""
+    from model.methods.registry import all_methods, method_spec, parse_method_name
+
+    texts: list[str] = []
+    if methods is None:
+        for spec in all_methods():
+            if spec.learned:
+                continue
+            presets = spec.presets if all_presets or spec.name in ALWAYS_ALL_PRESETS else (spec.default_preset,)
+            texts += [f"{spec.name}:{preset}" for preset in presets]
+    else:
+        for text in methods:
+            if text.startswith(MODEL_REF_PREFIX) or Path(text).suffix in (".pt", ".pth", ".ckpt") or "/" in text:
+                raise UsageError(f"--method {text}: checkpoints and model references go to --include-learned")
+            name, preset = parse_method_name(text)
+            spec = method_spec(name)
+            if spec.learned:
+                raise UsageError(f"--method {text}: {name!r} is a learned method; its presets are untrained and "
+                                 f"would be benchmarked as if trained. Give trained weights with "
+                                 f"--include-learned CHECKPOINT or models:/NAME/VERSION")
+            preset = preset or spec.default_preset
+            if preset not in spec.presets:
+                raise KeyError(f"method {name!r} has no preset {preset!r}; presets: {', '.join(spec.presets)}")
+            presets = spec.presets if all_presets and ":" not in text else (preset,)
+            texts += [f"{name}:{p}" for p in presets]
+    return list(dict.fromkeys(texts))  # in order, once each
+
+
+def baseline_entrants(texts: list[str], scales: tuple[int, ...]) -> list[Entrant]:
+    from model.methods.registry import method_spec, parse_method_name
+
+    entrants = []
+    for text in texts:
+        spec = method_spec(parse_method_name(text)[0])
+        entrant = Entrant(text, text, tuple(s for s in scales if s in spec.scales), learned=False)
+        entrant.skipped = {s: f"{spec.name} does not run at scale {s}" for s in scales if s not in spec.scales}
+        entrants.append(entrant)
+    return entrants
+
+
+def registered_checkpoint(ref: str, tracking_uri: str | None) -> Path:
+    """The local checkpoint of ``models:/...`` in the tracking store 'denoiser train' registers into."""
+    from core.registry import registry_for
+    from core.settings import get_settings
+    from core.tracking import resolve_tracking_uri
+
+    uri = resolve_tracking_uri(tracking_uri)
+    try:
+        return registry_for(uri, Path(get_settings().data_dir)).resolve(ref).checkpoint
+    except KeyError as error:  # registry.UnknownModelError
+        raise UsageError(f"--include-learned {ref}: {error.args[0] if error.args else error}") from None
+    except ValueError as error:  # a malformed reference
+        raise UsageError(f"--include-learned {ref}: {error}") from None
+    except RuntimeError as error:  # registry.RegistryUnavailable
+        raise UsageError(f"--include-learned {ref}: model registry at {uri} unavailable: {error}") from None
+
+
+def learned_entrant(text: str, scales: tuple[int, ...], tracking_uri: str | None = None) -> Entrant:
+    """A checkpoint file or model reference, with the requested scales it can run at."""
+    from model.checkpoint import load_checkpoint
+    from model.methods.registry import build_method
+
+    if text.startswith(MODEL_REF_PREFIX):
+        path = registered_checkpoint(text, tracking_uri)
+    else:
+        path = Path(text)
+        if not path.is_file():
+            raise UsageError(f"--include-learned {text}: checkpoint not found")
+    try:
+        config = load_checkpoint(path)["method"]
+        trained_scale = int(config["scale"])
+        method = build_method(f"{config['method']}:{config['preset']}", scale=trained_scale)
+    except (KeyError, ValueError, OSError, RuntimeError) as error:
+        raise UsageError(f"--include-learned {text}: not a readable checkpoint: {error}") from None
+    runs = tuple(s for s in scales if s == trained_scale or method.denoises_at_render_resolution)
+    skipped = {s: f"checkpoint holds a scale-{trained_scale} {method.label}, whose network depends on its output "
+                  f"scale" for s in scales if s not in runs}
+    if not runs:
+        raise UsageError(f"--include-learned {text}: {skipped[scales[0]]}; it cannot run at scale "
+                         f"{', '.join(str(s) for s in scales)} (use --scale {trained_scale} or both)")
+    return Entrant(text, str(path), runs, learned=True, skipped=skipped)
+
+
+# --------------------------------------------------------------------------------------------- running
+
+def _run_benchmark(args) -> int:
+    from model.benchmark import BENCHMARK_MARKDOWN, QUALITY_COST_CHART, QUALITY_SPEED_CHART, write_benchmark
+    from model.evaluate import TIMING_REFERENCE, evaluate, load_split
+
+    if args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a file; give a folder")
+    scales = _scales(args.scale)
+    # Everything that can be wrong with the input is found before the first frame is run.
+    for scale in scales:
+        load_split(args.data, args.split, scale)
+    entrants = baseline_entrants(baseline_texts(args.method, args.all_presets), scales)
+    entrants += [learned_entrant(text, scales, args.tracking_uri) for text in dict.fromkeys(args.include_learned)]
+    if not any(e.scales for e in entrants):
+        raise UsageError(f"none of the methods runs at scale {args.scale}: "
+                         + "; ".join(reason for e in entrants for reason in e.skipped.values()))
+
+    reports = []
+    skipped = [{"method": e.source, "scale": s, "reason": reason} for e in entrants for s, reason in e.skipped.items()]
+    for scale in scales:
+        running = [e for e in entrants if scale in e.scales]
+        if not running:
+            continue
+        progress = None if args.quiet else (
+            lambda message, scale=scale: print(f"[x{scale}] {message}", file=sys.stderr, flush=True))
+        report = evaluate(args.data, [e.runnable for e in running], split=args.split, scale=scale,
+                          frame_limit=args.frames, threads=args.threads, vdp=args.vdp,
+                          timing_reference=None if args.no_oidn_timing else TIMING_REFERENCE,
+                          device=args.device, progress=progress)
+        for entry, entrant in zip(report["methods"], running):
+            entry["source"] = entrant.source  # the reference as given, not the cached checkpoint's path
+        reports.append(report)
+    files = write_benchmark(args.out, reports, skipped)
+    print(files[BENCHMARK_MARKDOWN].read_text().rstrip())
+    for path in files.values():
+        print(f"wrote {path}")
+    missing = [name for name in (QUALITY_SPEED_CHART, QUALITY_COST_CHART) if name not in files]
+    if missing:
+        print(f"no chart {', '.join(missing)}: no method was both measured and scored", file=sys.stderr)
+    return 0

@@ -1,0 +1,221 @@
+"""`denoiser generate`, `import`, `scenes`, `summary` and `preview`: making and looking at datasets."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from cli.main import UsageError, positive_int, scales_option, size_option
+from core.names import SPLITS
+
+
+def add_commands(commands) -> None:
+    _add_generate(commands)
+    _add_import(commands)
+    _add_scenes(commands)
+    _add_summary(commands)
+    _add_preview(commands)
+
+
+# ------------------------------------------------------------------------------------------- generate
+
+def _add_generate(commands) -> None:
+    from model.data.scenes import SCENES
+
+    parser = commands.add_parser(
+        "generate", help="render path-traced sequences with Mitsuba 3 into a dataset",
+        description="Render one sequence per scene recipe into the dataset folder OUT (created if missing). "
+                    "Each frame holds a 1spp noisy color (also split into diffuse and specular), noise-free "
+                    "albedo, specular albedo, normal, depth and roughness, exact motion vectors, the camera "
+                    "jitter, and box-filtered references (radiance, diffuse and specular albedo) at the requested "
+                    "scales. Deterministic for a seed.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--scene", action="append", required=True, metavar="NAME",
+                        help=f"scene recipe; repeat for several, or 'all'. One of: {', '.join(sorted(SCENES))}")
+    parser.add_argument("--frames", type=positive_int, default=16, help="frames per sequence")
+    parser.add_argument("--size", type=size_option, default=(128, 128), metavar="N|WxH",
+                        help="render resolution (references are this times each scale)")
+    parser.add_argument("--ref-spp", type=positive_int, default=1024, metavar="N",
+                        help="samples per pixel of the references (at the largest scale)")
+    parser.add_argument("--albedo-spp", type=positive_int, default=16, metavar="N",
+                        help="first-hit samples per pixel of the reference albedos (at the largest scale)")
+    parser.add_argument("--scales", type=scales_option, default=(1, 2), metavar="S[,S]",
+                        help="reference scales to store (1, 2, 4); scale 1 is the 2x2 mean of scale 2")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the scene variation and of the noise")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="dataset folder")
+    parser.add_argument("--split", choices=SPLITS, default="train",
+                        help="split the new sequences belong to")
+    parser.add_argument("--name", default=None,
+                        help="sequence name (one scene only); default SCENE_sSEED")
+    parser.add_argument("--max-depth", type=positive_int, default=6,
+                        help="longest path (1 = directly visible emitters only), as Mitsuba's path integrator")
+    parser.add_argument("--variant", choices=("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb"), default=None,
+                        help="Mitsuba variant; default: cuda_ad_rgb on a GPU, else llvm_ad_rgb, else (no LLVM 19) "
+                             "scalar_rgb")
+    parser.add_argument("--half", action="store_true", help="store EXR channels as half floats")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing sequence of the same name")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(run=_run_generate)
+
+
+def _run_generate(args) -> int:
+    from model.data.generate import generate_sequence
+    from model.data.render import RenderSettings
+    from model.data.scenes import SCENES
+
+    scenes = sorted(SCENES) if "all" in args.scene else args.scene
+    unknown = [s for s in scenes if s not in SCENES]
+    if unknown:
+        raise UsageError(f"unknown scene {', '.join(map(repr, unknown))}; known scenes: {', '.join(sorted(SCENES))}")
+    if args.name and len(scenes) > 1:
+        raise UsageError("--name applies to one scene only; drop it to name sequences SCENE_sSEED")
+    from model.data.generate import default_sequence_name
+
+    for scene in scenes:
+        target = args.out / (args.name or default_sequence_name(scene, args.seed))
+        if target.exists() and not args.overwrite:
+            raise UsageError(f"sequence {target} already exists; pass --overwrite to replace it")
+    from model.data.mitsuba_backend import choose_variant
+
+    choose_variant(args.variant)  # a variant this machine cannot run: exit 2 before the dataset folder is made
+    width, height = args.size
+    settings = RenderSettings(width=width, height=height, ref_spp=args.ref_spp, ref_scales=args.scales,
+                              albedo_spp=args.albedo_spp, max_depth=args.max_depth, variant=args.variant)
+    for scene in scenes:
+        generate_sequence(scene, args.out, frames=args.frames, settings=settings, seed=args.seed,
+                          split=args.split, name=args.name, half=args.half, overwrite=args.overwrite,
+                          progress=not args.quiet)
+    _print_summary(args.out)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- import
+
+def _add_import(commands) -> None:
+    parser = commands.add_parser(
+        "import", help="convert a folder of another renderer's EXR frames into a sequence of a dataset",
+        description="Read every .exr in SRC (name order) in the layout, convert it to the frame bundle (channels, "
+                    "motion, depth and normal conventions, jitter), and write one validated sequence into the "
+                    "dataset folder OUT (created if missing). References: same-named high-sample renders in "
+                    "SRC/references or --references. Channels the layout does not use are ignored and listed; "
+                    "normals off unit length by lossy compression are renormalised and listed; data that looks "
+                    "wrong (motion that reprojects worse than none, normals that turn with the camera, depth that "
+                    "shrinks towards the horizon) is reported as warnings.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("source", type=Path, metavar="SRC", help="folder of the renderer's frame EXRs")
+    parser.add_argument("--layout", required=True, metavar="NAME|FILE",
+                        help="built-in layout (denoiser, blender-cycles, generic) or a layout file (.toml, .json)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="dataset folder")
+    parser.add_argument("--references", type=Path, default=None, metavar="DIR",
+                        help="folder of high-sample renders named as the frames; default SRC/references if present")
+    parser.add_argument("--name", default=None, help="sequence name; default the name of SRC")
+    parser.add_argument("--scene", default=None, help="scene name recorded in the dataset (for held-out splits)")
+    parser.add_argument("--split", choices=SPLITS, default="train",
+                        help="split the sequence belongs to")
+    parser.add_argument("--fov-y", type=_degrees, default=None, metavar="DEGREES",
+                        help="vertical field of view, for layouts with planar depth (overrides the layout and the "
+                             "header)")
+    parser.add_argument("--half", action="store_true", help="store EXR channels as half floats")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing sequence of the same name")
+    parser.set_defaults(run=_run_import)
+
+
+def _degrees(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of degrees") from None
+    if not 0 < value < 180:
+        raise argparse.ArgumentTypeError(f"{text} is not between 0 and 180 degrees")
+    return value
+
+
+def _run_import(args) -> int:
+    import sys
+
+    from model.importer import import_sequence
+    from model.layouts import LayoutError, load_layout
+
+    try:
+        layout = load_layout(args.layout)
+    except LayoutError as error:
+        raise UsageError(str(error)) from None
+    report = import_sequence(args.source, layout, args.out, name=args.name, references=args.references,
+                             scene=args.scene, split=args.split, fov_y_degrees=args.fov_y, half=args.half,
+                             overwrite=args.overwrite)
+    scales = ",".join(str(scale) for scale in report.scales) or "none"
+    print(f"imported {report.frames} frames from {args.source} ({layout.name}) into {report.sequence} "
+          f"(references at scales: {scales})")
+    if report.ignored_channels:
+        print(f"ignored channels: {', '.join(report.ignored_channels)}")
+    for repair in report.repairs:
+        print(f"repaired {repair}")
+    for warning in report.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    return 0
+
+
+# ----------------------------------------------------------------------------------- scenes, summary
+
+def _add_scenes(commands) -> None:
+    parser = commands.add_parser("scenes", help="list the scene recipes of the generator")
+    parser.set_defaults(run=_run_scenes)
+
+
+def _run_scenes(args) -> int:
+    from model.data.scenes import DESCRIPTIONS
+
+    width = max(len(name) for name in DESCRIPTIONS)
+    for name in sorted(DESCRIPTIONS):
+        print(f"{name:<{width}}  {DESCRIPTIONS[name]}")
+    return 0
+
+
+def _add_summary(commands) -> None:
+    parser = commands.add_parser("summary", help="print a dataset's sequences, splits, resolutions and scales")
+    parser.add_argument("dataset", type=Path, help="dataset folder")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.set_defaults(run=_run_summary)
+
+
+def _run_summary(args) -> int:
+    _print_summary(args.dataset, as_json=args.json)
+    return 0
+
+
+def _print_summary(root: Path, as_json: bool = False) -> None:
+    from model.dataset import Dataset
+
+    dataset = Dataset(root)
+    print(json.dumps(dataset.summary(), indent=2) if as_json else dataset.format_summary())
+
+
+# ------------------------------------------------------------------------------------------- preview
+
+def _add_preview(commands) -> None:
+    parser = commands.add_parser("preview", help="save a PNG of one frame's buffers side by side")
+    parser.add_argument("frame", type=Path, help="frame EXR file, or a sequence folder (then --index picks)")
+    parser.add_argument("--index", type=int, default=0, help="frame index within a sequence folder")
+    parser.add_argument("--out", type=Path, required=True, help="PNG file to write")
+    parser.set_defaults(run=_run_preview)
+
+
+def _run_preview(args) -> int:
+    from model.exr import read_frame
+    from model.preview import save_buffer_sheet
+
+    if args.frame.is_dir():
+        from model.dataset import Sequence
+
+        sequence = Sequence(args.frame)
+        if not 0 <= args.index < len(sequence):
+            raise UsageError(f"{args.frame}: --index {args.index} is out of range (0..{len(sequence) - 1})")
+        frame = sequence[args.index]
+        title = f"{sequence.name}, frame {args.index}"
+    else:
+        frame = read_frame(args.frame)
+        title = f"{args.frame.name}"
+    out = save_buffer_sheet(frame, args.out, title)
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,84 @@
+"""`denoiser export`: a trained model's per-frame step as an ONNX file for engines (model/export.py)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from cli.main import UsageError, size_option
+
+
+def add_commands(commands) -> None:
+    parser = commands.add_parser(
+        "export", help="export a trained model's per-frame step (history as explicit inputs/outputs) to ONNX",
+        description="Write MODEL's per-frame step as an ONNX graph: the frame's buffers (NCHW, N = 1) and the "
+                    "history tensors state.NAME in, the output and state_out.NAME out (feed them back; zeros on the "
+                    "first frame and after a cut). The fused family exports its network with OIDN's output as the "
+                    "input spatial_estimate (the engine runs OIDN). The file is then run with onnxruntime over a "
+                    "short random sequence against PyTorch and the worst difference printed (tolerance: 1e-4 "
+                    "absolute + 1e-4 relative). OIDN-only methods, filters without weights and int8 JNDS are "
+                    "refused, saying why.")
+    parser.add_argument("model", metavar="MODEL",
+                        help="a checkpoint file, a pretrained model's name (denoiser pretrained), or a registered "
+                             "model (models:/NAME@ALIAS, models:/NAME/VERSION) in the service's registry")
+    parser.add_argument("--format", choices=("onnx", "torchscript"), default="onnx",
+                        help="onnx (torchscript is refused: see model/export.py)")
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE", help="the file to write, e.g. model.onnx")
+    parser.add_argument("--size", type=size_option, default=(128, 128), metavar="N|WxH",
+                        help="render resolution the graph is exported for (default 128x128)")
+    parser.add_argument("--with-optional-buffers", action="store_true",
+                        help="also take diffuse, specular, specular_albedo and roughness as inputs")
+    parser.add_argument("--no-check", action="store_true", help="skip the onnxruntime check against PyTorch")
+    parser.set_defaults(run=_run_export)
+
+
+def load_model(text: str):
+    """The trained method MODEL names (checkpoint file, pretrained name, models:/ reference, or a registry name to
+    say why it cannot be exported)."""
+    from model.checkpoint import load_method
+    from model.pretrained import is_pretrained, load_pretrained
+
+    if Path(text).is_file():
+        return load_method(text)
+    if is_pretrained(text):
+        return load_pretrained(text)
+    if text.startswith("models:/"):
+        from core.registry import resolve_checkpoint
+
+        return load_method(resolve_checkpoint(text))
+    from model.methods.registry import build_method
+
+    try:
+        method = build_method(text)
+    except (KeyError, ValueError):
+        raise UsageError(f"MODEL {text!r} is no checkpoint file, pretrained model, models:/ reference or method")
+    if method.learned:
+        raise UsageError(f"{method.label} by name has untrained weights; export a trained checkpoint, a pretrained "
+                         f"model or a registered one")
+    return method
+
+
+def _run_export(args) -> int:
+    from model.export import ExportError, TOLERANCE, check_export, export_step
+
+    if args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a folder; give a file name such as model.onnx")
+    method = load_model(args.model)
+    width, height = args.size
+    try:
+        info = export_step(method, args.out, args.format, height=height, width=width,
+                           with_optional=args.with_optional_buffers)
+    except ExportError as error:
+        raise UsageError(str(error)) from None
+    print(f"wrote {args.out} ({args.out.stat().st_size} bytes): {method.label} at scale {method.scale}, "
+          f"{width}x{height} in")
+    print(json.dumps({key: info[key] for key in ("inputs", "state", "outputs", "first_frame", "spatial_estimate")},
+                     indent=2))
+    if not args.no_check:
+        worst = check_export(method, args.out, info)
+        verdict = "within" if worst <= 1 else "OUTSIDE"
+        print(f"onnxruntime against PyTorch over 4 frames (history carried): worst difference {worst:.3g} of the "
+              f"tolerance ({TOLERANCE['atol']:g} absolute + {TOLERANCE['rtol']:g} relative): {verdict}")
+        if worst > 1:
+            return 1
+    return 0

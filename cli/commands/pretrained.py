@@ -1,0 +1,93 @@
+"""`denoiser pretrained`: the models shipped in pretrained/, their held-out scores, and registering them in MLflow."""
+
+from __future__ import annotations
+
+from cli.main import UsageError
+
+
+def add_commands(commands) -> None:
+    parser = commands.add_parser(
+        "pretrained", help="list the pretrained models shipped with the project (held-out scores); --register them",
+        description="List the pretrained models in pretrained/ (model/pretrained.py): method, scale, training "
+                    "steps, the held-out PSNR and FLIP next to OIDN-high and OIDN + TAA (high) of the same "
+                    "evaluation run, and whether the weights pass their sha256 check. --register registers each "
+                    "one in the MLflow registry under its name with an alias (default 'pretrained'), once: "
+                    "running it again finds the version with the same sha256 and only re-points the alias.")
+    parser.add_argument("--register", action="store_true", help="register them in the MLflow registry")
+    parser.add_argument("--alias", default="pretrained", help="alias the registered versions get (default: pretrained)")
+    parser.add_argument("--tracking-uri", default=None, metavar="URI",
+                        help="MLflow tracking URI; none given: the service's ($DENOISER_TRACKING_URI, else "
+                             "sqlite under $DENOISER_DATA_DIR/mlflow)")
+    parser.add_argument("--markdown", action="store_true",
+                        help="print the held-out table as Markdown (each model's rows: it, OIDN, OIDN + TAA) instead")
+    parser.set_defaults(run=_run_pretrained)
+
+
+def _score(row: dict | None, key: str, fmt: str) -> str:
+    return "-" if not row or row.get(key) is None else format(row[key], fmt)
+
+
+def _peer(model, label: str) -> dict | None:
+    return next((peer for peer in model.held_out.get("peers") or [] if peer.get("label") == label), None)
+
+
+def markdown_table(models) -> str:
+    """Each model's held-out row next to the OIDN and OIDN + TAA rows of the same evaluation run, as Markdown."""
+    lines = ["| model | row | PSNR dB ↑ | SSIM ↑ | FLIP ↓ | temporal ↓ | JOD ↑ | ms/frame | time / OIDN-high |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for model in models:
+        held_out = model.held_out
+        if held_out.get("status") != "measured":
+            lines.append(f"| {model.name} | held-out evaluation pending | - | - | - | - | - | - | - |")
+            continue
+        for row in [held_out["model"], *(held_out.get("peers") or [])]:
+            label = f"**{row['label']}** (shipped)" if row is held_out["model"] else row["label"]
+            lines.append(f"| {model.name} | {label} | {_score(row, 'psnr', '.2f')} | {_score(row, 'ssim', '.4f')} | "
+                         f"{_score(row, 'flip', '.4f')} | {_score(row, 'temporal_error', '.5f')} | "
+                         f"{_score(row, 'fvvdp_jod', '.2f')} | "
+                         f"{_score(row, 'ms_per_frame', '.1f')} | {_score(row, 'time_ratio_to_oidn', '.3g')} |")
+    return "\n".join(lines)
+
+
+def _run_pretrained(args) -> int:
+    from model.pretrained import PretrainedError, get_pretrained, pretrained_names, verify
+    from cli.commands.client import _print_table
+
+    if args.markdown:
+        print(markdown_table([get_pretrained(name) for name in pretrained_names()]))
+        return 0
+
+    rows, broken, models = [], [], []
+    for name in pretrained_names():
+        try:
+            model = get_pretrained(name)
+            verify(model)
+            check = "ok"
+        except PretrainedError as error:
+            broken.append(str(error))
+            rows.append((name, "-", "-", "-", "-", "-", "-", "-", "-", "DAMAGED"))
+            continue
+        models.append(model)
+        training = model.manifest.get("training") or {}
+        own = model.held_out_row()
+        rows.append((name, f"{model.method}:{model.preset}", model.scale, model.manifest.get("params", "-"),
+                     training.get("step", "-"), _score(own, "psnr", ".2f"), _score(own, "flip", ".4f"),
+                     _score(_peer(model, "oidn:high"), "psnr", ".2f"), _score(_peer(model, "oidn-taa:high"), "psnr",
+                                                                              ".2f"),
+                     check if own else f"{check}, held-out pending"))
+    _print_table(("name", "method", "scale", "params", "steps", "held-out PSNR", "FLIP", "OIDN-high PSNR",
+                  "OIDN+TAA-high PSNR", "weights"), rows, empty="no pretrained models in pretrained/")
+    for message in broken:
+        print(f"error: {message}")
+    if args.register:
+        from core.settings import get_settings
+        from core.tracking import register_pretrained
+
+        uri = args.tracking_uri or get_settings().resolved_tracking_uri()
+        for model in models:
+            result = register_pretrained(model, uri, alias=args.alias)
+            what = "registered as" if result["created"] else "already registered as"
+            print(f"{model.name}: {what} version {result['version']}; {result['uri']}")
+    if broken:
+        raise UsageError(f"{len(broken)} pretrained model(s) fail their check (above)")
+    return 0

@@ -1,0 +1,172 @@
+"""The client side of a session's WebSocket (GET /sessions/{id}/stream): ``DenoiserClient.open_stream`` returns one.
+
+    with client.open_stream(session["id"], dtype="float16") as stream:
+        for frame in frames:                      # model.frames.FrameBundle
+            image, info = stream.send(frame)      # (H*s, W*s, 3) float32, FrameInfo as send_frame gives it
+
+One frame in flight at a time: ``send`` returns once the frame's output has arrived. A frame the session refuses
+raises ApiClientError (with the status the REST API gives the same error, its code and message) and the stream
+stays usable; an error that ends the stream (the session is gone, the API key or owner token is wrong) raises
+ApiClientError too and closes it. Built on ``websockets.sync.client``; a frame call packs and unpacks messages with
+model.stream_codec (NumPy only, never torch), imported when the call is made, as client.rest reads EXR frames.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import httpx
+
+from client.rest import API_KEY_HEADER, ApiClientError, FrameInfo, ServerUnreachable
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from model.frames import FrameBundle
+
+STREAM_PATH = "/sessions/{session_id}/stream"
+# A close code 4000 + status carries the REST API's status for the error that ended the stream.
+APPLICATION_CLOSE_CODES = range(4000, 5000)
+MESSAGE_TOO_BIG = 1009
+STREAM_DTYPES = ("float16", "float32")  # model.stream_codec.DTYPES, named here so opening a stream needs no NumPy
+
+
+def websocket_url(http_url: str, path: str) -> str:
+    """ws:// or wss:// for the http:// or https:// base ``http_url``, plus ``path``."""
+    if http_url.startswith("https://"):
+        return "wss://" + http_url[len("https://"):] + path
+    if http_url.startswith("http://"):
+        return "ws://" + http_url[len("http://"):] + path
+    raise ValueError(f"the service URL {http_url!r} is neither http:// nor https://")
+
+
+class SessionStream:
+    """One open WebSocket to a session (see the module notes). ``dtype``: what frames are sent in (float16 halves
+    the bytes; the server rounds nothing else), ``output_dtype``: what the outputs come back in."""
+
+    def __init__(self, base_url: str, session_id: str, headers: dict[str, str], *, dtype: str = "float32",
+                 output_dtype: str = "float32", timeout: float = 60.0) -> None:
+        from websockets.exceptions import InvalidHandshake, InvalidStatus
+        from websockets.sync.client import connect
+
+        for name, value in (("dtype", dtype), ("output_dtype", output_dtype)):
+            if value not in STREAM_DTYPES:
+                raise ValueError(f"{name} must be one of {', '.join(STREAM_DTYPES)}, got {value!r}")
+        self.session_id = session_id
+        self.dtype = dtype
+        self.output_dtype = output_dtype
+        self.url = websocket_url(base_url, STREAM_PATH.format(session_id=session_id))
+        self._base_url = base_url
+        try:
+            # No per-message compression: float frames barely compress and deflate would cost more than the step.
+            # Entered here, closed by close(): the connection outlives this call (websockets wants connect() used
+            # as a context manager).
+            self._socket = connect(self.url, additional_headers=headers, max_size=None, compression=None,
+                                   open_timeout=timeout, close_timeout=timeout, ping_interval=None).__enter__()
+        except InvalidStatus as error:  # answered over HTTP instead of upgrading (a proxy, an old server)
+            response = error.response
+            raise ApiClientError(response.status_code, "websocket_refused",
+                                 f"{self.url}: the server answered {response.status_code} instead of opening the "
+                                 f"WebSocket: {bytes(response.body or b'')[:200]!r}") from None
+        except (OSError, TimeoutError, InvalidHandshake) as error:
+            raise ServerUnreachable(self.url, str(error) or type(error).__name__) from error
+        self._timeout = timeout
+
+    def send(self, frame: FrameBundle | bytes, frame_index: int | None | bool = True) -> tuple[np.ndarray, FrameInfo]:
+        """Denoise one frame: a FrameBundle (sent in ``dtype``; ``frame_index`` True sends its own index, None
+        leaves it to the session) or a message packed already (model.stream_codec.encode_frame). Returns the
+        (H, W, 3) float32 output and its FrameInfo (round trip: from sending until the output was read)."""
+        from websockets.exceptions import ConnectionClosed
+
+        from model.stream_codec import decode_output, encode_bundle
+
+        data = frame if isinstance(frame, (bytes, bytearray, memoryview)) else encode_bundle(
+            frame, dtype=self.dtype, output_dtype=self.output_dtype, frame_index=frame_index)
+
+        started = time.perf_counter()
+        try:
+            self._socket.send(data)
+            answer = self._socket.recv(timeout=self._timeout)
+        except ConnectionClosed as error:
+            raise _closed_error(error) from None
+        except TimeoutError:
+            raise ServerUnreachable(self.url, f"no answer to the frame within {self._timeout:g} s") from None
+        round_trip_ms = (time.perf_counter() - started) * 1000.0
+        if isinstance(answer, str):
+            raise _answer_error(answer)
+        output = decode_output(answer)
+        return output.image, _frame_info(output.header, round_trip_ms)
+
+    def close(self) -> None:
+        self._socket.close()
+
+    def __enter__(self) -> SessionStream:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+
+def _frame_info(header: dict[str, Any], round_trip_ms: float) -> FrameInfo:
+    """The output header as the POST route's X-* headers say it, so both transports give the same FrameInfo."""
+    names = {"frame_index": "X-Frame-Index", "history": "X-History", "inference_ms": "X-Inference-Ms",
+             "server_ms": "X-Server-Ms", "sanitized_pixels": "X-Sanitized-Pixels", "sanitized": "X-Sanitized",
+             "repairs": "X-Repairs"}
+    headers = httpx.Headers({name: str(header[field]) for field, name in names.items()
+                             if header.get(field) is not None})
+    return FrameInfo(frame_index=header.get("frame_index"), inference_ms=header.get("inference_ms"),
+                     server_ms=header.get("server_ms"), history=header.get("history"), round_trip_ms=round_trip_ms,
+                     sanitized_pixels=header.get("sanitized_pixels"), headers=headers)
+
+
+def _answer_error(text: str) -> ApiClientError:
+    """A text answer: the server refused the frame ({"error": {...}, "status", "frame_index"})."""
+    try:
+        body = json.loads(text)
+        error = body["error"]
+        return ApiClientError(int(body.get("status", 400)), error["code"], error["message"], error.get("details"))
+    except (ValueError, KeyError, TypeError):
+        return ApiClientError(502, "invalid_response", f"the server answered a frame with {text[:200]!r}")
+
+
+def _closed_error(error) -> ApiClientError:
+    """The stream ended: ApiClientError with the REST API's status where the close code carries one."""
+    close = error.rcvd
+    if close is None:
+        return ApiClientError(502, "connection_lost", f"the stream ended without a close frame: {error}")
+    code, _, message = close.reason.partition(": ")
+    if close.code in APPLICATION_CLOSE_CODES:
+        return ApiClientError(close.code - 4000, code, message or close.reason)
+    if close.code == MESSAGE_TOO_BIG:
+        return ApiClientError(413, "payload_too_large", f"the frame is larger than the server's WebSocket message "
+                                                        f"limit ({close.reason or 'close code 1009'})")
+    return ApiClientError(502, "stream_closed", f"the server closed the stream (code {close.code}): {close.reason}")
+
+
+def file_sender(stream: SessionStream, bundles: bool,
+                layout: str | dict | None) -> Callable[[Path], tuple[bytes, FrameInfo]]:
+    """For DenoiserClient.stream_sequence: frame file -> (the output as a float32 RGB EXR, its FrameInfo). Frame
+    bundle files (``bundles``) are read leniently (the session repairs NaN / Inf), a renderer's files in ``layout``
+    (default denoiser) in live mode, as the session would read them; a file without a frame index leaves it to the
+    session."""
+    from model.exr import encode_image_exr, read_frame
+    from model.layouts import layout_from_value, read_layout_frame
+
+    reader = None if bundles else layout_from_value(layout or "denoiser")
+
+    def send(path: Path) -> tuple[bytes, FrameInfo]:
+        if reader is None:
+            frame, given = read_frame(path, sanitizable=True), True
+        else:
+            read = read_layout_frame(path, reader, mode="live")
+            frame, given = read.frame, read.frame_index_given
+        image, info = stream.send(frame, frame_index=True if given else None)
+        attributes = {"frame_index": info.frame_index, "sequence": frame.sequence,
+                      "scale": image.shape[0] // frame.height}
+        return encode_image_exr(image, attributes), info
+
+    return send

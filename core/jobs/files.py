@@ -1,0 +1,29 @@
+"""The files of a job folder (``jobs/<id>/``) that the worker writes and the API serves, and reading a log's tail."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+LOG_FILE = "job.log"  # everything the job logged
+DDP_LOG_FILE = "ddp.log"  # the DDP ranks' output
+CHECKPOINT_FOLDER = "checkpoints"  # a train job's checkpoints
+REPORT_JSON = "report.json"  # evaluate and benchmark reports
+REPORT_MARKDOWN = "report.md"
+CHART = "quality_speed.png"  # a benchmark's quality/speed chart
+
+
+def tail_lines(path: Path, count: int, block: int = 64 * 1024) -> list[str]:
+    """The last ``count`` lines of a text file, read from its end (a training log can grow large)."""
+    if count <= 0 or not path.is_file():
+        return []
+    with path.open("rb") as handle:
+        handle.seek(0, 2)
+        position = handle.tell()
+        data = b""
+        while position > 0 and data.count(b"\n") <= count:
+            step = min(block, position)
+            position -= step
+            handle.seek(position)
+            data = handle.read(step) + data
+    lines = data.decode("utf-8", errors="replace").splitlines()
+    return lines[-count:]

@@ -1,0 +1,76 @@
+"""The one settings object of the API, the workers and the CLI, read from DENOISER_* environment variables."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Every knob of the API and the workers. Environment: DENOISER_<FIELD> (e.g. DENOISER_API_KEY)."""
+
+    model_config = SettingsConfigDict(env_prefix="DENOISER_", extra="ignore")
+
+    data_dir: Path = Field(Path("var"), description="root of everything the service stores (see storage.py)")
+    redis_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker, result backend, session mirror")
+    tracking_uri: str | None = Field(None, description="MLflow tracking URI; none: sqlite under data_dir")
+    mlflow_ui_url: str | None = Field(None, description="public URL of the MLflow UI, for links in job records")
+    api_key: str | None = Field(None, description="when set, every request but /health needs X-API-Key")
+    require_api_key: bool = Field(
+        False, description="refuse to start without a real api_key (set where the API is reachable from other "
+                           "machines; `denoiser serve --host` beyond localhost implies it)")
+    max_upload_bytes: int = Field(2 * 1024**3, gt=0, description="largest accepted dataset upload")
+    max_frame_bytes: int = Field(256 * 1024**2, gt=0, description="largest accepted single-frame EXR")
+    max_frame_pixels: int = Field(
+        2 * 1024**2, gt=0, description="largest render resolution (width x height) of any frame (sessions, frame "
+        "uploads, archives, in any layout), checked from the EXR headers before decoding; all parts together may "
+        "declare 128 values (pixels x channels) per pixel of it")
+    max_unpacked_bytes: int = Field(4 * 1024**3, gt=0, description="most bytes one archive may unpack to")
+    max_archive_ratio: float = Field(
+        20.0, gt=0, description="most bytes an archive may unpack to per byte uploaded, once past "
+        "archive_ratio_exempt_bytes (frame EXRs barely compress further; a zip bomb compresses 1000:1)")
+    archive_ratio_exempt_bytes: int = Field(
+        16 * 1024**2, ge=0, description="unpacked bytes any archive may have whatever its ratio (tiny uploads)")
+    max_concurrent_uploads: int = Field(2, gt=0, description="dataset uploads (archives and frames) received or "
+                                                             "unpacked at once; one more answers 429")
+    max_buffered_frame_bytes: int = Field(
+        1024**3, gt=0, description="bytes of session frame bodies held in memory at once (each from its first byte "
+                                   "until its output is encoded); a frame past it answers 503 (retry)")
+    body_read_timeout_seconds: float = Field(
+        30.0, gt=0, description="longest wait for the next chunk of a request body (frames and uploads): 408 after")
+    staged_upload_ttl_seconds: int = Field(
+        24 * 3600, gt=0, description="frame-by-frame uploads untouched this long are discarded")
+    session_owner_tokens: bool = Field(
+        False, description="sessions answer only to the X-Session-Token returned when they were created")
+    session_ttl_seconds: int = Field(1800, gt=0, description="idle time after which a session expires")
+    max_sessions: int = Field(16, gt=0, description="live sessions; one more answers 429")
+    session_device: str = Field("cpu", description="torch device sessions run on")
+    session_workers: int = Field(
+        2, gt=0, description="threads that run session frames (each its own torch thread team): one slow session "
+                             "holds one of them while the others serve the rest")
+    session_threads: int | None = Field(
+        None, gt=0, description="torch threads of each session worker; none: the cores shared out among them")
+    job_threads: int | None = Field(
+        None, gt=0, description="torch threads of a job in a worker (training, evaluation, inference; DDP ranks "
+                                "share them); none: torch's default, every core")
+    session_mirror_interval_seconds: float = Field(
+        0.0, ge=0, le=3600, description="0: every frame's history is in Redis before the next frame runs; > 0: "
+        "written at most this often (large histories, GPU sessions), so a restart may resume that far back")
+    worker_heartbeat_seconds: float = Field(
+        10.0, gt=0, description="how often each worker writes its heartbeat; one silent for 3 times this is gone")
+    redis_retry_seconds: float = Field(
+        20.0, ge=0, description="how long a running job retries Redis (with backoff) before its attempt fails")
+    job_time_limit_seconds: int = Field(24 * 3600, gt=0, description="longest job; the visibility timeout exceeds it")
+
+    def resolved_tracking_uri(self) -> str:
+        if self.tracking_uri:
+            return self.tracking_uri
+        return f"sqlite:///{(self.data_dir / 'mlflow' / 'mlflow.db').resolve()}"
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    return Settings()

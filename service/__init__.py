@@ -1,1 +1,0 @@
-"""The product's entry points: the `denoiser` command line (and, later, the FastAPI server)."""

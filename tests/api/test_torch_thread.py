@@ -1,0 +1,68 @@
+"""api.torch_thread.TorchThread: every call on one thread, results and errors passed back, no self-deadlock."""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+import torch
+
+from api.torch_thread import TorchThread
+
+
+def test_calls_from_many_threads_run_on_one_thread_and_return_their_results():
+    worker = TorchThread()
+    try:
+        with ThreadPoolExecutor(4) as callers:
+            results = list(callers.map(lambda i: worker.run(lambda: (threading.get_ident(), i * i)), range(12)))
+        idents = {ident for ident, _ in results}
+        assert len(idents) == 1 and threading.get_ident() not in idents
+        assert [square for _, square in results] == [i * i for i in range(12)]
+    finally:
+        worker.shutdown()
+
+
+def test_errors_reach_the_caller_and_the_thread_goes_on():
+    worker = TorchThread()
+    try:
+        with pytest.raises(ValueError, match="bad frame"):
+            worker.run(lambda: (_ for _ in ()).throw(ValueError("bad frame")))
+        assert worker.run(lambda: 7) == 7
+    finally:
+        worker.shutdown()
+
+
+def test_a_nested_call_runs_in_place_and_the_thread_count_is_set_there():
+    worker = TorchThread(num_threads=1)
+    before = torch.get_num_threads()
+    try:
+        outer = worker.run(lambda: (threading.get_ident(), worker.run(threading.get_ident), torch.get_num_threads()))
+        assert outer[0] == outer[1] and outer[2] == 1
+    finally:
+        worker.shutdown()
+        torch.set_num_threads(before)  # torch's setting is process-wide for threads started later
+
+
+def test_after_shutdown_calls_run_in_the_caller():
+    worker = TorchThread()
+    worker.shutdown()
+    assert worker.run(threading.get_ident) == threading.get_ident()
+
+
+def test_a_pool_serves_other_calls_while_one_call_is_slow():
+    from api.torch_thread import TorchPool
+
+    pool = TorchPool(workers=2, num_threads=1)
+    released = threading.Event()
+    try:
+        with ThreadPoolExecutor(1) as caller:
+            # The slow call holds one worker until the fast one has finished (or, on one thread, gives up).
+            slow = caller.submit(pool.run, lambda: released.wait(30))
+            fast = pool.run(lambda: torch.get_num_threads())
+            released.set()
+            assert slow.result() is True  # released by the fast call, not by its timeout
+        assert fast == 1
+    finally:
+        released.set()
+        pool.shutdown()

@@ -1,0 +1,93 @@
+"""The `denoiser` command line: documented options, real runs, clear errors with exit status 2."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from model.dataset import Dataset
+from model.exr import read_frame
+from cli.main import build_parser, main
+from tests.model.data.conftest import requires_llvm
+
+
+def test_generate_help_documents_every_option(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["generate", "--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    generate = next(a for a in build_parser()._subparsers._group_actions[0].choices.items() if a[0] == "generate")[1]
+    for action in generate._actions:
+        for flag in action.option_strings:
+            assert flag in text
+        if action.option_strings and action.help:
+            assert action.help.split()[0] in text
+    for option in ("--scene", "--frames", "--size", "--ref-spp", "--seed", "--out", "--split", "--scales"):
+        assert option in text
+
+
+@requires_llvm
+def test_generate_writes_a_dataset_and_refuses_to_overwrite(tmp_path, capsys):
+    out = tmp_path / "data"
+    args = ["generate", "--scene", "glass", "--frames", "2", "--size", "24x16", "--ref-spp", "4", "--albedo-spp", "2",
+            "--seed", "7", "--out", str(out), "--split", "test", "--quiet"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "test" in printed and "glass" in printed
+    dataset = Dataset(out)
+    assert dataset.names("test") == ["glass_s7"]
+    frame = read_frame(out / "glass_s7" / "frame_0001.exr")
+    assert frame.resolution == (24, 16) and frame.scales == (1, 2) and frame.sequence == "glass_s7"
+    assert sorted(frame.reference_albedos) == sorted(frame.reference_specular_albedos) == [1, 2]
+    before = (out / "glass_s7" / "frame_0001.exr").read_bytes()
+
+    assert main(args) == 2
+    assert "exists" in capsys.readouterr().err
+    assert (out / "glass_s7" / "frame_0001.exr").read_bytes() == before
+    assert main(args + ["--overwrite"]) == 0  # deterministic: the same bytes come back
+    np.testing.assert_array_equal(read_frame(out / "glass_s7" / "frame_0001.exr").color, frame.color)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["generate", "--scene", "nope", "--out", "x"], "unknown scene 'nope'"),
+    (["summary", "/nonexistent/dataset"], "/nonexistent/dataset"),
+    (["preview", "/nonexistent/frame.exr", "--out", "x.png"], "/nonexistent/frame.exr"),
+    (["generate", "--scene", "glass", "--out", "/nonexistent/cuda-data", "--variant", "cuda_ad_rgb"]
+     if not torch.cuda.is_available() else ["generate", "--scene", "moon", "--out", "x"],
+     "needs a CUDA GPU" if not torch.cuda.is_available() else "unknown scene 'moon'"),
+])
+def test_bad_input_exits_2_with_a_message_naming_it(argv, message, capsys):
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [
+    ["generate", "--scene", "glass", "--out", "x", "--frames", "0"],
+    ["generate", "--scene", "glass", "--out", "x", "--size", "12y5"],
+    ["generate", "--scene", "glass", "--out", "x", "--scales", "3"],
+])
+def test_invalid_option_values_are_usage_errors(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "error" in capsys.readouterr().err
+
+
+def test_scenes_lists_every_recipe(capsys):
+    from model.data.scenes import SCENES
+
+    assert main(["scenes"]) == 0
+    printed = capsys.readouterr().out
+    assert all(name in printed for name in SCENES)
+
+
+@requires_llvm
+def test_preview_writes_a_png(tmp_path):
+    out = tmp_path / "data"
+    main(["generate", "--scene", "metals", "--frames", "1", "--size", "16", "--ref-spp", "2", "--out", str(out),
+          "--quiet"])
+    png = tmp_path / "sheet.png"
+    assert main(["preview", str(out / "metals_s0"), "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["preview", str(out / "metals_s0"), "--index", "5", "--out", str(png)]) == 2

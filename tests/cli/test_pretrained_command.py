@@ -1,0 +1,76 @@
+"""`denoiser pretrained`: the listing with held-out scores, idempotent registration with the alias, damaged files."""
+
+from __future__ import annotations
+
+import pytest
+
+import model.pretrained as pretrained
+from cli.main import main
+from tests.builders import report_for, ship_tiny
+
+
+@pytest.fixture
+def shipped(tmp_path, monkeypatch):
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    return ship_tiny(tmp_path / "pretrained", report=report_for())
+
+
+def test_the_listing_shows_held_out_scores_next_to_oidn(shipped, capsys):
+    assert main(["pretrained"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:3] == ["name", "method", "scale"]
+    row = lines[1].split()
+    assert row[:5] == ["wskpn-xs-x1", "wskpn:xs", "1", str(shipped.manifest["params"]), "120"]
+    assert row[5:9] == ["30.50", "0.1000", "31.00", "31.40"] and row[-1] == "ok"
+
+
+def test_registration_is_idempotent_and_sets_the_alias(shipped, tmp_path, capsys):
+    from mlflow import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    assert main(["pretrained", "--register", "--tracking-uri", uri]) == 0
+    assert "wskpn-xs-x1: registered as version 1; models:/wskpn-xs-x1@pretrained" in capsys.readouterr().out
+    assert main(["pretrained", "--register", "--tracking-uri", uri]) == 0
+    assert "wskpn-xs-x1: already registered as version 1" in capsys.readouterr().out
+    client = MlflowClient(uri, registry_uri=uri)
+    versions = client.search_model_versions("name = 'wskpn-xs-x1'")
+    assert [str(v.version) for v in versions] == ["1"]
+    tags = versions[0].tags
+    assert tags["sha256"] == shipped.sha256 and tags["method"] == "wskpn" and tags["pretrained"] == "true"
+    assert float(tags["metric.held_out_psnr"]) == 30.5 and float(tags["metric.held_out_oidn_high_psnr"]) == 31.0
+    assert str(client.get_model_version_by_alias("wskpn-xs-x1", "pretrained").version) == "1"
+    # The registered checkpoint is the shipped file.
+    from core.tracking import download_registered_checkpoint
+
+    local = download_registered_checkpoint("wskpn-xs-x1", 1, tmp_path / "download", tracking_uri=uri)
+    assert pretrained.file_sha256(local) == shipped.sha256
+    # ... and the registered version is a pyfunc model with a signature.
+    import mlflow
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("MLFLOW_TRACKING_URI", uri)
+        patch.setenv("MLFLOW_REGISTRY_URI", uri)
+        model = mlflow.pyfunc.load_model("models:/wskpn-xs-x1@pretrained")
+    assert "jitter" in model.metadata.get_input_schema().input_names()
+
+
+def test_a_damaged_model_is_reported_and_exits_2(shipped, capsys):
+    shipped.path.write_bytes(b"not a checkpoint")
+    assert main(["pretrained"]) == 2
+    captured = capsys.readouterr()
+    assert "DAMAGED" in captured.out and "damaged or was replaced" in captured.out
+    assert "1 pretrained model(s) fail their check" in captured.err
+
+
+def test_the_markdown_table_puts_the_model_next_to_oidn_of_the_same_run(shipped, capsys):
+    assert main(["pretrained", "--markdown"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[2].startswith("| wskpn-xs-x1 | **wskpn:xs** (shipped) | 30.50 |")
+    assert [line.split(" | ")[1] for line in lines[3:]] == ["oidn:high", "oidn-taa:high"]
+
+
+def test_a_pending_model_says_so_in_the_table(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    ship_tiny(tmp_path / "pretrained")
+    assert main(["pretrained", "--markdown"]) == 0
+    assert "| wskpn-xs-x1 | held-out evaluation pending |" in capsys.readouterr().out

@@ -1,0 +1,22 @@
+"""core.names: the one module of shared constants agrees with the library and the schemas that use it."""
+
+from __future__ import annotations
+
+import typing
+
+from core import names
+from core.jobs.specs import JOB_PARAMS, JobDevice, JobKind, JobState, JobSplit
+from model.dataset import SPLITS
+
+
+def test_the_splits_are_the_libraries():
+    assert names.SPLITS == SPLITS
+
+
+def test_job_kinds_states_and_devices_are_the_schemas():
+    assert typing.get_args(JobKind) == names.JOB_KINDS == tuple(JOB_PARAMS)
+    assert typing.get_args(JobState) == names.JOB_STATES
+    assert names.FINISHED_STATES < set(names.JOB_STATES)
+    assert typing.get_args(JobDevice) == names.DEVICES == tuple(names.QUEUE_FOR_DEVICE)
+    assert set(names.QUEUE_FOR_DEVICE.values()) <= set(names.QUEUES)
+    assert typing.get_args(JobSplit) == SPLITS

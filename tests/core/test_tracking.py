@@ -1,0 +1,199 @@
+"""MLflow tracking against a temporary SQLite store: params, metrics, sample grids, the registered model, resume."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from model.checkpoint import load_checkpoint, load_method
+from model.train import TrainConfig, train
+from tests.builders import write_tiny_dataset
+from tests.model.training_fixtures import TINY_METHOD
+from core.tracking import (
+    MLflowTracker,
+    default_tracking_uri,
+    download_registered_checkpoint,
+    resolve_tracking_uri,
+    save_image_grid,
+    sqlite_path,
+)
+
+
+class Interrupted(Exception):
+    pass
+
+
+def config_for(tmp_path, **changes) -> TrainConfig:
+    values = dict(method=TINY_METHOD, data=str(tmp_path / "data"), crop=8, frames_per_sample=2, batch=2,
+                  steps=3, warmup_steps=0, out=str(tmp_path / "out"), checkpoint_every=1, validate_every=2,
+                  register_as="tiny-denoiser", experiment="tests")
+    values.update(changes)
+    return TrainConfig(**values)
+
+
+def test_a_training_run_is_tracked_and_its_model_registered(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # so a call that fell back on MLflow's default store would show up here
+    write_tiny_dataset(tmp_path / "data")
+    uri = f"sqlite:///{tmp_path / 'tracking' / 'mlflow.db'}"
+    config = config_for(tmp_path, tracking_uri=uri)
+
+    def stop_after_two(step, total, message):
+        if step == 2:
+            raise Interrupted
+
+    # Interrupted after step 2 (checkpointed), then resumed: one run holds the whole history.
+    first = MLflowTracker(uri, config.experiment)
+    with pytest.raises(Interrupted):
+        train(config, tracker=first, progress=stop_after_two)
+    client = first.client
+    assert client.get_run(first.run_id).info.status == "FAILED"
+    tracker = MLflowTracker(uri, config.experiment)
+    result = train(config, tracker=tracker)
+    assert tracker.run_id == first.run_id == result["run_id"]
+
+    run = client.get_run(tracker.run_id)
+    assert run.info.status == "FINISHED"
+    params = run.data.params
+    assert params["method"] == TINY_METHOD and params["lr"] == "0.001" and params["steps"] == "3"
+    assert params["parameters"] == str(result["parameters"]) and float(params["flops_per_pixel"]) > 0
+    losses = client.get_metric_history(run.info.run_id, "train/loss")
+    assert [m.step for m in losses] == [1, 2, 3]
+    assert all(np.isfinite(m.value) for m in losses)
+    validation = client.get_metric_history(run.info.run_id, "validation/psnr")
+    assert [m.step for m in validation] == [2, 3]
+    assert validation[-1].value == pytest.approx(result["validation"]["psnr"])
+    samples = [a.path for a in client.list_artifacts(run.info.run_id, "samples")]
+    assert samples == ["samples/step_0000002.png", "samples/step_0000003.png"]
+
+    # Artifacts live next to the database; nothing went to MLflow's defaults in the current folder.
+    assert (tmp_path / "tracking" / "artifacts" / "tests").is_dir()
+    assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "mlruns").exists()
+
+    registered = result["registered_model"]
+    assert registered["name"] == "tiny-denoiser" and registered["version"] == "1"
+    version = client.get_model_version("tiny-denoiser", "1")
+    assert version.run_id == run.info.run_id
+    assert version.tags["method"] == TINY_METHOD and version.tags["preset"] == "default"
+    assert version.tags["scale"] == "1" and version.tags["params"] == str(result["parameters"])
+    assert float(version.tags["flops_per_pixel"]) == pytest.approx(result["flops_per_pixel"], rel=1e-5)
+    assert float(version.tags["validation_psnr"]) == pytest.approx(result["validation"]["psnr"], abs=1e-4)
+
+    # Lineage: the code version and the dataset, by its manifests' digest.
+    from model.dataset import dataset_digest
+
+    assert run.data.tags["code_version"] and run.data.tags["code_version"] != "unknown"
+    inputs = run.inputs.dataset_inputs
+    assert [(i.dataset.name, i.dataset.digest, i.tags[0].value) for i in inputs] == \
+        [("data", dataset_digest(tmp_path / "data")[:36], "training")]
+
+    # The registered checkpoint loads back into the trained method.
+    downloaded = download_registered_checkpoint("tiny-denoiser", 1, tmp_path / "download", tracking_uri=uri)
+    method = load_method(downloaded)
+    final = load_checkpoint(result["checkpoint"])["model"]
+    for name, tensor in method.state_dict().items():
+        assert torch.equal(tensor, final[name])
+
+
+def test_image_grid_is_a_png_with_a_panel_per_image(tmp_path):
+    rng = np.random.default_rng(0)
+    columns = {name: [rng.uniform(0, 1, (8, 8, 3)) for _ in range(2)] for name in ("noisy", "output", "reference")}
+    path = save_image_grid(columns, tmp_path / "grid.png", title="step 1")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    import matplotlib.image
+
+    height, width = matplotlib.image.imread(path).shape[:2]
+    assert width > height  # three columns, two rows
+    with pytest.raises(ValueError, match="at least one column"):
+        save_image_grid({}, tmp_path / "empty.png")
+
+
+def test_tracking_uri_is_one_setting(monkeypatch, tmp_path):
+    monkeypatch.delenv("DENOISER_TRACKING_URI", raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert resolve_tracking_uri(None) == default_tracking_uri() == f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    monkeypatch.setenv("DENOISER_TRACKING_URI", "postgresql://mlflow@db/mlflow")
+    assert resolve_tracking_uri(None) == "postgresql://mlflow@db/mlflow"
+    assert resolve_tracking_uri("sqlite:////x/y.db") == "sqlite:////x/y.db"
+    assert sqlite_path("sqlite:////x/y.db").as_posix() == "/x/y.db" and sqlite_path("http://host:5000") is None
+
+
+def test_two_trackers_starting_together_on_a_new_database_both_work(tmp_path):
+    # Two training jobs started at once on a fresh SQLite file raced in MLflow's table creation.
+    import multiprocessing
+
+    uri = f"sqlite:///{tmp_path / 'fresh' / 'mlflow.db'}"
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(2) as pool:
+        run_ids = pool.map(_start_a_run, [(uri, "a"), (uri, "b")])
+    assert len(set(run_ids)) == 2
+
+
+def _start_a_run(arguments):
+    uri, name = arguments
+    tracker = MLflowTracker(uri, experiment="race")
+    tracker.start({"method": name})
+    tracker.finish("FINISHED")
+    return tracker.run_id
+
+
+def sequence_arrays(frames):
+    """FrameBundles as the pyfunc model's input: named (T, H, W, C) arrays and the jitter."""
+    names = ("color", "albedo", "normal", "depth", "motion", "diffuse", "specular", "specular_albedo", "roughness")
+    arrays = {name: np.stack([getattr(frame, name) for frame in frames]).astype(np.float32) for name in names
+              if all(getattr(frame, name) is not None for frame in frames)}
+    arrays = {name: array[..., None] if array.ndim == 3 else array for name, array in arrays.items()}  # depth
+    arrays["jitter"] = np.array([frame.jitter for frame in frames], dtype=np.float32)
+    return arrays
+
+
+def test_a_registered_model_loads_through_mlflow_pyfunc_and_denoises_a_sequence(tmp_path, monkeypatch):
+    import dataclasses
+
+    import mlflow
+
+    from model.checkpoint import save_checkpoint
+    from model.methods.base import FrameBatch
+    from model.methods.registry import build_method
+    from tests.builders import synthetic_frame
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    torch.manual_seed(5)
+    checkpoint = save_checkpoint(tmp_path / "wskpn.pt", method=build_method("wskpn:xs", 1))
+    tracker = MLflowTracker(uri, "tests")
+    tracker.start({"method": "wskpn:xs"})
+    tracker.log_model(checkpoint, "wskpn-pyfunc", {"method": "wskpn"})
+    tracker.finish("FINISHED")
+    tracker.client.set_registered_model_alias("wskpn-pyfunc", "champion", "1")
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    monkeypatch.setenv("MLFLOW_REGISTRY_URI", uri)
+    model = mlflow.pyfunc.load_model("models:/wskpn-pyfunc@champion")
+    assert [spec.name for spec in model.metadata.get_input_schema().inputs] == \
+        ["color", "albedo", "normal", "depth", "motion", "jitter"]
+    rng = np.random.default_rng(0)
+    # The signature's buffers only (MLflow drops undeclared inputs; module notes of core.pyfunc_model).
+    frames = [dataclasses.replace(synthetic_frame(rng, index, 16, 16), diffuse=None, specular=None,
+                                  specular_albedo=None, roughness=None) for index in range(4)]
+    output = model.predict(sequence_arrays(frames))
+    assert output.shape == (4, 16, 16, 3) and output.dtype == np.float32
+
+    # The same as stepping the checkpoint in process, history carried over the sequence.
+    method, state = load_method(checkpoint).for_inference(), None
+    with torch.no_grad():
+        for index, frame in enumerate(frames):
+            expected, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
+            np.testing.assert_allclose(output[index], expected[0].permute(1, 2, 0).numpy(), rtol=1e-5, atol=1e-6)
+    # History matters: frame 3 alone (a new sequence) gives another output than frame 3 after 0-2.
+    alone = model.predict(sequence_arrays(frames[3:]))
+    assert not np.allclose(alone[0], output[3])
+    with pytest.raises(Exception, match="jitter"):
+        model.predict({key: value for key, value in sequence_arrays(frames).items() if key != "jitter"})
+    # The optional buffers reach the model through the unwrapped python model.
+    full = [synthetic_frame(np.random.default_rng(1), index, 16, 16) for index in range(2)]
+    direct = model.unwrap_python_model().predict(None, sequence_arrays(full))
+    method, state = load_method(checkpoint).for_inference(), None
+    with torch.no_grad():
+        for index, frame in enumerate(full):
+            expected, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
+            np.testing.assert_allclose(direct[index], expected[0].permute(1, 2, 0).numpy(), rtol=1e-5, atol=1e-6)

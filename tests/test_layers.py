@@ -1,0 +1,158 @@
+"""The import rules between the layers (docs/architecture.md), read from the source with ``ast``.
+
+Every import of every module counts, function-local ones included: a rule broken inside a function is broken
+all the same. The one exception is written down in ``DEFERRED``. A failure names the file, the line and the import.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("model", "core", "api", "workers", "cli", "client")
+OURS = set(PACKAGES)
+
+# package -> imports it must not make (a name forbids the package and everything below it)
+FORBIDDEN = {
+    "model": OURS - {"model"},
+    "core": {"api", "workers", "cli", "client", "celery", "kombu", "fastapi", "starlette", "uvicorn"},
+    "api": {"workers", "cli"},
+    "workers": {"api", "cli", "fastapi", "starlette"},
+    "cli": {"api", "workers"},
+    "client": {"torch", "model", "core", "api", "workers", "cli", "numpy", "mlflow"},
+}
+# Imports a layer may make inside a function only (never when the module is imported), with the reason.
+DEFERRED = {
+    # Sending and receiving frames: the client encodes and decodes EXR frame bundles with the model library's
+    # readers (numpy, OpenEXR; never torch) when, and only when, a frames call is made. `import client.rest`
+    # loads none of it (the subprocess test below proves it with torch and model blocked).
+    ("client", "model.exr"), ("client", "model.frames"), ("client", "model.dataset"), ("client", "model.importer"),
+    # A session's WebSocket (client.stream): its messages are packed by the codec the API shares (NumPy only), and
+    # a renderer's frames are read in their layout on the client before they are sent.
+    ("client", "model.stream_codec"), ("client", "model.layouts"),
+}
+# What a forbidden package may still import, each with its reason.
+ALLOWED = {
+    # The client shares the job kinds, states and splits with everyone else: one plain-constants module.
+    ("client", "core.names"),
+    # Local training (`denoiser train --world-size N`) launches DDP ranks itself, as the worker does.
+    ("cli", "workers.ddp"),
+}
+
+
+def imports_of(path: Path, root: Path = ROOT) -> list[tuple[int, str]]:
+    """Every module ``path`` imports at run time (absolute names; relative imports resolved), with its line."""
+    return sorted((line, name) for line, name, _ in _imports(path, root))
+
+
+def _imports(path: Path, root: Path = ROOT) -> list[tuple[int, str, bool]]:
+    """``imports_of`` with, for each import, whether it runs inside a function; ``if TYPE_CHECKING:`` imports,
+    which never run, are left out."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    package = ".".join(path.relative_to(root).with_suffix("").parts[:-1])
+    deferred, type_only = set(), set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            deferred |= {id(inner) for inner in ast.walk(node) if inner is not node}
+        if isinstance(node, ast.If) and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING":
+            type_only |= {id(inner) for inner in ast.walk(node) if inner is not node}  # never run
+    found = []
+    for node in ast.walk(tree):
+        if id(node) in type_only:
+            continue
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(parts + ([base] if base else []))
+            names = [f"{base}.{alias.name}" if alias.name != "*" else base for alias in node.names]
+        else:
+            continue
+        found += [(node.lineno, name, id(node) in deferred) for name in names]
+    return found
+
+
+def _listed(pairs: set[tuple[str, str]], layer: str, name: str) -> bool:
+    return any(name == allowed or name.startswith(allowed + ".") for owner, allowed in pairs if owner == layer)
+
+
+def breaks_rule(layer: str, name: str, in_function: bool = False) -> bool:
+    if _listed(ALLOWED, layer, name) or (in_function and _listed(DEFERRED, layer, name)):
+        return False
+    return name.split(".")[0] in FORBIDDEN[layer]
+
+
+def violations() -> list[str]:
+    found = []
+    for layer in PACKAGES:
+        for path in sorted((ROOT / layer).rglob("*.py")):
+            for line, name, in_function in _imports(path):
+                if breaks_rule(layer, name, in_function):
+                    found.append(f"{path.relative_to(ROOT)}:{line}: {layer} imports {name}")
+    return sorted(found)
+
+
+def test_the_layers_import_only_what_they_may():
+    assert violations() == []
+
+
+def test_the_old_service_package_is_gone():
+    assert not list(ROOT.glob("service/**/*.py"))  # its modules live in core, api, cli and client now
+
+
+@pytest.mark.parametrize("layer, name, broken", [
+    ("api", "workers.tasks.jobs", True),
+    ("workers", "api.errors", True),
+    ("core", "celery", True),
+    ("core", "fastapi.responses", True),
+    ("core", "api.schemas.jobs", True),
+    ("model", "core.settings", True),
+    ("client", "torch", True),
+    ("client", "model.exr", True),
+    ("client", "core.names", False),
+    ("client", "numpy", True),
+    ("cli", "workers.ddp", False),
+    ("cli", "workers.celery_app", True),
+    ("api", "core.jobs.dispatch", False),
+    ("workers", "core.job_store", False),
+])
+def test_the_rules_catch_what_they_should(layer, name, broken):
+    assert breaks_rule(layer, name) == broken
+
+
+def test_the_client_reads_frames_with_the_library_only_inside_a_function():
+    assert breaks_rule("client", "model.exr.read_frame", in_function=False)
+    assert not breaks_rule("client", "model.exr.read_frame", in_function=True)
+    assert breaks_rule("client", "torch", in_function=True)
+
+
+def test_imports_are_read_everywhere_in_a_module(tmp_path):
+    path = tmp_path / "api" / "routes" / "probe.py"
+    path.parent.mkdir(parents=True)
+    path.write_text("import os\n\ndef late():\n    from workers.tasks import jobs\n    from . import health\n"
+                    "    from ..errors import ApiError\n")
+    assert imports_of(path, tmp_path) == [(1, "os"), (4, "workers.tasks.jobs"), (5, "api.routes.health"),
+                                          (6, "api.errors.ApiError")]
+
+
+def test_the_api_process_never_loads_celery_tasks_and_the_client_never_loads_torch():
+    probe = ("import sys\n"
+             "class Block:\n"
+             "    def find_spec(self, name, path=None, target=None):\n"
+             "        if name.split('.')[0] in ('torch', 'model'):\n"
+             "            raise ImportError(f'blocked: {name}')\n"
+             "sys.meta_path.insert(0, Block())\n"
+             "import client.rest\n"
+             "sys.meta_path.pop(0)\n"
+             "import api.main\n"
+             "loaded = sorted(m for m in sys.modules if m.startswith('workers'))\n"
+             "assert not loaded, loaded\n")
+    result = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
