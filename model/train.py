@@ -29,6 +29,7 @@ Tracking goes through a ``Tracker`` (the protocol below); this module never impo
 
 from __future__ import annotations
 
+import gc
 import math
 import random
 import time
@@ -257,11 +258,19 @@ def train(config: TrainConfig, tracker: Tracker | None = None, rank: int = 0, wo
         if device.type == "cuda":
             torch.cuda.set_device(device)
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo", rank=rank, world_size=world_size)
-    try:
+    if not own_group:
         return _Training(config, tracker or NullTracker(), rank, world_size, device, progress).run()
+    try:
+        result = _Training(config, tracker or NullTracker(), rank, world_size, device, progress).run()
+        # Tear down only when every rank is done with collectives, and once the DDP wrapper (whose reducer holds
+        # the gloo group, kept alive by module reference cycles) is gone: a rank that exits first, or a group
+        # freed during interpreter shutdown, aborted the process in gloo's threads about once in 20 jobs.
+        gc.collect()
+        dist.barrier()
+        return result
     finally:
-        if own_group:
-            dist.destroy_process_group()
+        dist.destroy_process_group()
+        gc.collect()
 
 
 class _Training:
