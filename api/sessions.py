@@ -12,10 +12,12 @@ index sequence but the method drops its history itself (``drop_history``), as in
 session has the render resolution of the first frame since the last reset ("resolution_mismatch" otherwise).
 
 Where sessions live. In memory (the loaded method, its state tensors on ``settings.session_device``) and in
-Redis, one hash per session at ``denoiser:session:<id>`` with two fields: ``meta`` (JSON: model, counters,
-timestamps, a ``revision`` bumped by every change) and ``state`` (the state tensors, ``torch.save`` bytes, empty
-for no history). Both are written together, in one transaction, with the key's TTL set to the session TTL, so
-Redis always holds a matching pair (a history and the frame index it continues at), never one without the other:
+Redis, one hash per session at ``denoiser:session:<id>``: ``meta`` (JSON: model, counters, timestamps, a
+``revision`` bumped by every change), ``state_chunks`` (how many) and ``state.0``, ``state.1``, ... (the state
+tensors as ``model.state_codec`` bytes, float16 by default (``session_history_precision``), cut into chunks of
+``STATE_CHUNK_BYTES`` so a 1080p history stays far below Redis's 512 MB value limit). The key is replaced whole,
+in one transaction, with its TTL set to the session TTL, and read whole, in one command, so Redis always holds a
+matching pair (a history and the frame index it continues at), never one without the other:
 
 - a restarted API process finds each live session in Redis and continues it from its last mirrored frame;
 - Redis is the record of which sessions exist: a key that expired or was deleted ends the session;
@@ -70,6 +72,7 @@ from redis.retry import Retry
 from model.frames import FrameBundle
 from model.methods.base import FrameBatch, Method, State
 from model.sanitize import SanitizeReport, sanitize_frame
+from model.state_codec import StateFormatError, decode_state, encode_state
 from core.registry import Registry, UnknownModelError, registry_for
 from api.session_models import (
     REGISTERED,
@@ -88,6 +91,7 @@ ON_GAP_POLICIES = ("reset", "reject")
 SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
 REDIS_PAUSE_SECONDS = 5.0  # after a Redis failure, serve from memory this long before trying Redis again
 MIRROR_WRITERS = 4  # threads writing frames' mirrors to Redis (each session's writes stay in order, one at a time)
+STATE_CHUNK_BYTES = 32 * 1024 * 1024  # one Redis field each: no single command buffers a whole 1080p history
 
 # X-History values: what happened to the history before this frame.
 STARTED, CONTINUED, RESET_GAP, RESET_CAMERA_CUT = "started", "continued", "reset-gap", "reset-camera-cut"
@@ -208,27 +212,22 @@ class FrameResult:
     session: Session
 
 
-def serialize_state(state: State | None) -> bytes:
-    """State tensors -> bytes (empty for no history). A view is copied first so it saves only its own elements
-    (``torch.save`` writes a tensor's whole storage); a tensor that is its whole storage is saved as it is."""
-    if state is None:
-        return b""
-    buffer = io.BytesIO()
-    torch.save({name: _own_storage(tensor) for name, tensor in state.items()}, buffer)
-    return buffer.getvalue()
+def state_fields(data: bytes, chunk_bytes: int = STATE_CHUNK_BYTES) -> dict[str, bytes | int]:
+    """Encoded state -> the Redis hash fields that hold it: ``state_chunks`` and ``state.<i>``."""
+    chunks = [data[start:start + chunk_bytes] for start in range(0, len(data), chunk_bytes)]
+    return {"state_chunks": len(chunks), **{f"state.{index}": chunk for index, chunk in enumerate(chunks)}}
 
 
-def _own_storage(tensor: torch.Tensor) -> torch.Tensor:
-    tensor = tensor.detach().to("cpu")
-    whole = (tensor.storage_offset() == 0 and tensor.is_contiguous()
-             and tensor.untyped_storage().nbytes() == tensor.numel() * tensor.element_size())
-    return tensor if whole else tensor.clone()
-
-
-def deserialize_state(data: bytes | None, device: torch.device | str = "cpu") -> State | None:
-    if not data:
-        return None
-    return torch.load(io.BytesIO(data), map_location=device, weights_only=True)
+def state_from_fields(fields: dict[bytes, bytes], device: torch.device | str = "cpu") -> State | None:
+    """The inverse of ``state_fields`` (a hash as HGETALL returns it); StateFormatError if chunks are missing."""
+    if b"state_chunks" not in fields and fields.get(b"state"):
+        # Written by a version before the chunked format (a session live across the upgrade): torch.save bytes.
+        return torch.load(io.BytesIO(fields[b"state"]), map_location=device, weights_only=True)
+    count = int(fields.get(b"state_chunks", b"0"))
+    missing = [index for index in range(count) if f"state.{index}".encode() not in fields]
+    if missing:
+        raise StateFormatError(f"the stored history lacks chunk(s) {missing} of {count}")
+    return decode_state(b"".join(fields[f"state.{index}".encode()] for index in range(count)), device)
 
 
 @dataclass(frozen=True)
@@ -357,6 +356,7 @@ class SessionStore:
         self.mirror_timing = mirror_timing or (time.monotonic, _daemon_timer)
         self.ttl_seconds = settings.session_ttl_seconds
         self.mirror_interval = settings.session_mirror_interval_seconds
+        self.history_precision = settings.session_history_precision
         self.max_sessions = settings.max_sessions
         self.device = torch.device(settings.session_device)
         self.prefix = prefix or KEY_PREFIX
@@ -655,15 +655,23 @@ class SessionStore:
         if session is not None and session.revision >= meta["revision"]:
             return session
         # Not in memory (e.g. after a restart) or older than Redis (another API process served it).
-        fresh = Session.from_metadata(meta, self.ttl_seconds)
         if not activate:
-            return fresh
+            return Session.from_metadata(meta, self.ttl_seconds)
         try:
-            data = self._redis(lambda client: client.hget(self._key(session_id), "state"))
-            fresh.state = self._torch.run(deserialize_state, data, self.device)
+            # The whole hash in one read: the history and the metadata saying which frame it precedes match.
+            fields = self._redis(lambda client: client.hgetall(self._key(session_id)))
         except redis.RedisError as error:
             raise SessionStoreUnavailable(f"session {session_id!r}: cannot read its history from Redis: {error}") \
                 from None
+        if b"meta" not in fields:
+            self._forget(session_id)
+            raise SessionNotFound(f"session {session_id!r} does not exist (expired or deleted)")
+        fresh = Session.from_metadata(json.loads(fields[b"meta"]), self.ttl_seconds)
+        try:
+            fresh.state = self._torch.run(state_from_fields, fields, self.device)
+        except StateFormatError as error:
+            raise SessionStoreUnavailable(f"session {session_id!r}: its history in Redis cannot be read ({error}); "
+                                          f"reset the session to start a new one") from None
         fresh.method = self._method(fresh.model.origin)
         fresh.mirrored_revision = fresh.revision
         with self._lock:
@@ -697,10 +705,12 @@ class SessionStore:
         """Write one snapshot (metadata and state together) to Redis and restart the key's TTL."""
         session = snapshot.session
         key = self._key(session.id)
-        mapping = {"meta": snapshot.meta, "state": self._torch.run(serialize_state, snapshot.state)}
+        data = self._torch.run(encode_state, snapshot.state, self.history_precision)
+        mapping = {"meta": snapshot.meta, **state_fields(data)}
 
         def write(client: redis.Redis) -> None:
             pipeline = client.pipeline(transaction=True)
+            pipeline.delete(key)  # the previous revision's chunks go; readers see the old key or the new one whole
             pipeline.hset(key, mapping=mapping)
             pipeline.expire(key, self.ttl_seconds)
             pipeline.execute()

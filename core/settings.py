@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Literal
 from pathlib import Path
 
 from pydantic import Field
@@ -59,6 +60,9 @@ class Settings(BaseSettings):
     session_mirror_interval_seconds: float = Field(
         0.0, ge=0, le=3600, description="0: every frame's history is in Redis before the next frame runs; > 0: "
         "written at most this often (large histories, GPU sessions), so a restart may resume that far back")
+    session_history_precision: Literal["half", "float"] = Field(
+        "half", description="how a session's history is kept in Redis: half (float16 where the values fit, about "
+        "half the bytes; a restored session's outputs differ by float16 rounding) or float (exact)")
     worker_heartbeat_seconds: float = Field(
         10.0, gt=0, description="how often each worker writes its heartbeat; one silent for 3 times this is gone")
     redis_retry_seconds: float = Field(

@@ -121,6 +121,12 @@ def assert_same_image(actual: np.ndarray, expected: np.ndarray) -> None:
     np.testing.assert_allclose(actual, expected, rtol=1e-5, atol=1e-6)
 
 
+def assert_same_image_after_half_history(actual: np.ndarray, expected: np.ndarray) -> None:
+    """After a restart from a float16 history (the default): its rounding, 2^-11 of each value, and not more."""
+    assert actual.shape == expected.shape
+    np.testing.assert_allclose(actual, expected, rtol=2e-3, atol=2e-4)
+
+
 # --- fixtures --------------------------------------------------------------------------------------------
 
 

@@ -24,3 +24,8 @@ def test_the_same_seed_gives_the_same_frames_and_other_phases_other_ones():
         np.testing.assert_array_equal(a.color, b.color)
         assert a.jitter == b.jitter
         assert not np.array_equal(a.color, c.color)
+
+
+def test_frames_can_be_wider_than_tall():
+    frame = moving_pattern_frames(1, (12, 5), np.random.default_rng(0))[0]
+    assert (frame.width, frame.height) == (12, 5) and frame.depth.shape == (5, 12)

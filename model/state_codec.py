@@ -1,0 +1,125 @@
+"""A method's state (its temporal history) as compact bytes, for mirroring a session to a store and back.
+
+Layout: ``MAGIC``, a 4-byte little-endian header length, a JSON header, then each tensor's bytes in header order.
+The header lists, per tensor: name, original dtype, shape, the dtype it is stored as, the encoding and the
+byte count. With ``precision="half"`` a float tensor is stored as float16 when every value is finite and within
+float16's range (a history of x / (1 + x) values, colours, normals, depths), and as it is otherwise (a radiance
+history with a 1e5 emitter in it stays float32); float16 keeps 11 significant bits, a relative error of at most
+2^-11 (0.05%) per value. Bool tensors are bit-packed. Each payload is zlib-compressed (level 1) when that saves
+at least a tenth of it: masks and counters shrink a lot, noisy float planes barely, so those are left raw.
+
+Decoding gives every tensor back with its original dtype and shape; bytes that are not a state this module
+wrote raise ``StateFormatError`` naming what is wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+
+__all__ = ["PRECISIONS", "StateFormatError", "decode_state", "encode_state"]
+
+MAGIC = b"DNSTATE1"
+PRECISIONS = ("half", "float")
+FLOAT16_MAX = 65504.0
+_COMPRESS_LEVEL = 1  # speed over ratio: the mirror is written every frame
+_MIN_SAVING = 0.1
+
+_TORCH_DTYPES = {str(dtype).removeprefix("torch."): dtype for dtype in (
+    torch.float64, torch.float32, torch.float16, torch.bfloat16, torch.int64, torch.int32, torch.int16,
+    torch.int8, torch.uint8, torch.bool)}
+
+
+class StateFormatError(ValueError):
+    """The bytes are not a state ``encode_state`` wrote (or they were cut short)."""
+
+
+def encode_state(state: Mapping[str, torch.Tensor] | None, precision: str = "half") -> bytes:
+    """State tensors -> bytes (empty for no history); see the module notes for ``precision``."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if state is None:
+        return b""
+    entries, payloads = [], []
+    for name, tensor in state.items():
+        if not isinstance(tensor, torch.Tensor):
+            raise TypeError(f"state entry {name!r} is a {type(tensor).__name__}, not a tensor")
+        dtype = str(tensor.dtype).removeprefix("torch.")
+        if dtype not in _TORCH_DTYPES:
+            raise TypeError(f"state entry {name!r} has dtype {dtype}, which cannot be stored")
+        stored, raw = _stored_bytes(tensor.detach().to("cpu"), precision)
+        encoding = "raw"
+        if raw:
+            packed = zlib.compress(raw, _COMPRESS_LEVEL)
+            if len(packed) <= (1 - _MIN_SAVING) * len(raw):
+                raw, encoding = packed, "zlib"
+        entries.append({"name": name, "dtype": dtype, "shape": list(tensor.shape), "stored": stored,
+                        "encoding": encoding, "bytes": len(raw)})
+        payloads.append(raw)
+    header = json.dumps({"tensors": entries}).encode()
+    return b"".join([MAGIC, struct.pack("<I", len(header)), header, *payloads])
+
+
+def _stored_bytes(tensor: torch.Tensor, precision: str) -> tuple[str, bytes]:
+    if tensor.dtype == torch.bool:
+        return "bits", np.packbits(tensor.numpy().reshape(-1)).tobytes()
+    if tensor.dtype == torch.bfloat16:  # numpy has no bfloat16: its bits as int16
+        return "bfloat16", tensor.contiguous().view(torch.int16).numpy().tobytes()
+    array = tensor.contiguous().numpy()
+    if precision == "half" and tensor.is_floating_point() and tensor.dtype != torch.float16 and array.size:
+        # One pass for the range check: max |x| is NaN if any value is, and inf if any is.
+        peak = float(np.abs(array).max())
+        if peak <= FLOAT16_MAX:
+            return "float16", array.astype(np.float16).tobytes()
+    return str(array.dtype), array.tobytes()
+
+
+def decode_state(data: bytes | None, device: torch.device | str = "cpu") -> dict[str, torch.Tensor] | None:
+    """Bytes from ``encode_state`` -> the state (each tensor with its original dtype and shape) on ``device``."""
+    if not data:
+        return None
+    view = memoryview(data)
+    if bytes(view[:len(MAGIC)]) != MAGIC:
+        raise StateFormatError("not a stored session state (its first bytes are not the state format's marker)")
+    try:
+        (length,) = struct.unpack_from("<I", view, len(MAGIC))
+        start = len(MAGIC) + 4
+        entries = json.loads(bytes(view[start:start + length]))["tensors"]
+        offset = start + length
+        state = {}
+        for entry in entries:
+            chunk = view[offset:offset + entry["bytes"]]
+            if len(chunk) != entry["bytes"]:
+                raise StateFormatError(f"state entry {entry['name']!r} is cut short ({len(chunk)} of "
+                                       f"{entry['bytes']} bytes)")
+            offset += entry["bytes"]
+            raw = zlib.decompress(chunk) if entry["encoding"] == "zlib" else bytes(chunk)
+            state[entry["name"]] = _tensor(raw, entry).to(device)
+    except StateFormatError:
+        raise
+    except (KeyError, TypeError, ValueError, struct.error, zlib.error) as error:
+        raise StateFormatError(f"stored session state is damaged: {error}") from None
+    if offset != len(data):
+        raise StateFormatError(f"stored session state has {len(data) - offset} bytes after its last tensor")
+    return state
+
+
+def _tensor(raw: bytes, entry: dict) -> torch.Tensor:
+    shape, dtype, stored = tuple(entry["shape"]), _TORCH_DTYPES[entry["dtype"]], entry["stored"]
+    count = int(np.prod(shape, dtype=np.int64))
+    if stored == "bits":
+        if len(raw) * 8 < count:
+            raise StateFormatError(f"state entry {entry['name']!r} holds {len(raw) * 8} bits for shape {list(shape)}")
+        bits = np.unpackbits(np.frombuffer(raw, dtype=np.uint8), count=count)
+        return torch.from_numpy(bits.astype(bool)).reshape(shape)
+    if stored == "bfloat16":
+        return torch.from_numpy(np.frombuffer(raw, dtype=np.int16).copy()).view(torch.bfloat16).reshape(shape)
+    array = np.frombuffer(raw, dtype=np.dtype(stored))
+    if array.size != count:
+        raise StateFormatError(f"state entry {entry['name']!r} holds {array.size} values for shape {list(shape)}")
+    return torch.from_numpy(array.copy()).reshape(shape).to(dtype)
