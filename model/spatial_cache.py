@@ -15,6 +15,8 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import logging
+import os
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +77,8 @@ class SpatialEstimateCache:
     def _store(self, path: Path, result: torch.Tensor) -> None:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            temporary = path.with_suffix(".tmp.npy")
+            # A name of this writer's own: training runs side by side share the cache and write the same frames.
+            temporary = path.with_name(f"{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp.npy")
             np.save(temporary, result.numpy())
             temporary.replace(path)  # atomic: a reader never sees half a file
         except OSError as error:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from model.methods.oidn import oidn_denoise
@@ -46,3 +47,23 @@ def test_a_torn_file_is_recomputed_and_an_unwritable_folder_keeps_results_in_mem
     memory_only = SpatialEstimateCache("fast", blocker)
     memory_only.estimate(frame)
     assert memory_only.folder is None and memory_only.estimate(frame) is not None
+
+
+def test_two_writers_of_the_same_frame_do_not_trip_over_each_other(tmp_path, monkeypatch):
+    # Another process (here: a second cache, nested inside the first one's write) stores the same frame meanwhile.
+    frame = example_batch(16, 16, seed=3)
+    first, second = SpatialEstimateCache("fast", tmp_path), SpatialEstimateCache("fast", tmp_path)
+    save = np.save
+    interleaved = []
+
+    def save_while_another_writes(file, array):
+        save(file, array)
+        if not interleaved:
+            interleaved.append(None)  # the second writer's own save goes straight through
+            interleaved[0] = second.estimate(frame)
+
+    monkeypatch.setattr(np, "save", save_while_another_writes)
+    result = first.estimate(frame)
+    assert interleaved[0] is not None and first.folder is not None and second.folder is not None  # neither gave up on the disk
+    assert [path.name for path in tmp_path.rglob("*.npy")] == [f"{first.key(frame)}.npy"]
+    assert torch.equal(result, interleaved[0])
