@@ -706,7 +706,7 @@ class SessionStore:
         session = snapshot.session
         key = self._key(session.id)
         data = self._torch.run(encode_state, snapshot.state, self.history_precision)
-        mapping = {"meta": snapshot.meta, **state_fields(data)}
+        mapping = {"meta": snapshot.meta, **state_fields(data, STATE_CHUNK_BYTES)}
 
         def write(client: redis.Redis) -> None:
             pipeline = client.pipeline(transaction=True)

@@ -3,9 +3,12 @@
 Layout: ``MAGIC``, a 4-byte little-endian header length, a JSON header, then each tensor's bytes in header order.
 The header lists, per tensor: name, original dtype, shape, the dtype it is stored as, the encoding and the
 byte count. With ``precision="half"`` a float tensor is stored as float16 when every value is finite and within
-float16's range (a history of x / (1 + x) values, colours, normals, depths), and as it is otherwise (a radiance
-history with a 1e5 emitter in it stays float32); float16 keeps 11 significant bits, a relative error of at most
-2^-11 (0.05%) per value. Bool tensors are bit-packed. Each payload is zlib-compressed (level 1) when that saves
+float16's range (a history of x / (1 + x) values, colours, recurrent features), and as it is otherwise (a
+radiance history with a 1e5 emitter in it stays float32); float16 keeps 11 significant bits, a relative error of
+at most 2^-11 (0.05%) per value. The previous frame's geometry (``GEOMETRY``: depth, normals, jitter) stays float32
+whatever the precision: methods test it against thresholds to decide where history is valid, and a rounded depth
+flips that decision at the pixels near the threshold (a few of a 1080p frame's two million), where the output then
+differs by the whole history rather than by a rounding. Bool tensors are bit-packed. Each payload is zlib-compressed (level 1) when that saves
 at least a tenth of it: masks and counters shrink a lot, noisy float planes barely, so those are left raw.
 
 Decoding gives every tensor back with its original dtype and shape; bytes that are not a state this module
@@ -26,6 +29,7 @@ __all__ = ["PRECISIONS", "StateFormatError", "decode_state", "encode_state"]
 
 MAGIC = b"DNSTATE1"
 PRECISIONS = ("half", "float")
+GEOMETRY = frozenset({"depth", "normal", "jitter"})  # the state names every method keeps its frame's geometry under
 FLOAT16_MAX = 65504.0
 _COMPRESS_LEVEL = 1  # speed over ratio: the mirror is written every frame
 _MIN_SAVING = 0.1
@@ -52,7 +56,7 @@ def encode_state(state: Mapping[str, torch.Tensor] | None, precision: str = "hal
         dtype = str(tensor.dtype).removeprefix("torch.")
         if dtype not in _TORCH_DTYPES:
             raise TypeError(f"state entry {name!r} has dtype {dtype}, which cannot be stored")
-        stored, raw = _stored_bytes(tensor.detach().to("cpu"), precision)
+        stored, raw = _stored_bytes(tensor.detach().to("cpu"), "float" if name in GEOMETRY else precision)
         encoding = "raw"
         if raw:
             packed = zlib.compress(raw, _COMPRESS_LEVEL)

@@ -474,3 +474,38 @@ def test_a_session_keeps_its_layout_and_owner_and_its_steps_run_on_the_session_w
                                                                                   token_digest("secret"))
     result = restarted.process_frame(session.id, frames[2], frame_index_given=False)
     assert (result.frame_index, result.history) == (2, CONTINUED)
+
+
+FULL_HD = (1920, 1080)
+
+
+def _full_hd_session_survives_a_restart(make_store, redis_db, model: str) -> int:
+    """Two 1080p frames, a new store (a restarted API), a third frame: it continues the history and gives what
+    the method gives in process, up to the float16 history. Returns how many chunks the history took in Redis."""
+    from model.methods.base import inference_outputs
+    from model.synthetic import moving_pattern_frames
+
+    frames = moving_pattern_frames(3, FULL_HD, np.random.default_rng(0))
+    first = make_store()
+    session = first.create(model)
+    for frame in frames[:2]:
+        first.process_frame(session.id, frame)
+    assert first.flush(timeout=120)
+    chunks = int(redis_db.hget(f"{first.prefix}{session.id}", "state_chunks"))
+    method = first._methods[session.model.origin.key]
+    expected = inference_outputs(method, frames)
+    result = make_store().process_frame(session.id, frames[2])
+    assert result.history == CONTINUED and result.output.shape == (FULL_HD[1] * method.scale,
+                                                                    FULL_HD[0] * method.scale, 3)
+    assert_same_image_after_half_history(result.output, expected[2])
+    return chunks
+
+
+def test_a_1080p_session_survives_a_restart_with_its_history_in_chunks(make_store, redis_db, monkeypatch):
+    monkeypatch.setattr("api.sessions.STATE_CHUNK_BYTES", 4 * 1024 * 1024)  # several chunks of a cheap history
+    assert _full_hd_session_survives_a_restart(make_store, redis_db, "accumulation") > 2
+
+
+@pytest.mark.slow
+def test_a_1080p_session_of_the_shipped_fused_model_survives_a_restart(make_store, redis_db):
+    _full_hd_session_survives_a_restart(make_store, redis_db, "fused-balanced-x1")

@@ -68,3 +68,12 @@ def test_damaged_bytes_raise_a_clear_error():
         decode_state(data + b"\x00")
     with pytest.raises(ValueError, match="precision"):
         encode_state(sample_state(), "quarter")
+
+
+def test_the_previous_frames_geometry_stays_exact_in_half_precision():
+    generator = torch.Generator().manual_seed(2)
+    state = {"depth": torch.rand(1, 1, 8, 8, generator=generator) * 4 + 1,
+             "normal": torch.nn.functional.normalize(torch.randn(1, 3, 8, 8, generator=generator), dim=1),
+             "jitter": torch.rand(1, 2, generator=generator) - 0.5}
+    restored = decode_state(encode_state(state, "half"))
+    assert all(torch.equal(restored[name], tensor) for name, tensor in state.items())
