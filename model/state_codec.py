@@ -33,6 +33,7 @@ GEOMETRY = frozenset({"depth", "normal", "jitter"})  # the state names every met
 FLOAT16_MAX = 65504.0
 _COMPRESS_LEVEL = 1  # speed over ratio: the mirror is written every frame
 _MIN_SAVING = 0.1
+_PROBE_BYTES = 1 << 20
 
 _TORCH_DTYPES = {str(dtype).removeprefix("torch."): dtype for dtype in (
     torch.float64, torch.float32, torch.float16, torch.bfloat16, torch.int64, torch.int32, torch.int16,
@@ -58,7 +59,7 @@ def encode_state(state: Mapping[str, torch.Tensor] | None, precision: str = "hal
             raise TypeError(f"state entry {name!r} has dtype {dtype}, which cannot be stored")
         stored, raw = _stored_bytes(tensor.detach().to("cpu"), "float" if name in GEOMETRY else precision)
         encoding = "raw"
-        if raw:
+        if raw and _worth_compressing(raw):
             packed = zlib.compress(raw, _COMPRESS_LEVEL)
             if len(packed) <= (1 - _MIN_SAVING) * len(raw):
                 raw, encoding = packed, "zlib"
@@ -69,17 +70,26 @@ def encode_state(state: Mapping[str, torch.Tensor] | None, precision: str = "hal
     return b"".join([MAGIC, struct.pack("<I", len(header)), header, *payloads])
 
 
+def _worth_compressing(raw: bytes) -> bool:
+    """Whether a probe of the first ``_PROBE_BYTES`` compresses by a tenth: a 1080p float plane of noise-like
+    values does not, and compressing all of it only to throw the result away cost seconds."""
+    if len(raw) <= _PROBE_BYTES:
+        return True
+    probe = raw[:_PROBE_BYTES]
+    return len(zlib.compress(probe, _COMPRESS_LEVEL)) <= (1 - _MIN_SAVING) * len(probe)
+
+
 def _stored_bytes(tensor: torch.Tensor, precision: str) -> tuple[str, bytes]:
     if tensor.dtype == torch.bool:
         return "bits", np.packbits(tensor.numpy().reshape(-1)).tobytes()
     if tensor.dtype == torch.bfloat16:  # numpy has no bfloat16: its bits as int16
         return "bfloat16", tensor.contiguous().view(torch.int16).numpy().tobytes()
-    array = tensor.contiguous().numpy()
-    if precision == "half" and tensor.is_floating_point() and tensor.dtype != torch.float16 and array.size:
-        # One pass for the range check: max |x| is NaN if any value is, and inf if any is.
-        peak = float(np.abs(array).max())
+    if precision == "half" and tensor.is_floating_point() and tensor.dtype != torch.float16 and tensor.numel():
+        # torch, not numpy: both passes use every thread. max |x| is NaN if any value is, and inf if any is.
+        peak = float(tensor.abs().amax())
         if peak <= FLOAT16_MAX:
-            return "float16", array.astype(np.float16).tobytes()
+            return "float16", tensor.to(torch.float16).contiguous().numpy().tobytes()
+    array = tensor.contiguous().numpy()
     return str(array.dtype), array.tobytes()
 
 
