@@ -27,8 +27,10 @@ When the mirror is written. Creating and resetting a session write Redis before 
 crash could let the old history meet the new stream). A frame's mirror is written off the request's critical path:
 each session has a background writer (tasks of a small thread pool, one write at a time per session, always the
 newest revision handed to it) that serializes the state and writes it; the API starts it once the frame's
-response is sent. The session's next frame, reset or delete first waits for that write, so Redis is at most one
-frame behind memory: the frame in flight. Closing the store (the API's shutdown) waits for every pending write, so
+response is sent. The session's next frame waits only until that history is serialized (the step may then replace
+it), runs its step while the write goes on, and waits for the write to land before it is answered; a reset or
+delete waits for the write first. So Redis is at most one frame behind memory, the frame in flight, and a large
+history's write (a 1080p one takes a few hundred milliseconds) overlaps the next step instead of preceding it. Closing the store (the API's shutdown) waits for every pending write, so
 a clean restart loses nothing. If the process dies between answering frame N and its mirror landing, the
 restarted process holds the session as it was after frame N - 1 and expects frame N: the client's next frame,
 N + 1, is a gap under the frame-order rules (history restarted with ``on_gap="reset"``, 409 "frame_gap" with
@@ -233,7 +235,7 @@ def state_from_fields(fields: dict[bytes, bytes], device: torch.device | str = "
 @dataclass(frozen=True)
 class _Snapshot:
     """One revision of a session as Redis is to hold it: metadata taken when handed over, the state tensors by
-    reference (nothing changes them until the write is done: the session's next use waits for it)."""
+    reference (nothing changes them until they are serialized: the session's next step waits for that)."""
 
     session: Session
     revision: int
@@ -256,9 +258,12 @@ class _MirrorWriter:
     With ``min_interval`` > 0, ``start()`` begins a write at most once per ``min_interval`` seconds; a snapshot
     handed over sooner waits (newer ones replace it) and is written when the interval is over, by a timer if no
     other call comes; ``wait()`` writes at once.
+
+    ``write(snapshot, encoded)`` calls ``encoded()`` once it no longer reads the snapshot's tensors (they are
+    serialized), which is what ``wait(encoded_only=True)`` waits for.
     """
 
-    def __init__(self, write: Callable[[_Snapshot], None], executor: ThreadPoolExecutor,
+    def __init__(self, write: Callable[[_Snapshot, Callable[[], None]], None], executor: ThreadPoolExecutor,
                  min_interval: float = 0.0, monotonic: Callable[[], float] = time.monotonic,
                  timer: Callable[[float, Callable[[], None]], Any] | None = None) -> None:
         self._write = write
@@ -269,6 +274,7 @@ class _MirrorWriter:
         self._condition = threading.Condition()
         self._pending: _Snapshot | None = None
         self._running = False
+        self._encoded = True  # whether the running write has serialized its snapshot's tensors
         self._min_interval = min_interval
         self._not_before = 0.0  # time.monotonic() before which start() defers a write
         self._timer: threading.Timer | None = None
@@ -292,15 +298,18 @@ class _MirrorWriter:
         except RuntimeError:  # the pool is shut down (the store is closing): write here
             self._drain()
 
-    def wait(self, timeout: float | None = None) -> bool:
-        """Until nothing is pending or being written (a held or deferred snapshot is started); False on
+    def wait(self, timeout: float | None = None, encoded_only: bool = False) -> bool:
+        """Until nothing is pending or being written (a held or deferred snapshot is started), or with
+        ``encoded_only`` until nothing is pending and the running write has serialized its snapshot; False on
         ``timeout``."""
         with self._condition:
             self._forced += 1
         try:
             self.start()
             with self._condition:
-                return self._condition.wait_for(lambda: not self._running and self._pending is None, timeout)
+                return self._condition.wait_for(
+                    lambda: self._pending is None and (not self._running or (encoded_only and self._encoded)),
+                    timeout)
         finally:
             with self._condition:
                 self._forced -= 1
@@ -337,11 +346,19 @@ class _MirrorWriter:
                     self._condition.notify_all()
                     return
                 self._pending = None
+                self._encoded = False
                 self._not_before = self._monotonic() + self._min_interval
             try:
-                self._write(snapshot)
+                self._write(snapshot, self._mark_encoded)
             except Exception:  # never leave the writer marked running: the session would wait forever
                 log.exception("session %s: writing its mirror failed", snapshot.session.id)
+            finally:
+                self._mark_encoded()
+
+    def _mark_encoded(self) -> None:
+        with self._condition:
+            self._encoded = True
+            self._condition.notify_all()
 
 
 class SessionStore:
@@ -497,7 +514,9 @@ class SessionStore:
         """
         self._purge_expired()
         with self._lock_for(session_id):
-            self._wait_for_mirror(session_id)  # the previous frame's mirror first: Redis lags by one frame at most
+            # The previous frame's history must be serialized before this step (which may replace it in place);
+            # its Redis write goes on meanwhile and must land before this frame is answered (module notes).
+            self._wait_for_mirror(session_id, encoded_only=True)
             session = self._current(session_id, activate=True)
             if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
                 session.method = self._method(session.model.origin)
@@ -512,6 +531,7 @@ class SessionStore:
                     details={"expected": list(session.resolution), "received": list(resolution)})
             history, state = self._history_for(session, frame)
             image, state, inference_ms, sanitized = self._torch.run(self._step, session.method, frame, state)
+            self._wait_for_mirror(session_id)  # Redis lags by one frame at most: the one being answered
             if not sanitized.clean:
                 log.warning("session %s frame %s: repaired input pixels (%s)", session_id, frame.frame_index,
                             sanitized.describe())
@@ -608,12 +628,12 @@ class SessionStore:
         with self._lock:
             return self._writers.get(session_id)
 
-    def _wait_for_mirror(self, session_id: str) -> None:
-        """Before a frame: the previous frame's mirror is written first, so Redis lags by one frame at most;
-        with a mirror interval, Redis may lag by that long instead and the frame does not wait."""
+    def _wait_for_mirror(self, session_id: str, encoded_only: bool = False) -> None:
+        """Until the previous frame's mirror is written (or, ``encoded_only``, serialized), so Redis lags by one
+        frame at most; with a mirror interval, Redis may lag by that long instead and the frame does not wait."""
         writer = self._writer_of(session_id)
         if writer is not None and not self.mirror_interval:
-            writer.wait()
+            writer.wait(encoded_only=encoded_only)
 
     def _forget(self, session_id: str) -> None:
         with self._lock:
@@ -701,11 +721,13 @@ class SessionStore:
         if wait:
             writer.wait()
 
-    def _write_mirror(self, snapshot: _Snapshot) -> None:
-        """Write one snapshot (metadata and state together) to Redis and restart the key's TTL."""
+    def _write_mirror(self, snapshot: _Snapshot, encoded: Callable[[], None]) -> None:
+        """Write one snapshot (metadata and state together) to Redis and restart the key's TTL; ``encoded()``
+        once its tensors are serialized."""
         session = snapshot.session
         key = self._key(session.id)
         data = self._torch.run(encode_state, snapshot.state, self.history_precision)
+        encoded()
         mapping = {"meta": snapshot.meta, **state_fields(data, STATE_CHUNK_BYTES)}
 
         def write(client: redis.Redis) -> None:

@@ -193,6 +193,45 @@ def test_a_frames_mirror_is_written_in_the_background_before_the_sessions_next_u
     assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 3
 
 
+def test_a_frames_step_runs_while_the_previous_mirror_is_written_and_waits_for_it_before_answering(
+        make_store, redis_db, monkeypatch):
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    frames = stream_frames(2)
+    store.process_frame(session.id, frames[0], start_mirror=False)
+    # Frame 0's Redis write is held open by the test, so "during the write" holds by construction.
+    writing, release = threading.Event(), threading.Event()
+    redis_call, step = store._redis, store._step
+
+    def held_redis(call):
+        if threading.current_thread().name.startswith("session-mirror") and not release.is_set():
+            writing.set()
+            assert release.wait(30)
+        return redis_call(call)
+
+    stepped = threading.Event()
+
+    def observed_step(*args):
+        result = step(*args)
+        stepped.set()
+        return result
+
+    monkeypatch.setattr(store, "_redis", held_redis)
+    monkeypatch.setattr(store, "_step", observed_step)
+    store.start_mirror(session.id)
+    assert writing.wait(30)  # frame 0's history is serialized; its write is under way
+    with ThreadPoolExecutor(1) as pool:
+        answer = pool.submit(store.process_frame, session.id, frames[1])
+        assert stepped.wait(30)  # frame 1 stepped while frame 0's write was still open
+        assert not answer.done()  # ... and is not answered before that write lands
+        assert redis_meta(redis_db, store, session.id)["next_frame_index"] is None
+        release.set()
+        assert answer.result(timeout=30).frame_index == 1
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] >= 1  # Redis lags by the frame in flight
+    assert store.flush(timeout=30)
+    assert redis_meta(redis_db, store, session.id)["next_frame_index"] == 2
+
+
 def test_with_a_mirror_interval_frames_do_not_wait_and_redis_catches_up_when_it_is_over(make_store, redis_db):
     # The interval's clock and timer are the test's: "within the interval" holds by construction, not because
     # three steps happened to take less than the interval on this machine.
