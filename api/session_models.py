@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from model.inference_forms import FormTable, with_inference_forms
 from model.methods.base import Method
 from core.registry import Registry, UnknownModelError
 
@@ -181,10 +182,11 @@ def registered_checkpoint(source: SessionModelSource, registry: Registry) -> Pat
     return registry.checkpoint(source.name, source.version) if source.source == REGISTERED else None
 
 
-def load_session_method(source: SessionModelSource, checkpoint: Path | None, device: torch.device) -> Method:
-    """The source's method in inference form on ``device``, its parameters frozen (``checkpoint``: from
-    ``registered_checkpoint``). Raises KeyError / ValueError (the checkpoint, the pretrained manifest or file)
-    naming the problem."""
+def load_session_method(source: SessionModelSource, checkpoint: Path | None, device: torch.device,
+                        forms: FormTable | None = None) -> Method:
+    """The source's method in inference form on ``device``, its parameters frozen, its networks run in the form
+    ``forms`` measured for each frame's resolution (``checkpoint``: from ``registered_checkpoint``). Raises
+    KeyError / ValueError (the checkpoint, the pretrained manifest or file) naming the problem."""
     from model.checkpoint import load_method
     from model.methods.registry import build_method
     from model.pretrained import get_pretrained, load_pretrained
@@ -203,4 +205,4 @@ def load_session_method(source: SessionModelSource, checkpoint: Path | None, dev
     method = method.for_inference()
     for parameter in method.parameters():
         parameter.requires_grad_(False)
-    return method
+    return with_inference_forms(method, forms, device)

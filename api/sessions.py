@@ -72,6 +72,7 @@ from redis.backoff import NoBackoff
 from redis.retry import Retry
 
 from model.frames import FrameBundle
+from model.inference_forms import load_form_table
 from model.methods.base import FrameBatch, Method, State
 from model.sanitize import SanitizeReport, sanitize_frame
 from model.state_codec import StateFormatError, decode_state, encode_state
@@ -374,6 +375,7 @@ class SessionStore:
         self.ttl_seconds = settings.session_ttl_seconds
         self.mirror_interval = settings.session_mirror_interval_seconds
         self.history_precision = settings.session_history_precision
+        self.forms = load_form_table(settings.inference_forms)
         self.max_sessions = settings.max_sessions
         self.device = torch.device(settings.session_device)
         self.prefix = prefix or KEY_PREFIX
@@ -809,7 +811,7 @@ class SessionStore:
             if method is None:
                 checkpoint = registered_checkpoint(origin, self.registry)  # downloads off the torch thread
                 try:
-                    method = self._torch.run(load_session_method, origin, checkpoint, self.device)
+                    method = self._torch.run(load_session_method, origin, checkpoint, self.device, self.forms)
                 except (KeyError, ValueError) as error:  # build_method / load_checkpoint / pretrained name it
                     message = error.args[0] if isinstance(error, KeyError) and error.args else error
                     what = (f"version {origin.version} of model {origin.name!r}" if origin.source == REGISTERED

@@ -63,6 +63,11 @@ class Settings(BaseSettings):
     session_history_precision: Literal["half", "float"] = Field(
         "half", description="how a session's history is kept in Redis: half (float16 where the values fit, about "
         "half the bytes; a restored session's outputs differ by float16 rounding) or float (exact)")
+    inference_forms: str = Field(
+        "measured", min_length=1, description="how learned methods' networks run on the CPU: measured (the form "
+        "table shipped in model/inference_forms.json: channels_last and/or bf16 where they measured faster per method "
+        "and resolution), off (fp32 eager everywhere), or the path of a table written by "
+        "scripts/bench_inference_forms.py")
     worker_heartbeat_seconds: float = Field(
         10.0, gt=0, description="how often each worker writes its heartbeat; one silent for 3 times this is gone")
     redis_retry_seconds: float = Field(

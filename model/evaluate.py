@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from model.dataset import Dataset, Sequence
+from model.inference_forms import FormTable, load_form_table, with_inference_forms
 from model.methods.base import FrameBatch, Method
 from model.metrics import VDP_DISPLAY, VDP_FRAMES_PER_SECOND, FovVideoVdp, frame_metrics, temporal_error
 from model.ops.tonemap import display_encode
@@ -261,17 +262,20 @@ def load_split(dataset_dir: str | os.PathLike, split: str, scale: int) -> list[S
 def evaluate(dataset_dir: str | os.PathLike, methods: list[Method | str], split: str = "test", scale: int = 1, *,
              frame_limit: int | None = None, threads: int | None = None, vdp: bool = True,
              timing_reference: Method | str | None = TIMING_REFERENCE, warmup_frames: int = WARMUP_FRAMES,
-             device: torch.device | str = "cpu", progress: Progress | None = None) -> dict:
+             device: torch.device | str = "cpu", progress: Progress | None = None,
+             inference_forms: FormTable | str | None = "measured") -> dict:
     """Run the benchmark protocol for ``methods`` on one split of a dataset; returns a JSON-serializable report.
 
     ``methods`` are ``NAME[:PRESET]`` texts, checkpoint paths, or Method objects. ``timing_reference`` (OIDN-high
     by default) is timed on the same frames in the same run; None skips it and leaves the ratios None. When it is
     also among ``methods`` its evaluated run is the timing. ``frame_limit`` keeps the first frames of every
     sequence; ``threads`` sets torch's thread count for the run (restored afterwards); ``vdp=False`` skips
-    FovVideoVDP, the slowest metric.
+    FovVideoVDP, the slowest metric. Learned methods' networks run in the form ``inference_forms`` measured for
+    the frames' resolution, as sessions run them (``model.inference_forms``; "off": fp32 eager).
     """
     if not methods:
         raise ValueError("no methods to evaluate")
+    forms = load_form_table(inference_forms)
     if frame_limit is not None and frame_limit < 1:
         raise ValueError(f"frame limit must be positive, got {frame_limit}")
     if threads is not None and threads < 1:
@@ -286,6 +290,8 @@ def evaluate(dataset_dir: str | os.PathLike, methods: list[Method | str], split:
 
     with torch_threads(threads):
         descriptions = [method_description(e.method, e.source) for e in entrants]
+        for entrant in runners:  # after the FLOP count, which copies the method as for_inference() left it
+            with_inference_forms(entrant.method, forms, device)
         for entrant in runners:
             entrant.method.to(device)
         metric = FovVideoVdp(device) if vdp else None

@@ -53,13 +53,15 @@ def median_ms(seconds: list[float]) -> float | None:
 
 
 def time_method(method, width: int, height: int, *, frames: int = TIMING_FRAMES, warmup: int = TIMING_WARMUP,
-                device: torch.device | str = "cpu") -> float:
-    """Median ms of ``method.step`` (inference form, history carried) on synthetic WxH render frames, after
-    ``warmup`` frames, under ``torch.inference_mode``."""
+                device: torch.device | str = "cpu", inference_forms="measured") -> float:
+    """Median ms of ``method.step`` (inference form, networks in the measured form of ``model.inference_forms``
+    as sessions run them, history carried) on synthetic WxH render frames, after ``warmup`` frames, under
+    ``torch.inference_mode``."""
+    from model.inference_forms import load_form_table, with_inference_forms
     from model.methods.registry import example_batch
 
     device = torch.device(device)
-    method = method.for_inference().to(device)
+    method = with_inference_forms(method.for_inference().to(device), load_form_table(inference_forms), device)
     inputs = [example_batch(height, width, seed=seed, device=device) for seed in range(min(frames + warmup, 3))]
     seconds: list[float] = []
     state = None

@@ -30,6 +30,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from api.sessions import state_fields, state_from_fields  # noqa: E402
+from model.inference_forms import load_form_table, with_inference_forms  # noqa: E402
 from model.methods.base import FrameBatch, Method  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 from model.ops.tonemap import display_encode  # noqa: E402
@@ -56,7 +57,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def load(name: str, scale: int) -> Method:
     method = load_pretrained(name) if is_pretrained(name) else build_method(name, scale).eval()
-    return method.for_inference()
+    return with_inference_forms(method.for_inference(), load_form_table("measured"))
 
 
 def timed(function, *args):

@@ -61,6 +61,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from model.checkpoint import load_method, save_checkpoint  # noqa: E402
 from model.exr import decode_image_exr  # noqa: E402
 from model.frames import FrameBundle  # noqa: E402
+from model.inference_forms import load_form_table, with_inference_forms  # noqa: E402
 from model.methods.base import FrameBatch  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 from client.rest import FRAME_COMPRESSIONS, DenoiserClient, frame_bytes  # noqa: E402
@@ -228,10 +229,11 @@ def session_body(model: str) -> dict:
 
 
 class InProcess:
-    """The same method stepping through the same frames here, a new history per stream."""
+    """The same method stepping through the same frames here, a new history per stream (its networks in the
+    measured inference form, as the API runs them with the default DENOISER_INFERENCE_FORMS)."""
 
     def __init__(self, checkpoint: Path) -> None:
-        self.method = load_method(checkpoint).for_inference()
+        self.method = with_inference_forms(load_method(checkpoint).for_inference(), load_form_table("measured"))
 
     def stream(self, frames: list[FrameBundle]) -> tuple[list[np.ndarray], list[float]]:
         state, outputs, times = None, [], []

@@ -181,6 +181,7 @@ def learned_entrant(text: str, scales: tuple[int, ...], tracking_uri: str | None
 
 def _run_benchmark(args) -> int:
     from model.benchmark import BENCHMARK_MARKDOWN, QUALITY_COST_CHART, QUALITY_SPEED_CHART, write_benchmark
+    from core.settings import get_settings
     from model.evaluate import TIMING_REFERENCE, evaluate, load_split
 
     if args.out.exists() and not args.out.is_dir():
@@ -206,7 +207,8 @@ def _run_benchmark(args) -> int:
         report = evaluate(args.data, [e.runnable for e in running], split=args.split, scale=scale,
                           frame_limit=args.frames, threads=args.threads, vdp=args.vdp,
                           timing_reference=None if args.no_oidn_timing else TIMING_REFERENCE,
-                          device=args.device, progress=progress)
+                          device=args.device, progress=progress,
+                          inference_forms=get_settings().inference_forms)
         for entry, entrant in zip(report["methods"], running):
             entry["source"] = entrant.source  # the reference as given, not the cached checkpoint's path
         reports.append(report)

@@ -53,6 +53,7 @@ def _add_evaluate(commands) -> None:
 
 
 def _run_evaluate(args) -> int:
+    from core.settings import get_settings
     from model.evaluate import TIMING_REFERENCE, evaluate, format_table
 
     if args.out is not None and args.out.is_dir():
@@ -61,7 +62,8 @@ def _run_evaluate(args) -> int:
     report = evaluate(args.data, args.method, split=args.split, scale=args.scale, frame_limit=args.frames,
                       threads=args.threads, vdp=not args.no_vdp,
                       timing_reference=None if args.no_oidn else TIMING_REFERENCE,
-                      device=args.device, progress=progress)
+                      device=args.device, progress=progress,
+                        inference_forms=get_settings().inference_forms)
     print(format_table(report))
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

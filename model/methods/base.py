@@ -191,10 +191,13 @@ class Method(nn.Module, abc.ABC):
         return {"method": self.name, "preset": self.preset, "scale": self.scale}
 
 
-def inference_outputs(method: Method, frames: Iterable[FrameBundle]) -> list[np.ndarray]:
-    """The method's inference form stepped over ``frames`` from a new history, outputs as (H, W, 3) arrays: what a
-    session on this method must answer for the same frames, to compare a server's outputs against."""
-    method = method.for_inference()
+def inference_outputs(method: Method, frames: Iterable[FrameBundle], inference_forms="measured") -> list[np.ndarray]:
+    """The method's inference form (its networks in the measured form of ``model.inference_forms``, as sessions
+    run them) stepped over ``frames`` from a new history, outputs as (H, W, 3) arrays: what a session on this
+    method must answer for the same frames, to compare a server's outputs against."""
+    from model.inference_forms import load_form_table, with_inference_forms
+
+    method = with_inference_forms(method.for_inference(), load_form_table(inference_forms))
     outputs, state = [], None
     with torch.no_grad():
         for frame in frames:

@@ -16,6 +16,7 @@ from redis.backoff import NoBackoff
 from redis.retry import Retry
 
 from core.registry import UnknownModelError
+from model.inference_forms import bf16_available, method_key
 from model.state_codec import StateFormatError, encode_state
 from api.sessions import (
     CONTINUED,
@@ -52,6 +53,27 @@ def test_a_stream_gives_what_the_method_gives_in_process(make_store):
         assert result.output.shape == (32, 32, 3) and result.output.dtype == np.float32
         assert_same_image(result.output, image)
     assert session.frames_processed == 6 and session.next_frame_index == 6 and session.resolution == (16, 16)
+
+
+@pytest.mark.skipif(not bf16_available(), reason="this CPU has no native bfloat16 convolutions")
+def test_a_session_runs_the_networks_in_the_form_its_table_measured_for_the_resolution(make_store, tmp_path):
+    from model.checkpoint import load_method
+    from model.methods.base import inference_outputs
+
+    checkpoint = shared_registry().checkpoints["2"]
+    key = method_key(load_method(checkpoint))
+    path = tmp_path / "forms.json"
+    path.write_text(json.dumps({"methods": {key: {"16x16": {
+        "chosen": "channels_last+bf16", "ms": {"eager": 2.0, "channels_last+bf16": 1.0},
+        "psnr_db": {"eager": 200.0, "channels_last+bf16": 60.0}}}}}))
+    frames = stream_frames(3)
+    store = make_store(inference_forms=str(path))
+    session = store.create(MODEL_NAME, version="2")
+    outputs = [store.process_frame(session.id, frame).output for frame in frames]
+    for output, in_form in zip(outputs, inference_outputs(load_method(checkpoint), frames, str(path))):
+        assert_same_image(output, in_form)
+    assert any(not np.array_equal(o, e) for o, e in
+               zip(outputs, inference_outputs(load_method(checkpoint), frames, "off")))  # the form did run
 
 
 def test_frame_index_rules(make_store):

@@ -54,7 +54,8 @@ def run(context: JobContext) -> dict[str, Any]:
         report = evaluate(dataset_dir, [runnable(m, context.storage) for m in methods], split=params.split,
                           scale=params.scale, frame_limit=params.frames, threads=params.threads, vdp=params.vdp,
                           timing_reference=TIMING_REFERENCE if params.oidn_timing else None,
-                          device=context.torch_device, progress=say)
+                          device=context.torch_device, progress=say,
+                          inference_forms=context.settings.inference_forms)
         context.progress(total, total, "writing the report")
         for entry, text in zip(report["methods"], methods):
             entry["source"] = text  # the reference as given, not the cached checkpoint's path

@@ -1,0 +1,224 @@
+"""Fast inference forms: how a method's networks run on this CPU, chosen per method and resolution by measurement.
+
+A method's ``step`` is its networks (the children that hold parameters: WSKPN's importance net, AFN's predictor
+and refinement, MUNet's features and heads, JNDS's network, the fused family's U-Net) plus float32 work around
+them: warps, filtering with predicted kernels, history blends. A form changes how the networks run, never the
+rest, so histories, kernels and outputs stay float32 whatever the form:
+
+- ``eager``: as ``for_inference()`` leaves them (fp32);
+- ``channels_last``: their 4-D inputs in channels_last memory format (oneDNN's native layout);
+- ``bf16``: under CPU autocast to bfloat16 (AVX-512 BF16 here), their outputs cast back to float32;
+- ``channels_last+bf16``: both;
+- ``compile``, ``compile+bf16``: compiled by ``torch.compile`` (inductor), one graph per input shape; the first
+  frame at a new resolution pays the compilation (seconds), so the measured table only chooses them where asked.
+
+Which form runs is read from a table that ``scripts/bench_inference_forms.py`` measures: per method key
+(``wskpn:s:x1``, the registry name, preset and scale, so a model trained by a user gets its architecture's form)
+and render resolution, every form's median step time and its output's PSNR against the eager fp32 output over a
+short stream; the chosen form is the fastest within tolerance (``MIN_PSNR_DB`` on every frame). A frame takes the
+row of the measured resolution nearest in pixel count. Forms apply on the CPU only; a table entry that needs
+bf16 on a CPU without it falls back to the fastest measured form without bf16.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from collections.abc import Callable
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+__all__ = ["FORMS", "InferenceForm", "FormTable", "MIN_PSNR_DB", "SHIPPED_TABLE", "load_form_table",
+           "method_key", "networks_of", "run_networks_as", "with_inference_forms", "bf16_available"]
+
+MIN_PSNR_DB = 50.0  # a form's output against the eager fp32 output, display-encoded, on every frame of a stream
+SHIPPED_TABLE = Path(__file__).with_name("inference_forms.json")
+
+
+@dataclass(frozen=True)
+class InferenceForm:
+    name: str
+    channels_last: bool = False
+    bf16: bool = False
+    compiled: bool = False
+
+
+FORMS = {form.name: form for form in (
+    InferenceForm("eager"),
+    InferenceForm("channels_last", channels_last=True),
+    InferenceForm("bf16", bf16=True),
+    InferenceForm("channels_last+bf16", channels_last=True, bf16=True),
+    InferenceForm("compile", compiled=True),
+    InferenceForm("compile+bf16", compiled=True, bf16=True),
+)}
+
+
+def bf16_available() -> bool:
+    """Whether this CPU runs bfloat16 convolutions natively (oneDNN with AVX-512 BF16 or AMX)."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def method_key(method: nn.Module) -> str:
+    """``name:preset:xS``: forms are measured per architecture, not per weights."""
+    return f"{method.name}:{method.preset}:x{method.scale}"
+
+
+def networks_of(method: nn.Module) -> list[nn.Module]:
+    """The method's networks: its direct children that hold parameters."""
+    return [child for child in method.children() if any(True for _ in child.parameters())]
+
+
+class FormTable:
+    """The measured table (see the module notes): ``form_for(key, width, height)``."""
+
+    def __init__(self, data: dict[str, Any], allow_compile: bool | None = None) -> None:
+        self.data = data
+        self.allow_compile = bool(data.get("allow_compile", False)) if allow_compile is None else allow_compile
+
+    @classmethod
+    def read(cls, path: str | Path) -> FormTable:
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as error:
+            raise ValueError(f"cannot read the inference form table {path}: {error}") from error
+        if not isinstance(data, dict) or not isinstance(data.get("methods"), dict):
+            raise ValueError(f"{path} is not an inference form table (no 'methods' object)")
+        return cls(data)
+
+    def keys(self) -> list[str]:
+        return sorted(self.data["methods"])
+
+    def form_for(self, key: str, width: int, height: int, bf16: bool | None = None) -> InferenceForm:
+        """The form of the measured resolution nearest to ``width`` x ``height`` in pixel count (eager for a key
+        the table lacks)."""
+        rows = self.data["methods"].get(key)
+        if not rows:
+            return FORMS["eager"]
+        pixels = width * height
+
+        def distance(size: str) -> float:
+            w, _, h = size.partition("x")
+            return abs(math.log(int(w) * int(h) / pixels))
+
+        row = rows[min(rows, key=distance)]
+        bf16 = bf16_available() if bf16 is None else bf16
+        usable = [name for name, ms in sorted(row.get("ms", {}).items(), key=lambda item: item[1])
+                  if name in FORMS and row.get("psnr_db", {}).get(name, 0.0) >= MIN_PSNR_DB
+                  and (bf16 or not FORMS[name].bf16) and (self.allow_compile or not FORMS[name].compiled)]
+        chosen = row.get("chosen")
+        if chosen in usable:
+            return FORMS[chosen]
+        return FORMS[usable[0]] if usable else FORMS["eager"]
+
+
+def load_form_table(spec: FormTable | str | Path | None = "measured") -> FormTable | None:
+    """``measured``: the table shipped with the package; ``off`` (or None): no forms, every method eager;
+    else the path of a table written by ``scripts/bench_inference_forms.py`` (a FormTable is returned as is)."""
+    if isinstance(spec, FormTable):
+        return spec
+    if spec is None or str(spec) == "off":
+        return None
+    return FormTable.read(SHIPPED_TABLE if str(spec) == "measured" else spec)
+
+
+def _to_float32(value: Any) -> Any:
+    if isinstance(value, torch.Tensor):
+        return value.float() if value.is_floating_point() and value.dtype != torch.float32 else value
+    if isinstance(value, tuple):
+        return tuple(_to_float32(item) for item in value)
+    if isinstance(value, list):
+        return [_to_float32(item) for item in value]
+    if isinstance(value, dict):
+        return {name: _to_float32(item) for name, item in value.items()}
+    return value
+
+
+def _channels_last(value: Any) -> Any:
+    if isinstance(value, torch.Tensor) and value.dim() == 4:
+        return value.contiguous(memory_format=torch.channels_last)
+    return value
+
+
+class _NetworkForms:
+    """A network's forward, run in whichever form the calling thread selected (``run_networks_as``)."""
+
+    def __init__(self, forward: Callable[..., Any], selected: threading.local) -> None:
+        self.forward = forward
+        self.selected = selected
+        self.compiled: Callable[..., Any] | None = None
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        form = getattr(self.selected, "form", None) or FORMS["eager"]
+        if form.name == "eager":
+            return self.forward(*args, **kwargs)
+        if form.channels_last:
+            args = tuple(_channels_last(arg) for arg in args)
+        forward = self.forward
+        if form.compiled:
+            if self.compiled is None:
+                self.compiled = torch.compile(self.forward, dynamic=False)
+            forward = self.compiled
+        context = torch.autocast("cpu", dtype=torch.bfloat16) if form.bf16 else nullcontext()
+        with context:
+            output = forward(*args, **kwargs)
+        return _to_float32(output) if form.bf16 else output
+
+
+def _install(method: nn.Module) -> threading.local:
+    """Route the method's networks through ``_NetworkForms`` (once); the thread-local form selector."""
+    selected = getattr(method, "_form_selector", None)
+    if selected is None:
+        selected = threading.local()
+        for network in networks_of(method):
+            network.forward = _NetworkForms(network.forward, selected)
+        object.__setattr__(method, "_form_selector", selected)
+    return selected
+
+
+class run_networks_as:  # noqa: N801 (a context manager, used like a function)
+    """``with run_networks_as(method, form): method.step(...)``: the method's networks run in ``form`` on this
+    thread (the benchmark and the tests pick forms by hand; ``with_inference_forms`` picks them by the table)."""
+
+    def __init__(self, method: nn.Module, form: InferenceForm | str) -> None:
+        self.selected = _install(method)
+        self.form = FORMS[form] if isinstance(form, str) else form
+
+    def __enter__(self) -> None:
+        self.previous = getattr(self.selected, "form", None)
+        self.selected.form = self.form
+
+    def __exit__(self, *exc: object) -> None:
+        self.selected.form = self.previous
+
+
+def with_inference_forms(method: nn.Module, table: FormTable | None,
+                         device: torch.device | str = "cpu") -> nn.Module:
+    """The method (in place) with its ``step`` running its networks in the table's form for each frame's
+    resolution; unchanged without a table, off the CPU, or for a method the table has no row for."""
+    if table is None or torch.device(device).type != "cpu" or method_key(method) not in table.keys() \
+            or not networks_of(method):
+        return method
+    selected = _install(method)
+    key, step = method_key(method), method.step
+    # Sessions of different resolutions share one loaded method across threads: the form is per thread, per call.
+
+    def step_in_form(frame: Any, state: Any) -> Any:
+        height, width = frame.color.shape[-2:]
+        previous = getattr(selected, "form", None)
+        selected.form = table.form_for(key, int(width), int(height))
+        try:
+            return step(frame, state)
+        finally:
+            selected.form = previous
+
+    object.__setattr__(method, "step", step_in_form)
+    return method
