@@ -90,7 +90,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--redis-url", default=os.environ.get("DENOISER_REDIS_URL", "redis://127.0.0.1:6379/0"),
                         help="Redis of the in-process API (session mirror)")
     parser.add_argument("--data", type=Path, help="a sequence folder or dataset folder to take frames from")
-    parser.add_argument("--size", type=int, default=128, help="render resolution of synthetic frames (square)")
+    parser.add_argument("--size", type=render_size, default=(128, 128),
+                        help="render resolution of synthetic frames: N (square) or WxH (default 128)")
     parser.add_argument("--frames", type=int, default=30, help="timed frames (default 30)")
     parser.add_argument("--warmup", type=int, default=5, help="untimed frames first (default 5)")
     parser.add_argument("--rounds", type=int, default=3,
@@ -102,7 +103,15 @@ def parse_args() -> argparse.Namespace:
 # --- frames ----------------------------------------------------------------------------------------------
 
 
-def synthetic_frames(count: int, size: int, seed: int = 0) -> list[FrameBundle]:
+def render_size(text: str) -> tuple[int, int]:
+    width, _, height = text.lower().partition("x")
+    try:
+        return int(width), int(height or width)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N or WxH, got {text!r}") from None
+
+
+def synthetic_frames(count: int, size: tuple[int, int], seed: int = 0) -> list[FrameBundle]:
     return moving_pattern_frames(count, size, np.random.default_rng(seed))
 
 
