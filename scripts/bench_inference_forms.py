@@ -1,6 +1,6 @@
 """Measures every inference form of each method per render resolution and writes the table the service uses.
 
-    .venv/bin/python scripts/bench_inference_forms.py                     # every shipped model; 128, 512, 1080p
+    .venv/bin/python scripts/bench_inference_forms.py                     # every shipped model; 128, 256, 512, 1080p out
     .venv/bin/python scripts/bench_inference_forms.py --model munet-s-x2 --size 256 --compile
     .venv/bin/python scripts/bench_inference_forms.py --write model/inference_forms.json
 
@@ -49,7 +49,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--model", action="append", default=[],
                         help="pretrained name or METHOD[:PRESET] (repeat; default: every shipped model)")
     parser.add_argument("--size", action="append", default=[], help="output size WxH or N (repeat; default 128, "
-                                                                   "512 and 1920x1080; a 2x model renders half)")
+                                                                   "256, 512 and 1920x1080; a 2x model renders half)")
     parser.add_argument("--scale", type=int, default=1, help="scale of registry methods (default 1)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--frames", type=int, default=4, help="timed frames per stream, after one warm-up")
@@ -184,7 +184,7 @@ def main() -> None:
     args = parse_args()
     torch.set_num_threads(args.threads)
     names = args.model or pretrained_names()
-    sizes = [parse_size(text) for text in args.size] or [(128, 128), (512, 512), (1920, 1080)]
+    sizes = [parse_size(text) for text in args.size] or [(128, 128), (256, 256), (512, 512), (1920, 1080)]
     bf16 = bf16_available()
     forms = [name for name, form in FORMS.items()
              if (bf16 or not form.bf16) and (args.compile or not form.compiled)]

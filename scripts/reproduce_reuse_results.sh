@@ -6,7 +6,8 @@
 # preset at both scales as the repository's pretrained models (pretrained/fused-balanced-x{1,2}: weights, recipe
 # and the held-out rows of these reports; scripts/ship_pretrained.py).
 # On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side (13 and
-# 25 minutes), then 600 steps with longer histories at 1x and the fast / high presets fine-tuned from it (6 min).
+# 25 minutes), then 600 steps with longer histories at 1x beside the fast preset fine-tuned from the 2x model, then
+# the fast / high presets at 1x fine-tuned from the longer-history model.
 # Usage: scripts/reproduce_reuse_results.sh [DATA_DIR]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -24,7 +25,12 @@ wait
 tune=(.venv/bin/denoiser train --data "$DATA" --frames-per-sample 12 --batch 4 --lr 5e-4 --warmup 10 --threads 1
       --crop 64 --quiet --scale 1)
 "${tune[@]}" --method fused:balanced --init-from runs/fused-balanced-x1/best.pt --steps 600 --validate-every 150 \
-  --checkpoint-every 150 --out runs/fused-balanced-x1-long > runs-fused-balanced-x1-long.log 2>&1
+  --checkpoint-every 150 --out runs/fused-balanced-x1-long > runs-fused-balanced-x1-long.log 2>&1 &
+# At 2x the fast preset (OIDN-fast inside) is the one that can run within OIDN-high's time at 128x128.
+.venv/bin/denoiser train --data "$DATA" --frames-per-sample 10 --batch 4 --lr 5e-4 --warmup 10 --threads 1 --crop 48 \
+  --quiet --scale 2 --method fused:fast --init-from runs/fused-balanced-x2/best.pt --steps 200 --validate-every 100 \
+  --checkpoint-every 100 --out runs/fused-fast-x2 > runs-fused-fast-x2.log 2>&1 &
+wait
 for quality in fast high; do
   "${tune[@]}" --method "fused:$quality" --init-from runs/fused-balanced-x1-long/best.pt --steps 200 \
     --validate-every 100 --checkpoint-every 100 --out "runs/fused-$quality-x1" > "runs-fused-$quality-x1.log" 2>&1 &
@@ -36,7 +42,7 @@ for scale in 1 2; do
     ours=(--method runs/fused-balanced-x1-long/best.pt --method runs/fused-fast-x1/best.pt
           --method runs/fused-high-x1/best.pt)
   else
-    ours=(--method runs/fused-balanced-x2/best.pt)
+    ours=(--method runs/fused-balanced-x2/best.pt --method runs/fused-fast-x2/best.pt)
   fi
   .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 \
     "${ours[@]}" --method oidn-taa:fast --method oidn-taa:balanced \
