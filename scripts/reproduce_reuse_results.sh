@@ -68,3 +68,5 @@ ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-scrip
 "${ship[@]}" runs/fused-balanced-x1-long/best.pt --name fused-balanced-x1 --stage runs/fused-balanced-x1/best.pt \
   --report docs/results/reuse_x1.json
 "${ship[@]}" runs/fused-balanced-x2/best.pt --name fused-balanced-x2 --report docs/results/reuse_x2.json
+"${ship[@]}" runs/fused-fast-x2/best.pt --name fused-fast-x2 --stage runs/fused-balanced-x2/best.pt \
+  --report docs/results/reuse_x2.json
