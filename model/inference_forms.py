@@ -203,9 +203,10 @@ class run_networks_as:  # noqa: N801 (a context manager, used like a function)
 def with_inference_forms(method: nn.Module, table: FormTable | None,
                          device: torch.device | str = "cpu") -> nn.Module:
     """The method (in place) with its ``step`` running its networks in the table's form for each frame's
-    resolution; unchanged without a table, off the CPU, or for a method the table has no row for."""
+    resolution; unchanged without a table, off the CPU, for a method the table has no row for, or one that
+    already runs a table's forms."""
     if table is None or torch.device(device).type != "cpu" or method_key(method) not in table.keys() \
-            or not networks_of(method):
+            or not networks_of(method) or getattr(method, "_form_table", None) is not None:
         return method
     selected = _install(method)
     key, step = method_key(method), method.step
@@ -221,4 +222,5 @@ def with_inference_forms(method: nn.Module, table: FormTable | None,
             selected.form = previous
 
     object.__setattr__(method, "step", step_in_form)
+    object.__setattr__(method, "_form_table", table)  # once: a second call leaves the method as it is
     return method

@@ -57,6 +57,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--compile", action="store_true", help="also time the torch.compile forms")
     parser.add_argument("--allow-compile", action="store_true", help="let the table choose compiled forms")
     parser.add_argument("--write", type=Path, help="write (merge) the measured table into this JSON file")
+    parser.add_argument("--summary", type=Path, metavar="TABLE",
+                        help="measure nothing: print TABLE's chosen forms per key and render size (markdown)")
     return parser.parse_args()
 
 
@@ -180,8 +182,38 @@ def choose(row: dict, allow_compile: bool) -> str:
     return best if usable[best] <= CHOOSE_MARGIN * row["ms"]["eager"] else "eager"
 
 
+def summary(path: Path) -> str:
+    """Per key and render size: the chosen form, its speed-up over eager and its networks' conv GFLOP/s."""
+    table = json.loads(path.read_text())
+    measured = table.get("measured_on", {})
+    ceilings = measured.get("gemm_gflops", {})
+    lines = [f"measured {measured.get('date', '?')}, {measured.get('threads', '?')} torch threads, gemm ceiling "
+             + ", ".join(f"{k} {v:.0f} GFLOP/s" for k, v in ceilings.items()) + "; per render size: chosen form, "
+             "speed-up of the whole step over eager, the networks' conv GFLOP/s in that form (% of fp32 sgemm)", "",
+             "| architecture | render size | chosen | speed-up | conv GFLOP/s (of sgemm) | lowest PSNR vs eager |",
+             "|---|---|---|---:|---:|---:|"]
+
+    def pixels(size: str) -> int:
+        width, _, height = size.partition("x")
+        return int(width) * int(height)
+
+    for key in sorted(table["methods"]):
+        for size in sorted(table["methods"][key], key=pixels):
+            row = table["methods"][key][size]
+            chosen = row["chosen"]
+            gflops = row["conv_gflops"].get(chosen, 0.0)
+            share = f" ({100 * gflops / ceilings['fp32']:.0f}%)" if ceilings.get("fp32") else ""
+            psnr = "exact" if row["psnr_db"][chosen] >= 200 else f"{row['psnr_db'][chosen]:.0f} dB"
+            lines.append(f"| `{key}` | {size} | {chosen} | {row['ms']['eager'] / row['ms'][chosen]:.2f}x | "
+                         f"{gflops:.0f}{share} | {psnr} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     args = parse_args()
+    if args.summary:
+        print(summary(args.summary))
+        return
     torch.set_num_threads(args.threads)
     names = args.model or pretrained_names()
     sizes = [parse_size(text) for text in args.size] or [(128, 128), (256, 256), (512, 512), (1920, 1080)]
