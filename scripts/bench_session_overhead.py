@@ -176,13 +176,17 @@ class ProcessApi:
     """``uvicorn api.main:app`` as a child process (the deployment's program), stopped on ``stop()``."""
 
     def __init__(self, env: dict) -> None:
+        from core.settings import get_settings
+
         port = free_port()
         environment = {**os.environ, **env}
         environment.pop("DENOISER_API_KEY", None)
         environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), environment.get("PYTHONPATH")]))
         self.process = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1", "--port", str(port),
-             "--log-level", "warning", "--no-access-log"], cwd=REPO, env=environment)
+             "--log-level", "warning", "--no-access-log",
+             # as `denoiser serve` does: a WebSocket message may be as large as a frame may be (1080p frames)
+             "--ws-max-size", str(get_settings().max_frame_bytes)], cwd=REPO, env=environment)
         self.url = f"http://127.0.0.1:{port}"
         try:
             wait_until_up(self.url, lambda: self.process.poll() is None, "the API process")
