@@ -34,7 +34,7 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["FORMS", "InferenceForm", "FormTable", "MIN_PSNR_DB", "SHIPPED_TABLE", "load_form_table",
+__all__ = ["FORMS", "InferenceForm", "FormTable", "MIN_PSNR_DB", "SHIPPED_TABLE", "form_psnr", "load_form_table",
            "method_key", "networks_of", "run_networks_as", "with_inference_forms", "bf16_available"]
 
 MIN_PSNR_DB = 50.0  # a form's output against the eager fp32 output, display-encoded, on every frame of a stream
@@ -57,6 +57,14 @@ FORMS = {form.name: form for form in (
     InferenceForm("compile", compiled=True),
     InferenceForm("compile+bf16", compiled=True, bf16=True),
 )}
+
+
+def form_psnr(output: torch.Tensor, eager: torch.Tensor) -> float:
+    """How far a form's output is from the eager fp32 one: PSNR in dB of the two tone-mapped with x / (1 + x)
+    (the range where a difference shows; 200 for identical images), the measure ``MIN_PSNR_DB`` applies to."""
+    output, eager = torch.as_tensor(output).clamp_min(0), torch.as_tensor(eager).clamp_min(0)
+    mse = float(((output / (1 + output) - eager / (1 + eager)) ** 2).mean())
+    return 200.0 if mse == 0 else min(200.0, -10 * math.log10(mse))
 
 
 def bf16_available() -> bool:

@@ -35,7 +35,7 @@ from torch import nn
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model.inference_forms import (  # noqa: E402
-    FORMS, MIN_PSNR_DB, bf16_available, method_key, networks_of, run_networks_as)
+    FORMS, MIN_PSNR_DB, bf16_available, form_psnr, method_key, networks_of, run_networks_as)
 from model.methods.base import FrameBatch, Method  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 from model.pretrained import is_pretrained, load_pretrained, pretrained_names  # noqa: E402
@@ -113,16 +113,6 @@ class NetworkClock:
         self.seconds, self.flops = 0.0, 0
 
 
-def display(image: torch.Tensor) -> torch.Tensor:
-    image = image.clamp_min(0)
-    return image / (1 + image)
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((display(a) - display(b)) ** 2).mean())
-    return 200.0 if mse == 0 else min(200.0, -10 * math.log10(mse))
-
-
 def stream(method: Method, form: str, frames: list[FrameBatch], clock: NetworkClock) -> dict:
     """Step the frames in ``form``: outputs, per-frame step seconds (warm-up excluded), network seconds and FLOPs."""
     outputs, seconds = [], []
@@ -166,7 +156,7 @@ def measure(method: Method, size: tuple[int, int], forms: list[str], args: argpa
         if not results:
             continue
         row["ms"][form] = round(1000 * statistics.median(s for r in results for s in r["seconds"]), 3)
-        row["psnr_db"][form] = round(min(psnr(a, b) for r in results for a, b in zip(r["outputs"], reference)), 1)
+        row["psnr_db"][form] = round(min(form_psnr(a, b) for r in results for a, b in zip(r["outputs"], reference)), 1)
         network = sum(r["network_seconds"] for r in results)
         row["network_ms"][form] = round(1000 * network / sum(len(r["seconds"]) for r in results), 3)
         row["conv_gflops"][form] = round(sum(r["flops"] for r in results) / network / 1e9, 1) if network else 0.0

@@ -16,7 +16,7 @@ from redis.backoff import NoBackoff
 from redis.retry import Retry
 
 from core.registry import UnknownModelError
-from model.inference_forms import MIN_PSNR_DB, bf16_available, method_key
+from model.inference_forms import MIN_PSNR_DB, bf16_available, form_psnr, method_key
 from model.state_codec import StateFormatError, encode_state
 from api.sessions import (
     CONTINUED,
@@ -540,12 +540,6 @@ def test_a_session_keeps_its_layout_and_owner_and_its_steps_run_on_the_session_w
 FULL_HD = (1920, 1080)
 
 
-def display_psnr(actual: np.ndarray, expected: np.ndarray) -> float:
-    actual, expected = np.maximum(actual, 0), np.maximum(expected, 0)
-    mse = float(np.mean((actual / (1 + actual) - expected / (1 + expected)) ** 2))
-    return float("inf") if mse == 0 else -10 * np.log10(mse)
-
-
 def _full_hd_session_survives_a_restart(make_store, redis_db, model: str) -> int:
     """Two 1080p frames, a new store (a restarted API), a third frame: it continues the history and gives what
     the method gives in process, up to the float16 history. Returns how many chunks the history took in Redis."""
@@ -568,7 +562,7 @@ def _full_hd_session_survives_a_restart(make_store, redis_db, model: str) -> int
     if form is not None and form.bf16:
         # A bf16 network rounds its inputs to 8 significant bits: a history value that float16 moved by 2^-11 can
         # land on the next bf16 step, so the restored output is held to the forms' tolerance instead.
-        assert display_psnr(result.output, expected[2]) >= MIN_PSNR_DB
+        assert form_psnr(result.output, expected[2]) >= MIN_PSNR_DB
     else:
         assert_same_image_after_half_history(result.output, expected[2])
     return chunks

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import threading
 
 import numpy as np
@@ -12,7 +11,7 @@ import torch
 from torch import nn
 
 from model.inference_forms import (
-    FORMS, MIN_PSNR_DB, SHIPPED_TABLE, FormTable, bf16_available, load_form_table, method_key, networks_of,
+    FORMS, MIN_PSNR_DB, SHIPPED_TABLE, FormTable, bf16_available, form_psnr, load_form_table, method_key, networks_of,
     run_networks_as, with_inference_forms)
 from model.methods.base import FrameBatch
 from model.methods.registry import build_method, method_spec
@@ -37,12 +36,6 @@ def stream(method, batches, form=None) -> list[torch.Tensor]:
                     output, state = method.step(batch, state)
             outputs.append(output)
     return outputs
-
-
-def display_psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    a, b = a.clamp_min(0), b.clamp_min(0)
-    mse = float(((a / (1 + a) - b / (1 + b)) ** 2).mean())
-    return math.inf if mse == 0 else -10 * math.log10(mse)
 
 
 def seeded(text: str, scale: int):
@@ -78,7 +71,7 @@ def test_bf16_networks_stay_within_the_stated_tolerance_and_the_rest_stays_float
             output, state = method.step(batch, state)
             assert output.dtype == torch.float32
             assert all(value.dtype != torch.bfloat16 for value in state.values())  # histories stay float32
-            assert display_psnr(output, expected) >= MIN_PSNR_DB
+            assert form_psnr(output, expected) >= MIN_PSNR_DB
     # ... and the difference is there: the form really ran in bf16 (a test of "no change" could not fail).
     assert any(not torch.equal(a, b) for a, b in zip(eager, stream(method, batches, "bf16")))
 
