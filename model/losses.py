@@ -12,6 +12,12 @@ Tone mapping. Both terms are computed by default on log-tonemapped radiance, ``s
   early in training.
 
 ``tonemap="mulaw"`` compresses harder (MUNet's curve), ``"linear"`` uses radiance as it is.
+
+An optional third term, ``display_weight * MSE`` on display-encoded images (``clip(x, 0, 1) ** (1/2.2)``, the
+benchmark protocol's encoding), is the error PSNR measures. SMAPE weighs an error by its relative size, so a dark
+pixel's small error costs as much as a bright edge's large one; squared display error weighs large visible errors
+(a ghost, a lagging highlight) most. Highlights above 1 are not compared by it (the display clips them); the log
+terms still are.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ from dataclasses import dataclass
 import torch
 
 from model.names import TONEMAPS
-from model.ops.tonemap import log_tonemap, mulaw
+from model.ops.tonemap import display_encode, log_tonemap, mulaw
 
 SMAPE_EPS = 0.01  # as in WSKPN and Vogels et al. 2018: bounds the loss of near-black pixels
 
@@ -55,32 +61,39 @@ class LossTerms:
     spatial: torch.Tensor
     temporal: torch.Tensor
     auxiliary: torch.Tensor | None = None  # the method's own extra term, already in total
+    display: torch.Tensor | None = None  # display-encoded MSE (unweighted), when weighted in total
 
     def detached(self) -> dict[str, float]:
         values = {"loss": float(self.total.detach()), "spatial_loss": float(self.spatial.detach()),
                   "temporal_loss": float(self.temporal.detach())}
         if self.auxiliary is not None:
             values["auxiliary_loss"] = float(self.auxiliary.detach())
+        if self.display is not None:
+            values["display_loss"] = float(self.display.detach())
         return values
 
 
 class SequenceLoss:
-    """``spatial_weight * SMAPE + temporal_weight * temporal L1`` over T frames, each frame weighted.
+    """``spatial_weight * SMAPE + temporal_weight * temporal L1 (+ display_weight * display MSE)`` over T frames,
+    each frame weighted.
 
     ``frame_weights`` (length T, default all 1) weight frame t's SMAPE and its temporal term (the change from
     t-1 to t; frame 0 has none); each term is a weighted mean over frames, so the weights' scale does not matter.
     """
 
     def __init__(self, spatial_weight: float = 1.0, temporal_weight: float = 0.25, tonemap: str = "log",
-                 frame_weights: Sequence[float] | None = None, eps: float = SMAPE_EPS) -> None:
+                 frame_weights: Sequence[float] | None = None, eps: float = SMAPE_EPS,
+                 display_weight: float = 0.0) -> None:
         if tonemap not in TONEMAPS:
             raise ValueError(f"unknown tone map {tonemap!r}; choose from {', '.join(TONEMAPS)}")
-        if spatial_weight < 0 or temporal_weight < 0:
-            raise ValueError(f"loss weights must be >= 0, got spatial {spatial_weight}, temporal {temporal_weight}")
+        if spatial_weight < 0 or temporal_weight < 0 or display_weight < 0:
+            raise ValueError(f"loss weights must be >= 0, got spatial {spatial_weight}, temporal {temporal_weight}, "
+                             f"display {display_weight}")
         if frame_weights is not None and (min(frame_weights) < 0 or sum(frame_weights) <= 0):
             raise ValueError(f"frame weights must be >= 0 with a positive sum, got {list(frame_weights)}")
         self.spatial_weight = spatial_weight
         self.temporal_weight = temporal_weight
+        self.display_weight = display_weight
         self.tonemap = tonemap
         self.frame_weights = None if frame_weights is None else [float(w) for w in frame_weights]
         self.eps = eps
@@ -106,9 +119,14 @@ class SequenceLoss:
         else:  # one frame (or only frame 0 weighted): no change to compare
             temporal = spatial.new_zeros(())
         total = self.spatial_weight * spatial + self.temporal_weight * temporal
+        display = None
+        if self.display_weight > 0:
+            display = _weighted_mean([(display_encode(o) - display_encode(t)).square().mean()
+                                      for o, t in zip(outputs, targets, strict=True)], weights)
+            total = total + self.display_weight * display
         if auxiliary is not None:
             total = total + auxiliary
-        return LossTerms(total=total, spatial=spatial, temporal=temporal, auxiliary=auxiliary)
+        return LossTerms(total=total, spatial=spatial, temporal=temporal, auxiliary=auxiliary, display=display)
 
 
 def _weighted_mean(terms: list[torch.Tensor], weights: Sequence[float]) -> torch.Tensor:

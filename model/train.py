@@ -301,7 +301,7 @@ class _Training:
         spatial, temporal = self.method.loss_weights
         self.loss = SequenceLoss(spatial if config.spatial_weight is None else config.spatial_weight,
                                  temporal if config.temporal_weight is None else config.temporal_weight,
-                                 config.tonemap, config.frame_weights())
+                                 config.tonemap, config.frame_weights(), display_weight=config.display_weight)
         self.stream = SampleStream(len(self.crops), config.seed)
         self.step = 0
         self.best_metric: dict[str, Any] | None = None

@@ -82,6 +82,9 @@ class TrainingSettings(_TrainingChecks):
     temporal_weight: float | None = Field(None, ge=0, le=1e6, description="weight of the temporal loss (none: "
                                                                           "the method's own, 0.25 for most)")
     tonemap: Literal[TONEMAPS] = Field("log", description="what the loss compares: log, mu-law or linear radiance")
+    display_weight: float = Field(0.0, ge=0, le=1e6, description="weight of a mean squared error on display-encoded "
+                                                                 "images, clip(x, 0, 1) ** (1/2.2): what PSNR "
+                                                                 "measures (0: none)")
     loss_skip_frames: int = Field(0, ge=0, le=255, description="leave the first K frames of each sample out of "
                                                                "the loss")
     augment: bool = Field(True, description="flips and brightness augmentation")

@@ -85,10 +85,30 @@ def test_loss_is_finite_with_gradients_for_negative_outputs():
     assert output.grad[0, 0, 0, 0] < 0  # gradient descent moves the negative output up, towards 0
 
 
+def test_display_term_is_the_weighted_mse_psnr_measures():
+    outputs = [constant(0.25), constant(4.0), constant(0.5)]
+    targets = [constant(0.0), constant(1.0), constant(0.25)]
+    loss = SequenceLoss(spatial_weight=0.0, temporal_weight=0.0, frame_weights=[1, 1, 2], display_weight=10.0)
+    terms = loss(outputs, targets)
+    gamma = 1 / 2.2
+    # Frame 1 is clipped to 1 on both sides (the display shows no difference).
+    per_frame = [0.25 ** gamma, 0.0, 0.5 ** gamma - 0.25 ** gamma]
+    expected = (per_frame[0] ** 2 + 2 * per_frame[2] ** 2) / 4
+    assert float(terms.display) == pytest.approx(expected, rel=1e-5)
+    assert float(terms.total) == pytest.approx(10 * expected, rel=1e-5)
+    assert terms.detached()["display_loss"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_no_display_term_by_default():
+    terms = SequenceLoss()([constant(0.5)], [constant(0.25)])
+    assert terms.display is None and "display_loss" not in terms.detached()
+
+
 @pytest.mark.parametrize("kwargs, message", [
     ({"tonemap": "srgb"}, "unknown tone map"),
     ({"frame_weights": [0, 0]}, "positive sum"),
     ({"spatial_weight": -1}, ">= 0"),
+    ({"display_weight": -0.5}, "display -0.5"),
 ])
 def test_bad_settings_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):

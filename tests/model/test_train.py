@@ -179,6 +179,16 @@ def test_epochs_set_the_number_of_steps(data, tmp_path):
     assert result["steps"] == math.ceil(5 / 4)
 
 
+def test_display_weight_adds_the_display_error_to_the_training_loss(data, tmp_path):
+    plain = train(tiny_config(data, tmp_path / "plain", steps=1, validate_every=0))
+    weighted = train(tiny_config(data, tmp_path / "display", steps=1, validate_every=0, display_weight=100.0))
+    losses = weighted["losses"]
+    assert "display_loss" not in plain["losses"] and losses["display_loss"] > 0
+    # The same first step (same seed and weights): only the display term differs.
+    assert losses["spatial_loss"] == pytest.approx(plain["losses"]["spatial_loss"])
+    assert losses["loss"] == pytest.approx(plain["losses"]["loss"] + 100.0 * losses["display_loss"], rel=1e-5)
+
+
 def test_validation_runs_the_protocol_metrics_over_whole_sequences(data):
     sequences = [FrameCache(sequence, 1) for sequence in Dataset(data).sequences("validation")]
     _, _, method = prepare(tiny_config(data, "unused"))
