@@ -448,16 +448,23 @@ class DenoiserClient:
         data, info = self.send_frame_raw(session_id, frame)
         return decode_rgb_exr(data), info
 
-    def open_stream(self, session_id: str, *, dtype: str = "float32",
-                    output_dtype: str = "float32") -> SessionStream:
+    def open_stream(self, session_id: str, *, dtype: str = "float32", output_dtype: str = "float32",
+                    all_buffers: bool = False) -> SessionStream:
         """A WebSocket to the session (GET /sessions/{id}/stream): ``send(frame)`` gives what ``send_frame`` gives,
-        without the per-frame request and EXR files (client.stream). Use it as a context manager."""
+        without the per-frame request and EXR files (client.stream). Use it as a context manager. Frames carry only
+        the buffers the session's method reads (asked once, GET /sessions/{id}), unless ``all_buffers``."""
         from client.stream import SessionStream
 
+        buffers = None
+        if not all_buffers:
+            try:
+                buffers = self.get_session(session_id)["model"].get("buffers")  # an older server names none
+            except (ApiClientError, ServerUnreachable):  # the WebSocket gives that error (no such session, ...)
+                pass
         key = self._http.headers.get(API_KEY_HEADER)
         headers = {**({API_KEY_HEADER: key} if key else {}), **self._owner(session_id)}
         return SessionStream(self.url, session_id, headers, dtype=dtype, output_dtype=output_dtype,
-                             timeout=self._http.timeout.read or 60.0)
+                             timeout=self._http.timeout.read or 60.0, buffers=buffers)
 
     def stream_sequence(self, session_id: str, sequence_dir: str | os.PathLike, out_dir: str | os.PathLike, *,
                         strip_references: bool = True,

@@ -46,10 +46,13 @@ def websocket_url(http_url: str, path: str) -> str:
 
 class SessionStream:
     """One open WebSocket to a session (see the module notes). ``dtype``: what frames are sent in (float16 halves
-    the bytes; the server rounds nothing else), ``output_dtype``: what the outputs come back in."""
+    the bytes; the server rounds nothing else), ``output_dtype``: what the outputs come back in, ``buffers``: the
+    buffers of a FrameBundle to send (the session's method's, as GET /sessions/{id} names them in model.buffers;
+    None: every buffer the frame has)."""
 
     def __init__(self, base_url: str, session_id: str, headers: dict[str, str], *, dtype: str = "float32",
-                 output_dtype: str = "float32", timeout: float = 60.0) -> None:
+                 output_dtype: str = "float32", timeout: float = 60.0,
+                 buffers: list[str] | tuple[str, ...] | None = None) -> None:
         from websockets.exceptions import InvalidHandshake, InvalidStatus
         from websockets.sync.client import connect
 
@@ -59,6 +62,7 @@ class SessionStream:
         self.session_id = session_id
         self.dtype = dtype
         self.output_dtype = output_dtype
+        self.buffers = None if buffers is None else tuple(buffers)
         self.url = websocket_url(base_url, STREAM_PATH.format(session_id=session_id))
         self._base_url = base_url
         try:
@@ -85,7 +89,7 @@ class SessionStream:
         from model.stream_codec import decode_output, encode_bundle
 
         data = frame if isinstance(frame, (bytes, bytearray, memoryview)) else encode_bundle(
-            frame, dtype=self.dtype, output_dtype=self.output_dtype, frame_index=frame_index)
+            frame, dtype=self.dtype, output_dtype=self.output_dtype, frame_index=frame_index, buffers=self.buffers)
 
         started = time.perf_counter()
         try:

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -163,11 +163,15 @@ def encode_frame(buffers: Mapping[str, np.ndarray], *, frame_index: int | None, 
 
 
 def encode_bundle(frame, *, dtype: str = "float32", output_dtype: str = "float32",
-                  frame_index: int | None | bool = True) -> bytes:
+                  frame_index: int | None | bool = True, buffers: Iterable[str] | None = None) -> bytes:
     """A frame message of a model.frames.FrameBundle (its render-resolution buffers; references are never sent).
-    ``frame_index``: True sends the frame's own, None leaves it to the session (its next frame), an int sends it."""
+    ``frame_index``: True sends the frame's own, None leaves it to the session (its next frame), an int sends it.
+    ``buffers``: send only these of the frame's buffers (the session's method's, GET /sessions/{id}: model.buffers;
+    required ones are sent anyway), None: all it has."""
     index = frame.frame_index if frame_index is True else frame_index
-    return encode_frame({name: getattr(frame, name) for name in STREAM_BUFFERS}, frame_index=index,
+    names = STREAM_BUFFERS if buffers is None else [name for name in STREAM_BUFFERS
+                                                    if name in set(buffers) or name in REQUIRED_BUFFERS]
+    return encode_frame({name: getattr(frame, name) for name in names}, frame_index=index,
                         jitter=frame.jitter, camera_cut=frame.camera_cut, dtype=dtype, output_dtype=output_dtype)
 
 

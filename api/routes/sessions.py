@@ -24,6 +24,7 @@ from starlette.concurrency import run_in_threadpool
 from model.exr import FrameTooLarge, encode_image_exr
 from model.frames import FrameError
 from model.layouts import LayoutFrame, layout_from_value, read_layout_frame_bytes
+from model.methods.registry import method_buffers
 from api.errors import ApiError, documented_error
 from core.names import AUTO_MODEL
 from api.request_limits import frame_budget
@@ -111,7 +112,8 @@ def _time(seconds: float) -> datetime:
 def session_out(session: Session) -> SessionOut:
     model = dict(session.model.__dict__)
     choice = model.pop("choice", None)
-    return SessionOut(id=session.id, model=SessionModelOut(**model), choice=choice,
+    return SessionOut(id=session.id, model=SessionModelOut(**model, buffers=list(method_buffers(model["method"]))),
+                      choice=choice,
                       created_at=_time(session.created_at), last_used_at=_time(session.last_used_at),
                       expires_at=_time(session.expires_at), frames_processed=session.frames_processed,
                       next_frame_index=session.next_frame_index, on_gap=session.on_gap,

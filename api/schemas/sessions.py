@@ -104,7 +104,8 @@ class SessionModelOut(BaseModel):
 
     model_config = ConfigDict(json_schema_extra={
         "examples": [{"name": "jnds-xs-x2", "version": "2", "alias": "champion", "method": "jnds", "preset": "xs",
-                      "scale": 2, "params": 16228}]
+                      "scale": 2, "params": 16228,
+                      "buffers": ["color", "albedo", "diffuse", "specular", "normal", "depth", "roughness", "motion"]}]
     })
 
     name: str
@@ -118,6 +119,8 @@ class SessionModelOut(BaseModel):
     source: Literal["registered", "pretrained", "method"] = Field(
         "registered", description="a registered model version, a pretrained model shipped with the service, or a "
                                   "method without weights")
+    buffers: list[str] = Field(description="the render buffers the method reads: the required ones and the optional "
+                                           "ones it uses; a stream client sends only these (others are ignored)")
 
 
 class SessionOut(BaseModel):

@@ -275,5 +275,6 @@ register(MethodSpec(
     presets=tuple(AFN_PRESETS),
     default_preset="m",
     scales=(1, 2),
+    optional_buffers=(),
     learned=True,
 ))

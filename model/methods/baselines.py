@@ -367,6 +367,7 @@ register(MethodSpec(
     description="noisy input, the floor",
     factory=lambda preset, scale: Identity(preset, scale),
     scales=(1, 2),
+    optional_buffers=(),
 ))
 register(MethodSpec(
     name=TemporalAccumulation.name,
@@ -374,6 +375,7 @@ register(MethodSpec(
     factory=lambda preset, scale: TemporalAccumulation(preset, scale),
     presets=tuple(TemporalAccumulation.ALPHA_MIN),
     scales=(1, 2),
+    optional_buffers=(),
 ))
 register(MethodSpec(
     name=SVGF.name,
@@ -381,4 +383,5 @@ register(MethodSpec(
     factory=lambda preset, scale: SVGF(preset, scale),
     presets=SVGF.PRESETS,
     scales=(1, 2),
+    optional_buffers=(),
 ))

@@ -217,5 +217,6 @@ register(MethodSpec(
     presets=QUALITIES,
     default_preset="balanced",
     scales=(1, 2),
+    optional_buffers=("specular_albedo",),  # OIDN's albedo guide adds the specular albedo
     learned=True,
 ))

@@ -595,6 +595,7 @@ register(
         presets=ALL_PRESETS,
         default_preset=DEFAULT_PRESET,
         scales=(1, 2),
+        optional_buffers=("diffuse", "specular", "roughness"),  # the lobe split of the colour, roughness as a guide
         learned=True,
     )
 )

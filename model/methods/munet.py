@@ -437,5 +437,6 @@ register(MethodSpec(
     presets=tuple(MUNET_PRESETS),
     default_preset=DEFAULT_PRESET,
     scales=(1, 2),
+    optional_buffers=("specular_albedo", "roughness"),  # the second demodulated term; roughness is a guide
     learned=True,
 ))

@@ -75,4 +75,5 @@ register(MethodSpec(
     presets=QUALITIES,
     default_preset="high",
     scales=(1, 2),
+    optional_buffers=("specular_albedo",),  # OIDN's albedo guide adds the specular albedo
 ))

@@ -14,6 +14,7 @@ from typing import Callable
 
 import torch
 
+from model.frames import BUFFERS, RENDER_BUFFERS
 from model.methods.base import FrameBatch, Method
 
 METHOD_MODULES = (
@@ -37,6 +38,13 @@ class MethodSpec:
     default_preset: str = "default"
     scales: tuple[int, ...] = (1,)
     learned: bool = False
+    # The optional render buffers `step` reads (None: any of them). A stream client sends only the buffers a
+    # session's method reads (method_buffers); tests check that a method's output does not change without the
+    # optional buffers it does not declare.
+    optional_buffers: tuple[str, ...] | None = None
+
+
+OPTIONAL_RENDER_BUFFERS: tuple[str, ...] = tuple(name for name in RENDER_BUFFERS if not BUFFERS[name].required)
 
 
 REGISTRY: dict[str, MethodSpec] = {}
@@ -45,6 +53,10 @@ REGISTRY: dict[str, MethodSpec] = {}
 def register(spec: MethodSpec) -> MethodSpec:
     if spec.default_preset not in spec.presets:
         raise ValueError(f"{spec.name}: default preset {spec.default_preset!r} is not among {spec.presets}")
+    unknown = sorted(set(spec.optional_buffers or ()) - set(OPTIONAL_RENDER_BUFFERS))
+    if unknown:
+        raise ValueError(f"{spec.name}: {', '.join(unknown)} are not optional render buffers "
+                         f"({', '.join(OPTIONAL_RENDER_BUFFERS)})")
     REGISTRY[spec.name] = spec
     return spec
 
@@ -71,6 +83,14 @@ def method_spec(name: str) -> MethodSpec:
     if name not in REGISTRY:
         raise KeyError(f"unknown method {name!r}; known methods: {', '.join(sorted(REGISTRY))}")
     return REGISTRY[name]
+
+
+def method_buffers(name: str) -> tuple[str, ...]:
+    """The render buffers method ``name`` reads, in the frame format's order: the required ones and the optional
+    ones it declares (every optional one when it declares none); KeyError for an unknown method."""
+    declared = method_spec(name).optional_buffers
+    reads = set(OPTIONAL_RENDER_BUFFERS if declared is None else declared)
+    return tuple(buffer for buffer in RENDER_BUFFERS if BUFFERS[buffer].required or buffer in reads)
 
 
 def build_method(text: str, scale: int = 1) -> Method:

@@ -202,6 +202,7 @@ register(
         presets=tuple(PRESETS),
         default_preset=DEFAULT_PRESET,
         scales=(1, 2),
+        optional_buffers=(),
         learned=True,
     )
 )

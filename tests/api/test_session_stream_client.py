@@ -75,6 +75,31 @@ def test_open_stream_gives_what_send_frame_gives(serve):
         assert client.get_session(session["id"])["frames_processed"] == 5
 
 
+def test_a_stream_sends_only_the_buffers_the_sessions_method_reads(serve, monkeypatch):
+    from model import stream_codec
+
+    url = serve()
+    frames = stream_frames(3, seed=5)
+    assert frames[0].diffuse is not None and frames[0].specular is not None  # what a lean stream leaves out
+    sent = []
+    encode = stream_codec.encode_frame
+    monkeypatch.setattr(stream_codec, "encode_frame", lambda buffers, **kw: sent.append(sorted(buffers)) or encode(
+        buffers, **kw))
+    with DenoiserClient(url) as client:
+        posted = client.create_session("accumulation")
+        expected = [client.send_frame(posted["id"], frame)[0] for frame in frames]
+        session = client.create_session("accumulation")
+        assert session["model"]["buffers"] == ["color", "albedo", "normal", "depth", "motion"]
+        with client.open_stream(session["id"]) as lean, client.open_stream(
+                client.create_session("accumulation")["id"], all_buffers=True) as full:
+            assert lean.buffers == tuple(session["model"]["buffers"]) and full.buffers is None
+            for frame, image in zip(frames, expected):
+                np.testing.assert_array_equal(lean.send(frame)[0], image)
+                np.testing.assert_array_equal(full.send(frame)[0], image)
+    assert sent[0] == sorted(session["model"]["buffers"])
+    assert {"diffuse", "specular"} <= set(sent[1])
+
+
 def test_a_refused_frame_raises_and_the_stream_goes_on(serve):
     url = serve()
     frames = stream_frames(3, seed=2)

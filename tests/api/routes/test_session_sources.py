@@ -8,7 +8,7 @@ import pytest
 import model.pretrained as pretrained
 from model.exr import decode_image_exr
 from model.methods.base import inference_outputs
-from model.methods.registry import build_method
+from model.methods.registry import build_method, method_buffers
 from tests.builders import error_message, ship_tiny
 from tests.api.session_fixtures import (  # noqa: F401 (api: a fixture)
     MODEL_NAME,
@@ -32,7 +32,8 @@ def test_a_method_by_name_streams_as_it_runs_in_process(api, name, scale, label)
     session = response.json()
     method, preset = label.split(":")
     assert session["model"] == {"name": label, "version": None, "alias": None, "method": method, "preset": preset,
-                                "scale": scale or 1, "params": 0, "source": "method"}
+                                "scale": scale or 1, "params": 0, "source": "method",
+                                "buffers": list(method_buffers(method))}
     frames = stream_frames(3, seed=5)
     expected = inference_outputs(build_method(label, scale or 1), frames)
     for index, frame in enumerate(frames):

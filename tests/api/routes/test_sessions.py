@@ -29,7 +29,8 @@ def test_a_16_frame_stream_gives_what_the_method_gives_in_process(api):
     session = create(client, version="2")
     assert session["model"] == {"name": MODEL_NAME, "version": "2", "alias": None, "method": "jnds",
                                 "preset": "xs", "scale": 2, "params": session["model"]["params"],
-                                "source": "registered"}
+                                "source": "registered", "buffers": ["color", "albedo", "diffuse", "specular", "normal",
+                                                                    "depth", "roughness", "motion"]}
     assert session["next_frame_index"] is None and session["resolution"] is None
     frames = stream_frames(16, seed=7)
     expected = in_process_outputs(shared_registry().checkpoints["2"], frames)

@@ -1,10 +1,14 @@
-"""model.methods.registry.inference_cost: one size per model, the size of the form that runs."""
+"""model.methods.registry: one size per model (the size of the form that runs); the buffers each method reads."""
 
 from __future__ import annotations
 
+import dataclasses
+
+import pytest
 import torch
 
-from model.methods.registry import build_method, flops_per_pixel, inference_cost
+from model.methods.registry import (OPTIONAL_RENDER_BUFFERS, MethodSpec, all_methods, build_method, example_batch,
+                                    flops_per_pixel, inference_cost, method_buffers, register)
 
 
 def test_the_cost_of_wskpn_is_its_fused_form_and_the_method_is_left_as_it_was():
@@ -22,3 +26,42 @@ def test_methods_without_an_inference_form_cost_what_they_are():
     for name, scale in (("munet:xs", 2), ("svgf", 1)):
         method = build_method(name, scale=scale)
         assert inference_cost(method) == (method.parameter_count(), flops_per_pixel(method))
+
+
+def _every_method() -> list[tuple[str, int]]:
+    return [(f"{spec.name}:{spec.default_preset}", scale) for spec in all_methods() for scale in spec.scales]
+
+
+@pytest.mark.parametrize("name, scale", _every_method())
+def test_a_method_reads_no_optional_buffer_it_does_not_declare(name, scale):
+    # Stream clients send only method_buffers; a method reading an undeclared buffer would lose it silently.
+    torch.manual_seed(0)
+    method = build_method(name, scale=scale).eval()
+    reads = set(method_buffers(name.split(":")[0]))
+    full = [example_batch(16, 16, seed=seed) for seed in range(3)]
+    lean = [dataclasses.replace(frame, **{buffer: None for buffer in OPTIONAL_RENDER_BUFFERS if buffer not in reads})
+            for frame in full]
+    with torch.no_grad():
+        for frames in (full, lean):
+            state, outputs = None, []
+            for frame in frames:
+                output, state = method.step(frame, state)
+                outputs.append(output)
+            if frames is full:
+                expected = outputs
+    for got, want in zip(outputs, expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+
+
+def test_method_buffers_are_the_required_ones_and_the_declared_optional_ones():
+    assert method_buffers("wskpn") == ("color", "albedo", "normal", "depth", "motion")
+    assert method_buffers("jnds") == ("color", "albedo", "diffuse", "specular", "normal", "depth", "roughness",
+                                      "motion")
+    with pytest.raises(KeyError, match="unknown method 'nope'"):
+        method_buffers("nope")
+
+
+def test_a_method_may_declare_only_optional_render_buffers():
+    with pytest.raises(ValueError, match="color are not optional render buffers"):
+        register(MethodSpec(name="bad", description="", factory=lambda preset, scale: None,
+                            optional_buffers=("color",)))
