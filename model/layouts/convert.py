@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from model.frames import NORMAL_LENGTH_TOLERANCE
+from model.frames import NORMAL_LENGTH_TOLERANCE, normal_lengths
 from model.layouts.layout import DepthConvention, MotionConvention
 
 # Lossy EXR compression (DWAA, B44) and half storage move unit normals off unit length by up to a few percent;
@@ -78,8 +78,8 @@ def renormalise_normals(normal: np.ndarray, depth: np.ndarray) -> tuple[np.ndarr
     Returns (normals, how many pixels were changed, the worst |n| among them). Pixels further off are left as they
     are, for the validator to refuse; so are non-finite ones (the sanitizer's business).
     """
-    length = np.linalg.norm(normal, axis=2)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):
+        length = normal_lengths(normal)
         off = np.abs(length - 1.0)
         fixable = (depth > 0) & np.isfinite(length) & (off > NORMAL_LENGTH_TOLERANCE) & (off <= NORMAL_REPAIR_TOLERANCE)
     count = int(fixable.sum())
