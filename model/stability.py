@@ -350,6 +350,7 @@ def run_suite(scenarios: list[Scenario], methods: list[Method | str], scale: int
             # Temporal: it carried a state from one frame to the next (per-frame methods return {}).
             temporal = any(run.get("keeps_history") for run in runs.values())
             entries.append({"label": method.label, "source": source, "temporal": temporal, "scenarios": runs})
+        name_shared_labels(entries)
         threads_used = torch.get_num_threads()
     first = scenarios[0].sequence
     report = {
@@ -379,6 +380,15 @@ def run_suite(scenarios: list[Scenario], methods: list[Method | str], scale: int
     score(report)
     report["ghosting"] = least_ghosting(report)
     return report
+
+
+def name_shared_labels(entries: list[dict]) -> None:
+    """Entries of one method from several models (a pretrained one, a fine-tune) share a label, and the ghosting
+    summary, keyed by label, would merge them: such labels get their source appended, as evaluation tables do."""
+    labels = [entry["label"] for entry in entries]
+    for entry in entries:
+        if labels.count(entry["label"]) > 1 and entry["source"] not in (None, entry["label"]):
+            entry["label"] = f"{entry['label']} ({entry['source']})"
 
 
 def _trail_summary(trails: torch.Tensor) -> dict:

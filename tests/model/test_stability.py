@@ -18,7 +18,8 @@ from model.metrics import PSNR_CAP_DB
 from model.methods.base import FrameBatch, Method, State
 from model.methods.registry import build_method
 from model.stability import (DERIVED_SCENARIOS, EXPOSURE_BRIGHT, MIN_DROP_DB, SCENARIOS, SCENE_SCENARIOS, Scenario,
-                             build_scenarios, derive_scenarios, fails_worst, run_suite, scale_exposure)
+                             build_scenarios, derive_scenarios, fails_worst, name_shared_labels, run_suite,
+                             scale_exposure)
 from model.stability_report import write_report
 from cli.main import main
 from tests.builders import GRADIENT_FRAMES as FRAMES
@@ -292,6 +293,15 @@ def test_ghosting_is_measured_where_a_trail_exists_and_names_the_temporal_method
     assert ghosting["by_scenario"] == {"visible_emitter": "blend:0.2"}
     assert ghosting["common_scenarios"] == ["visible_emitter"]
     assert ghosting["mean_error"]["blend:0.5"] == emitter["blend:0.5"]["ghost_error"]
+
+
+def test_two_models_of_one_method_keep_their_own_rows_and_ghosting_means():
+    entries = [{"label": "fused:balanced", "source": "pretrained:fused-balanced-x1"},
+               {"label": "fused:balanced", "source": "runs/a/best.pt"},
+               {"label": "oidn-taa:high", "source": "oidn-taa:high"}]
+    name_shared_labels(entries)
+    assert [e["label"] for e in entries] == ["fused:balanced (pretrained:fused-balanced-x1)",
+                                             "fused:balanced (runs/a/best.pt)", "oidn-taa:high"]
 
 
 def test_ghosting_at_scale_two_measures_the_trail_at_the_reference_resolution():
