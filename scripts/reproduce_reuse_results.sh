@@ -7,7 +7,8 @@
 # and the held-out rows of these reports; scripts/ship_pretrained.py).
 # On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side (13 and
 # 25 minutes), then 600 steps with longer histories at 1x beside the fast preset fine-tuned from the 2x model, then
-# the fast / high presets at 1x fine-tuned from the longer-history model.
+# 3100 steps with the display-error term at 1x (about 18 minutes), then the fast / high presets at 1x fine-tuned
+# from that model.
 # Usage: scripts/reproduce_reuse_results.sh [DATA_DIR]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -31,15 +32,26 @@ tune=(.venv/bin/denoiser train --data "$DATA" --frames-per-sample 12 --batch 4 -
   --quiet --scale 2 --method fused:fast --init-from runs/fused-balanced-x2/best.pt --steps 200 --validate-every 100 \
   --checkpoint-every 100 --out runs/fused-fast-x2 > runs-fused-fast-x2.log 2>&1 &
 wait
+# Then the display-error term (display_weight 50: squared error on display-encoded images, what PSNR measures) in
+# three fine-tunes of 600, 1000 and 1500 steps, each from the last's best checkpoint (validation PSNR 32.75 ->
+# 32.86 -> 32.90 -> 32.95; 600 steps without the term: 32.75).
+previous=runs/fused-balanced-x1-long/best.pt
+for stage in 600:150 1000:200 1500:250; do  # steps:validation interval
+  steps=${stage%:*} every=${stage#*:}
+  "${tune[@]}" --method fused:balanced --init-from "$previous" --steps "$steps" --display-weight 50 \
+    --validate-every "$every" --checkpoint-every "$every" --out "runs/fused-balanced-x1-display-$steps" \
+    > "runs-fused-balanced-x1-display-$steps.log" 2>&1
+  previous="runs/fused-balanced-x1-display-$steps/best.pt"
+done
 for quality in fast high; do
-  "${tune[@]}" --method "fused:$quality" --init-from runs/fused-balanced-x1-long/best.pt --steps 200 \
+  "${tune[@]}" --method "fused:$quality" --init-from "$previous" --steps 200 --display-weight 50 \
     --validate-every 100 --checkpoint-every 100 --out "runs/fused-$quality-x1" > "runs-fused-$quality-x1.log" 2>&1 &
 done
 wait
 mkdir -p docs/results
 for scale in 1 2; do
   if [ "$scale" = 1 ]; then
-    ours=(--method runs/fused-balanced-x1-long/best.pt --method runs/fused-fast-x1/best.pt
+    ours=(--method runs/fused-balanced-x1-display-1500/best.pt --method runs/fused-fast-x1/best.pt
           --method runs/fused-high-x1/best.pt)
   else
     ours=(--method runs/fused-balanced-x2/best.pt --method runs/fused-fast-x2/best.pt)
@@ -56,17 +68,19 @@ picture() {  # SEQUENCE FRAME SCALE ZOOM OUT CHECKPOINT
     --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced \
     --method "$6=fused-balanced" --out "$5"
 }
-picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png runs/fused-balanced-x1-long/best.pt
-picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png runs/fused-balanced-x1-long/best.pt
-picture moving_light_s4 -1 1 30,50,56 docs/reuse_moving_light_x1.png runs/fused-balanced-x1-long/best.pt
+x1=runs/fused-balanced-x1-display-1500/best.pt
+picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png "$x1"
+picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png "$x1"
+picture moving_light_s4 -1 1 30,50,56 docs/reuse_moving_light_x1.png "$x1"
 picture visible_emitter_s4 10 2 80,60,112 docs/reuse_visible_emitter_x2.png runs/fused-balanced-x2/best.pt
 picture moving_object_s4 -1 2 60,80,112 docs/reuse_moving_object_x2.png runs/fused-balanced-x2/best.pt
 # The default preset at both scales as the repository's pretrained models (1x: the longer-history fine-tune, its
 # first stage recorded too).
 ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-script scripts/generate_reuse_data.sh
       --training-script scripts/reproduce_reuse_results.sh)
-"${ship[@]}" runs/fused-balanced-x1-long/best.pt --name fused-balanced-x1 --stage runs/fused-balanced-x1/best.pt \
-  --report docs/results/reuse_x1.json
+"${ship[@]}" "$x1" --name fused-balanced-x1 --stage runs/fused-balanced-x1/best.pt \
+  --stage runs/fused-balanced-x1-long/best.pt --stage runs/fused-balanced-x1-display-600/best.pt \
+  --stage runs/fused-balanced-x1-display-1000/best.pt --report docs/results/reuse_x1.json
 "${ship[@]}" runs/fused-balanced-x2/best.pt --name fused-balanced-x2 --report docs/results/reuse_x2.json
 "${ship[@]}" runs/fused-fast-x2/best.pt --name fused-fast-x2 --stage runs/fused-balanced-x2/best.pt \
   --report docs/results/reuse_x2.json
