@@ -22,7 +22,8 @@ is client.rest.DenoiserClient. Timed per frame, after ``--warmup`` frames, media
   message (model.stream_codec.encode_bundle, ``--stream-dtype``);
 - HTTP round trip: send_frame_raw's POST until the whole output EXR has arrived (upload, server, download);
 - WebSocket round trip: SessionStream.send of the packed message until the whole output message has arrived
-  (float32 or ``--stream-dtype`` both ways);
+  (float32 or ``--stream-dtype`` both ways; the buffers the session's method reads, as DenoiserClient.open_stream
+  sends them, or every buffer with ``--all-buffers``);
 - server: the X-Server-Ms header (body read, EXR decode, step, EXR encode; the Redis mirror is written in the
   background), or the output message's server_ms (unpack, step);
 - step: the X-Inference-Ms header or the output's inference_ms (method.step in the session);
@@ -86,6 +87,9 @@ def parse_args() -> argparse.Namespace:
                              "client.rest.FRAME_COMPRESSION)")
     parser.add_argument("--stream-dtype", choices=sorted(DTYPES), default="float32",
                         help="dtype of the WebSocket's frames and outputs (default float32: outputs equal HTTP's)")
+    parser.add_argument("--all-buffers", action="store_true",
+                        help="WebSocket frames carry every buffer the frame has (default: the buffers the session's "
+                             "method reads, as DenoiserClient.open_stream sends them)")
     parser.add_argument("--api-key", default=os.environ.get("DENOISER_API_KEY"), help="X-API-Key for --url")
     parser.add_argument("--redis-url", default=os.environ.get("DENOISER_REDIS_URL", "redis://127.0.0.1:6379/0"),
                         help="Redis of the in-process API (session mirror)")
@@ -292,20 +296,25 @@ def http_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], c
     return {**result, "bytes_out": len(result["outputs"][-1])}
 
 
-def websocket_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], dtype: str) -> dict:
-    """Each frame packed and sent over one WebSocket; outputs are (H, W, 3) float32 arrays."""
+def websocket_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], dtype: str,
+                     all_buffers: bool = False) -> dict:
+    """Each frame packed (the buffers the stream sends: the session's method's unless ``all_buffers``) and sent
+    over one WebSocket; outputs are (H, W, 3) float32 arrays."""
+    opened = {}
+
     @contextlib.contextmanager
     def sender(session_id: str):
-        with client.open_stream(session_id, dtype=dtype, output_dtype=dtype) as stream:
+        with client.open_stream(session_id, dtype=dtype, output_dtype=dtype, all_buffers=all_buffers) as stream:
+            opened["buffers"] = stream.buffers
             yield stream.send
 
-    result = timed_stream(client, model, frames,
-                          lambda frame: encode_bundle(frame, dtype=dtype, output_dtype=dtype), sender)
+    result = timed_stream(client, model, frames, lambda frame: encode_bundle(
+        frame, dtype=dtype, output_dtype=dtype, buffers=opened["buffers"]), sender)
     return {**result, "bytes_out": result["outputs"][-1].size * np.dtype(dtype).itemsize}
 
 
 def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, warmup: int, rounds: int,
-        api_key: str | None, compression: str | None, stream_dtype: str) -> dict:
+        api_key: str | None, compression: str | None, stream_dtype: str, all_buffers: bool = False) -> dict:
     """``rounds`` x (the stream over HTTP, over the WebSocket, then in process); times of frames after ``warmup``
     in each stream."""
     names = ("encode", "round_trip", "server", "inference")
@@ -315,7 +324,7 @@ def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, warmu
     with DenoiserClient(url, api_key=api_key, timeout=120) as client:
         for _ in range(rounds):
             http = http_stream(client, model, frames, compression)
-            websocket = websocket_stream(client, model, frames, stream_dtype)
+            websocket = websocket_stream(client, model, frames, stream_dtype, all_buffers)
             expected, local_times = local.stream(frames)
             for transport, result in (("http", http), ("websocket", websocket)):
                 for name, values in result["times"].items():
@@ -358,7 +367,7 @@ def main() -> None:
         local = InProcess(checkpoint)
         try:
             result = run(url, model, frames, local, args.warmup, args.rounds, args.api_key, args.compression,
-                         args.stream_dtype)
+                         args.stream_dtype, args.all_buffers)
         finally:
             if server is not None:
                 server.stop()
@@ -372,8 +381,9 @@ def main() -> None:
     print(f"{label} ({model}) {width}x{height} -> {width * scale}x{height * scale}, {args.rounds} x {args.frames} "
           f"timed frames after {args.warmup}, {args.threads} torch thread(s), {where}")
     print(f"  in-process step          median {local_ms:8.2f} ms/frame")
+    sent = "every buffer" if args.all_buffers else "the method's buffers"
     labels = {"http": f"HTTP POST, frame EXR ({args.compression or 'client default'})",
-              "websocket": f"WebSocket, {args.stream_dtype} arrays"}
+              "websocket": f"WebSocket, {args.stream_dtype} arrays, {sent}"}
     for transport, label_text in labels.items():
         numbers = times[transport]
         round_trip, server_ms, step_ms = (median(numbers[name]) for name in ("round_trip", "server", "inference"))
