@@ -169,8 +169,8 @@ def encode_bundle(frame, *, dtype: str = "float32", output_dtype: str = "float32
     ``buffers``: send only these of the frame's buffers (the session's method's, GET /sessions/{id}: model.buffers;
     required ones are sent anyway), None: all it has."""
     index = frame.frame_index if frame_index is True else frame_index
-    names = STREAM_BUFFERS if buffers is None else [name for name in STREAM_BUFFERS
-                                                    if name in set(buffers) or name in REQUIRED_BUFFERS]
+    wanted = set(STREAM_BUFFERS if buffers is None else buffers) | set(REQUIRED_BUFFERS)
+    names = [name for name in STREAM_BUFFERS if name in wanted]
     return encode_frame({name: getattr(frame, name) for name in names}, frame_index=index,
                         jitter=frame.jitter, camera_cut=frame.camera_cut, dtype=dtype, output_dtype=output_dtype)
 

@@ -41,6 +41,16 @@ def frame_header(**changes) -> dict:
     return {key: value for key, value in header.items() if value is not ...}
 
 
+def test_a_bundle_sends_only_the_buffers_asked_for_and_the_required_ones():
+    frame = frames()[0]
+    assert frame.diffuse is not None and frame.specular is not None
+    lean = decode_frame(encode_bundle(frame, buffers=(name for name in ["roughness", "diffuse", "specular"])))
+    assert list(lean.buffers) == ["color", "albedo", "diffuse", "specular", "normal", "depth", "motion"]
+    np.testing.assert_array_equal(lean.hwc("diffuse"), frame.diffuse)
+    assert list(decode_frame(encode_bundle(frame, buffers=())).buffers) == ["color", "albedo", "normal", "depth",
+                                                                             "motion"]
+
+
 @pytest.mark.parametrize("dtype", ["float32", "float16"])
 def test_a_frame_bundle_round_trips(dtype):
     frame = frames(start=7)[0]
