@@ -8,7 +8,7 @@
 # On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side (13 and
 # 25 minutes), then 600 steps with longer histories at 1x beside the fast preset fine-tuned from the 2x model, then
 # 3100 steps with the display-error term at 1x (about 18 minutes), then the fast / high presets at 1x fine-tuned
-# from that model.
+# from that model, then 600 steps with the term for each 2x model (about 8 minutes side by side).
 # Usage: scripts/reproduce_reuse_results.sh [DATA_DIR]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -48,13 +48,21 @@ for quality in fast high; do
     --validate-every 100 --checkpoint-every 100 --out "runs/fused-$quality-x1" > "runs-fused-$quality-x1.log" 2>&1 &
 done
 wait
+# The display-error term at 2x too: 600 steps of each 2x model, side by side.
+for preset in balanced fast; do
+  .venv/bin/denoiser train --data "$DATA" --frames-per-sample 10 --batch 4 --lr 5e-4 --warmup 10 --threads 1 \
+    --crop 48 --quiet --scale 2 --method "fused:$preset" --init-from "runs/fused-$preset-x2/best.pt" --steps 600 \
+    --validate-every 150 --checkpoint-every 150 --display-weight 50 --out "runs/fused-$preset-x2-display" \
+    > "runs-fused-$preset-x2-display.log" 2>&1 &
+done
+wait
 mkdir -p docs/results
 for scale in 1 2; do
   if [ "$scale" = 1 ]; then
     ours=(--method runs/fused-balanced-x1-display-1500/best.pt --method runs/fused-fast-x1/best.pt
           --method runs/fused-high-x1/best.pt)
   else
-    ours=(--method runs/fused-balanced-x2/best.pt --method runs/fused-fast-x2/best.pt)
+    ours=(--method runs/fused-balanced-x2-display/best.pt --method runs/fused-fast-x2-display/best.pt)
   fi
   .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 \
     "${ours[@]}" --method oidn-taa:fast --method oidn-taa:balanced \
@@ -72,8 +80,8 @@ x1=runs/fused-balanced-x1-display-1500/best.pt
 picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png "$x1"
 picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png "$x1"
 picture moving_light_s4 -1 1 30,50,56 docs/reuse_moving_light_x1.png "$x1"
-picture visible_emitter_s4 10 2 80,60,112 docs/reuse_visible_emitter_x2.png runs/fused-balanced-x2/best.pt
-picture moving_object_s4 -1 2 60,80,112 docs/reuse_moving_object_x2.png runs/fused-balanced-x2/best.pt
+picture visible_emitter_s4 10 2 80,60,112 docs/reuse_visible_emitter_x2.png runs/fused-balanced-x2-display/best.pt
+picture moving_object_s4 -1 2 60,80,112 docs/reuse_moving_object_x2.png runs/fused-balanced-x2-display/best.pt
 # The default preset at both scales as the repository's pretrained models (1x: the longer-history fine-tune, its
 # first stage recorded too).
 ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-script scripts/generate_reuse_data.sh
@@ -81,6 +89,7 @@ ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-scrip
 "${ship[@]}" "$x1" --name fused-balanced-x1 --stage runs/fused-balanced-x1/best.pt \
   --stage runs/fused-balanced-x1-long/best.pt --stage runs/fused-balanced-x1-display-600/best.pt \
   --stage runs/fused-balanced-x1-display-1000/best.pt --report docs/results/reuse_x1.json
-"${ship[@]}" runs/fused-balanced-x2/best.pt --name fused-balanced-x2 --report docs/results/reuse_x2.json
-"${ship[@]}" runs/fused-fast-x2/best.pt --name fused-fast-x2 --stage runs/fused-balanced-x2/best.pt \
+"${ship[@]}" runs/fused-balanced-x2-display/best.pt --name fused-balanced-x2 --stage runs/fused-balanced-x2/best.pt \
   --report docs/results/reuse_x2.json
+"${ship[@]}" runs/fused-fast-x2-display/best.pt --name fused-fast-x2 --stage runs/fused-balanced-x2/best.pt \
+  --stage runs/fused-fast-x2/best.pt --report docs/results/reuse_x2.json
