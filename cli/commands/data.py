@@ -54,6 +54,9 @@ def _add_generate(commands) -> None:
                         help="Mitsuba variant; default: cuda_ad_rgb on a GPU, else llvm_ad_rgb, else (no LLVM 19) "
                              "scalar_rgb")
     parser.add_argument("--half", action="store_true", help="store EXR channels as half floats")
+    parser.add_argument("--no-jitter", dest="jitter", action="store_false",
+                        help="sample every frame at the pixel centres (as renderers without TAA jitter do) instead of "
+                             "the Halton(2,3) sub-pixel jitter")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing sequence of the same name")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(run=_run_generate)
@@ -81,7 +84,8 @@ def _run_generate(args) -> int:
     choose_variant(args.variant)  # a variant this machine cannot run: exit 2 before the dataset folder is made
     width, height = args.size
     settings = RenderSettings(width=width, height=height, ref_spp=args.ref_spp, ref_scales=args.scales,
-                              albedo_spp=args.albedo_spp, max_depth=args.max_depth, variant=args.variant)
+                              albedo_spp=args.albedo_spp, max_depth=args.max_depth, variant=args.variant,
+                              jitter=args.jitter)
     for scene in scenes:
         generate_sequence(scene, args.out, frames=args.frames, settings=settings, seed=args.seed,
                           split=args.split, name=args.name, half=args.half, overwrite=args.overwrite,

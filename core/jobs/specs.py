@@ -46,6 +46,8 @@ class GenerateParams(BaseModel):
     seed: int = Field(0, ge=0, le=2**31 - 1, description="seed of the scene variation and of the noise")
     split: JobSplit = Field("train", description="split the new sequences join")
     half: bool = Field(False, description="store EXR channels as half floats")
+    jitter: bool = Field(True, description="Halton(2,3) sub-pixel jitter per frame; false: every sample at the pixel "
+                                           "centre, as renderers without TAA jitter write frames")
     overwrite: bool = Field(False, description="replace sequences of the same name (SCENE_sSEED)")
 
     @field_validator("size")

@@ -49,7 +49,8 @@ def generate_sequence(scene: str, out: str | Path, *, frames: int = 16, settings
     metadata = {"renderer": "mitsuba3", "variant": renderer.mi.variant(), "seed": seed,
                 "ref_spp": settings.ref_spp, "albedo_spp": settings.albedo_spp, "max_depth": settings.max_depth,
                 "rr_depth": settings.rr_depth,
-                "reconstruction_filter": "box", "jitter": "halton(2,3) of frame_index+1, minus 0.5",
+                "reconstruction_filter": "box",
+                "jitter": "halton(2,3) of frame_index+1, minus 0.5" if settings.jitter else "none (pixel centres)",
                 "cuts": sorted(animation.cuts)}
     started = time.perf_counter()
     with SequenceWriter(dataset.root / name, name, scene=scene, metadata=metadata, half=half,

@@ -42,6 +42,9 @@ class RenderSettings:
     max_depth: int = 6
     rr_depth: int = 5
     variant: str | None = None
+    # False: every frame's sample at the pixel centre, as renderers without TAA jitter write them (Blender's
+    # Cycles frames, for one), so models can be trained and measured on such sequences too.
+    jitter: bool = True
 
     def __post_init__(self) -> None:
         if self.width < 1 or self.height < 1:
@@ -132,7 +135,7 @@ class SceneRenderer:
     def render_frame(self, frame_index: int) -> FrameBundle:
         s, scene = self.settings, self.scene
         camera = scene.cameras[frame_index]
-        jitter = frame_jitter(frame_index)
+        jitter = frame_jitter(frame_index) if s.jitter else (0.0, 0.0)
         mi_scene = self.mi.load_dict(self._scene_dict(frame_index, self._sensor(camera, s.width, s.height, 1)))
         traced = self._trace_1spp(mi_scene, jitter, frame_seed(self.seed, frame_index, "1spp"))
         motion = self._motion(frame_index, traced, jitter)

@@ -30,7 +30,7 @@ def run(context: JobContext) -> dict[str, Any]:
     params = GenerateParams.model_validate(context.params)
     width, height = params.size
     settings = RenderSettings(width=width, height=height, ref_spp=params.ref_spp, ref_scales=tuple(params.scales),
-                              albedo_spp=params.albedo_spp, max_depth=params.max_depth,
+                              albedo_spp=params.albedo_spp, max_depth=params.max_depth, jitter=params.jitter,
                               variant="cuda_ad_rgb" if context.record["device"] == "gpu" else None)
     published_file = context.folder / PUBLISHED_FILE
     published = json.loads(published_file.read_text()) if published_file.is_file() else []

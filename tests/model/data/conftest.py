@@ -11,12 +11,14 @@ requires_llvm = pytest.mark.skipif(find_llvm() is None, reason="Mitsuba's llvm_a
 
 
 def render_frames(scene: str, frames: int, size: tuple[int, int], ref_spp: int, seed: int = 0,
-                  ref_scales=(1, 2), render_seed: int | None = None, only: list[int] | None = None):
+                  ref_scales=(1, 2), render_seed: int | None = None, only: list[int] | None = None,
+                  jitter: bool = True):
     """Render `frames` frames of recipe `scene` (or just the frame indices in `only`)."""
     from model.data.render import RenderSettings, SceneRenderer
     from model.data.scenes import build_scene
 
-    settings = RenderSettings(width=size[0], height=size[1], ref_spp=ref_spp, ref_scales=tuple(ref_scales))
+    settings = RenderSettings(width=size[0], height=size[1], ref_spp=ref_spp, ref_scales=tuple(ref_scales),
+                              jitter=jitter)
     renderer = SceneRenderer(build_scene(scene, seed, frames), settings,
                              seed if render_seed is None else render_seed)
     return [renderer.render_frame(i) for i in (range(frames) if only is None else only)]

@@ -139,6 +139,16 @@ def test_same_seed_renders_identical_frames():
     np.testing.assert_array_equal(first.reference(2), second.reference(2))
 
 
+def test_without_jitter_every_sample_is_at_the_pixel_centre_and_the_guides_follow():
+    jittered = render_frames("fast_camera", 2, (32, 24), ref_spp=4, seed=3)
+    centred = render_frames("fast_camera", 2, (32, 24), ref_spp=4, seed=3, jitter=False)
+    assert [f.jitter for f in centred] == [(0.0, 0.0), (0.0, 0.0)]
+    assert all(f.jitter != (0.0, 0.0) for f in jittered)
+    # The sample positions moved, so the noise-free guides differ; the references (pixel averages) do not.
+    assert not np.array_equal(jittered[1].depth, centred[1].depth)
+    np.testing.assert_array_equal(jittered[1].reference(1), centred[1].reference(1))
+
+
 def test_scale_one_reference_is_the_mean_of_the_scale_two_reference(fast_camera_frames):
     frame = fast_camera_frames[0]
     double = frame.reference(2)

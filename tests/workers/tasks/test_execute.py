@@ -366,6 +366,21 @@ def test_generate_creates_the_dataset_and_adds_whole_sequences(store, storage, s
     assert not (storage.job(job_id) / "render").exists()
 
 
+def test_generate_passes_jitter_to_the_renderer(store, storage, settings, monkeypatch):
+    given = []
+
+    def recording(scene, out, **kwargs):
+        given.append(kwargs["settings"].jitter)
+        return fake_generate_sequence(scene, out, **kwargs)
+
+    monkeypatch.setattr("model.data.generate.generate_sequence", recording)
+    for dataset, jitter in (("centred", {"jitter": False}), ("jittered", {})):
+        job_id = submit(store, storage, settings, "generate", dataset=dataset, scenes=["metals"], frames=1, size=8,
+                        **jitter)
+        assert run(store, storage, settings, job_id)["state"] == "succeeded"
+    assert given == [False, True]
+
+
 def test_generate_resumed_renders_only_what_was_not_published(store, storage, settings, monkeypatch):
     rendered = []
 
