@@ -21,7 +21,7 @@ from model.methods.base import FrameBatch, Method
 from model.metrics import VDP_DISPLAY, VDP_FRAMES_PER_SECOND, FovVideoVdp, frame_metrics, temporal_error
 from model.ops.tonemap import display_encode
 from model.sanitize import SanitizeReport, sanitize_frame
-from model.tables import cell, compact, table_row, table_rule
+from model.tables import cell, compact, source_label, table_row, table_rule
 from model.timing import median_ms, timed, torch_threads
 
 # Methods whose network runs outside torch (OIDN's native library): torch counts none of their parameters or
@@ -428,10 +428,7 @@ def format_table(report: dict) -> str:
     for entry in report["methods"]:
         ratio = entry["time_ratio_to_oidn"]
         counted = entry.get("method") not in UNCOUNTED_COST
-        name = entry["label"]
-        # Several models of one method (a pretrained one, a fine-tune, ...) would make identical rows: name the source.
-        if labels.count(name) > 1 and entry.get("source") not in (None, name):
-            name = f"{name} ({entry['source']})"
+        name = source_label(entry["label"], entry.get("source"), labels)
         cells = [name] + ([compact(entry["params"]), compact(entry["flops_per_pixel"])] if counted
                                     else ["-", "-"])
         values = {**entry["metrics"], "ms_per_frame": entry["ms_per_frame"], "time_ratio_to_oidn": ratio}

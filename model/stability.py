@@ -22,6 +22,7 @@ from model.evaluate import EvaluationSequence, _prepare, run_sequence
 from model.ghosting import CHANGE_THRESHOLD, GHOSTING_DEFINITION, TRAIL_FRAMES, ghosting_error, trail_masks
 from model.methods.base import FrameBatch, Method
 from model.metrics import VDP_DISPLAY, FovVideoVdp
+from model.tables import source_label
 from model.timing import torch_threads
 
 __all__ = [
@@ -384,11 +385,10 @@ def run_suite(scenarios: list[Scenario], methods: list[Method | str], scale: int
 
 def name_shared_labels(entries: list[dict]) -> None:
     """Entries of one method from several models (a pretrained one, a fine-tune) share a label, and the ghosting
-    summary, keyed by label, would merge them: such labels get their source appended, as evaluation tables do."""
+    summary, keyed by label, would merge them: such labels get their source appended (model.tables.source_label)."""
     labels = [entry["label"] for entry in entries]
     for entry in entries:
-        if labels.count(entry["label"]) > 1 and entry["source"] not in (None, entry["label"]):
-            entry["label"] = f"{entry['label']} ({entry['source']})"
+        entry["label"] = source_label(entry["label"], entry["source"], labels)
 
 
 def _trail_summary(trails: torch.Tensor) -> dict:

@@ -21,6 +21,14 @@ def usable(value: Any) -> bool:
         return False
 
 
+def source_label(label: str, source: str | None, labels: list[str]) -> str:
+    """``label``, or ``label (source)`` when other entries share it (a pretrained model and a fine-tune of one
+    method), so rows and per-label summaries never merge two models."""
+    if labels.count(label) > 1 and source not in (None, label):
+        return f"{label} ({source})"
+    return label
+
+
 def cell(value: Any, fmt: str) -> str:
     """``fmt.format(value)``, or "-" when the value is missing or not finite."""
     return fmt.format(value) if usable(value) else "-"

@@ -1,20 +1,19 @@
 """Measures every inference form of each method per render resolution and writes the table the service uses.
 
-    .venv/bin/python scripts/bench_inference_forms.py                     # every shipped model; 128, 256, 512, 1080p out
+    .venv/bin/python scripts/bench_inference_forms.py          # every shipped model; 128, 256, 512, 1080p output
     .venv/bin/python scripts/bench_inference_forms.py --model munet-s-x2 --size 256 --compile
     .venv/bin/python scripts/bench_inference_forms.py --write model/inference_forms.json
 
 Per model (a pretrained name, or METHOD[:PRESET] with --scale) and render size, a short synthetic stream
-(``model.synthetic``; sizes are output sizes, the table's rows are keyed by render size) is stepped in every form of ``model.inference_forms`` (rounds of all forms in turn, so a
-busy machine slows them alike); the first frame of each stream is a warm-up. Printed per form: the median step
-(ms), the time inside the networks and what their convolutions achieve there (GFLOP/s, and the share of this
-machine's ceiling measured in the same run: fp32 sgemm for fp32 forms, bf16 gemm for bf16 ones), and the lowest
-PSNR of the form's output against the eager fp32 output over the stream (display-encoded; a form is usable at
-``MIN_PSNR_DB`` and above). The chosen form is the fastest usable one, eager unless another is at least 5%
-faster; compiled forms are timed with ``--compile`` and chosen only with ``--allow-compile`` (their first frame
-at each resolution compiles, which the table prints as ``compile s``). ``--write`` stores the table (merged into
-an existing one, which keeps the keys and sizes not measured now).
-"""
+(``model.synthetic``; sizes are output sizes, the table's rows are keyed by render size) is stepped in every form of
+``model.inference_forms`` (rounds of all forms in turn, so a busy machine slows them alike); the first frame of each
+stream is a warm-up. Printed per form: the median step (ms), the time inside the networks and what their
+convolutions achieve there (GFLOP/s, and the share of this machine's ceiling measured in the same run: fp32 sgemm
+for fp32 forms, bf16 gemm for bf16 ones), and the lowest PSNR of the form's output against the eager fp32 output
+over the stream (display-encoded; a form is usable at ``MIN_PSNR_DB`` and above). The chosen form is the fastest
+usable one, eager unless another is at least 5% faster; compiled forms are timed with ``--compile`` and chosen only
+with ``--allow-compile`` (their first frame at each resolution compiles, which the table prints as ``compile s``).
+``--write`` stores the table (merged into an existing one, which keeps the keys and sizes not measured now). """
 
 from __future__ import annotations
 

@@ -1,7 +1,9 @@
 """How each method's step scales from 128x128 to 1920x1080 output: ms per frame, peak memory, achieved GFLOP/s.
 
-    .venv/bin/python scripts/bench_resolution_scaling.py --chart docs/resolution_scaling.png --out docs/results/resolution_scaling.json
-    .venv/bin/python scripts/bench_resolution_scaling.py --model munet-s-x2 --model oidn:high --size 512 --size 1920x1080
+    .venv/bin/python scripts/bench_resolution_scaling.py --chart docs/resolution_scaling.png \
+        --out docs/results/resolution_scaling.json
+    .venv/bin/python scripts/bench_resolution_scaling.py --model munet-s-x2 --model oidn:high --size 512 \
+        --size 1920x1080
 
 Every (model, output size) runs in a fresh process (so its peak memory is its own): the model is loaded as sessions
 load it (inference form and the measured ``model.inference_forms`` table), a synthetic stream at the render size
@@ -152,7 +154,8 @@ def main() -> None:
             pixels = row["output"][0] * row["output"][1]
             row["gflops"] = row["flops_per_pixel"] * pixels / (row["ms"] / 1000) / 1e9
             rows.append(row)
-            gflops = f"{row['gflops']:.1f} | {100 * row['gflops'] / ceiling:.0f}%" if row["flops_per_pixel"] else "- | -"
+            gflops = (f"{row['gflops']:.1f} | {100 * row['gflops'] / ceiling:.0f}%" if row["flops_per_pixel"]
+                      else "- | -")
             print(f"| {model} | {row['output'][0]}x{row['output'][1]} | {row['render'][0]}x{row['render'][1]} | "
                   f"{row['ms']:.1f} | {row['peak_mb']:.0f} | {row['step_mb']:.0f} | {gflops} |", flush=True)
     if args.out:

@@ -41,15 +41,15 @@ def test_a_method_reads_no_optional_buffer_it_does_not_declare(name, scale):
     full = [example_batch(16, 16, seed=seed) for seed in range(3)]
     lean = [dataclasses.replace(frame, **{buffer: None for buffer in OPTIONAL_RENDER_BUFFERS if buffer not in reads})
             for frame in full]
-    with torch.no_grad():
-        for frames in (full, lean):
-            state, outputs = None, []
+    def outputs(frames):
+        state, result = None, []
+        with torch.no_grad():
             for frame in frames:
                 output, state = method.step(frame, state)
-                outputs.append(output)
-            if frames is full:
-                expected = outputs
-    for got, want in zip(outputs, expected, strict=True):
+                result.append(output)
+        return result
+
+    for got, want in zip(outputs(lean), outputs(full), strict=True):
         torch.testing.assert_close(got, want, rtol=0, atol=0)
 
 
