@@ -87,7 +87,7 @@ class TrainingSettings(_TrainingChecks):
                                                                  "measures (0: none)")
     loss_skip_frames: int = Field(0, ge=0, le=255, description="leave the first K frames of each sample out of "
                                                                "the loss")
-    augment: bool = Field(True, description="flips and brightness augmentation")
+    augment: bool = Field(True, description="flips, brightness and a random rotation of the normals' world frame")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="seed of the weights, crops and augmentation")
     train_split: Literal[SPLITS] = Field("train", description="split to train on")
     validation_split: Literal[SPLITS] = Field("validation", description="split to validate on (may be empty for a "

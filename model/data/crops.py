@@ -1,4 +1,5 @@
-"""Training samples: random crops of T consecutive frames of a dataset split, with flips and brightness changes.
+"""Training samples: random crops of T consecutive frames of a dataset split, with flips, brightness changes and
+a random rotation of the world frame the normals are given in.
 
 A sample is a window of ``frames`` consecutive frames of one sequence, cropped to ``crop_size`` x ``crop_size``
 render pixels at one random position (the same for every frame of the window, so motion vectors still point at
@@ -8,7 +9,7 @@ reference pixels [s x, s x + s) x [s y, s y + s), so the two crops show the same
 never spans a camera cut: its frames after the first are all continuations, and its first frame is marked as a
 cut, because the method starts the sample without history.
 
-Every random choice of sample ``index`` in epoch ``epoch`` (crop position, flips, brightness) comes from a
+Every random choice of sample ``index`` in epoch ``epoch`` (crop position, flips, brightness, rotation) comes from a
 generator seeded with (seed, epoch, index), so a sample is the same whichever process, worker or resumed run
 asks for it; that is what makes resumed and distributed training reproduce an uninterrupted single process.
 
@@ -147,6 +148,7 @@ class SequenceCrops(torch.utils.data.Dataset):
         left = int(rng.integers(0, first.width - self.crop_size + 1))
         flip_x, flip_y = bool(rng.random() < 0.5), bool(rng.random() < 0.5)
         brightness = math.exp(rng.uniform(math.log(BRIGHTNESS_RANGE[0]), math.log(BRIGHTNESS_RANGE[1])))
+        rotation = random_rotation(rng)
 
         frames = [self._crop(cache[start + offset], top, left) for offset in range(self.frames)]
         sample = {name: torch.cat([frame[name] for frame in frames]) for name in self.buffers}
@@ -157,6 +159,7 @@ class SequenceCrops(torch.utils.data.Dataset):
             for name in RADIANCE_BUFFERS:
                 if name in sample:
                     sample[name] = sample[name] * brightness
+            sample["normal"] = torch.einsum("ij,tjhw->tihw", rotation, sample["normal"])
         return sample
 
     def _crop(self, frame: FrameBatch, top: int, left: int) -> dict[str, torch.Tensor]:
@@ -171,6 +174,22 @@ class SequenceCrops(torch.utils.data.Dataset):
             else:  # jitter: cropping by whole pixels leaves the sub-pixel offset as it is
                 cropped[name] = tensor
         return cropped
+
+
+def random_rotation(rng: np.random.Generator) -> torch.Tensor:
+    """A 3 x 3 rotation drawn uniformly over all rotations (a normalised 4D Gaussian is a uniform unit quaternion).
+
+    Why rotate normals: they are world-space, and which world axis is up is each renderer's own convention (our
+    generator's scenes are y-up, Blender's z-up). Trained on one convention, the fused network read Blender's
+    z-up floor as something it had not seen: it blurred and flickered on Blender frames, and did not with the
+    same normals turned y-up. A rotation of the whole sample leaves every comparison between normals (edges,
+    the disocclusion test) as it was.
+    """
+    w, x, y, z = (q := rng.standard_normal(4)) / np.linalg.norm(q)
+    matrix = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+              [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+              [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+    return torch.tensor(matrix, dtype=torch.float32)
 
 
 def _flip(sample: dict[str, torch.Tensor], flip_x: bool, flip_y: bool) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from model.data.crops import BRIGHTNESS_RANGE, SequenceCrops, collate_crops, sample_windows
+from model.data.crops import BRIGHTNESS_RANGE, SequenceCrops, collate_crops, random_rotation, sample_windows
 from model.dataset import Dataset, SequenceWriter
 from model.frames import box_downsample
 from model.ops.warp import backward_warp
@@ -74,10 +74,10 @@ def _flip(tensor: torch.Tensor, flip_x: bool, flip_y: bool) -> torch.Tensor:
     return torch.flip(tensor, dims=dims) if dims else tensor
 
 
-def test_augmentation_flips_motion_and_jitter_signs_and_scales_radiance(dataset_root):
+def test_augmentation_flips_motion_and_jitter_signs_scales_radiance_and_rotates_normals(dataset_root):
     plain_crops = SequenceCrops(dataset_root, "train", crop_size=8, frames=2, seed=3, augment=False)
     augmented_crops = SequenceCrops(dataset_root, "train", crop_size=8, frames=2, seed=3, augment=True)
-    seen_flips, factors = set(), []
+    seen_flips, factors, rotations = set(), [], []
     for index in range(len(plain_crops)):
         for epoch in range(3):
             plain, augmented = plain_crops.sample(index, epoch), augmented_crops.sample(index, epoch)
@@ -91,8 +91,14 @@ def test_augmentation_flips_motion_and_jitter_signs_and_scales_radiance(dataset_
             factors.append(factor)
             for name in ("color", "diffuse", "specular", "reference"):
                 torch.testing.assert_close(augmented[name], _flip(plain[name], flip_x, flip_y) * factor)
-            # World-space normals move with their pixels but keep their components.
-            torch.testing.assert_close(augmented["normal"], _flip(plain["normal"], flip_x, flip_y))
+            # World-space normals move with their pixels and turn by one rotation, the same in every frame.
+            before = _flip(plain["normal"], flip_x, flip_y).permute(0, 2, 3, 1).reshape(-1, 3).double()
+            after = augmented["normal"].permute(0, 2, 3, 1).reshape(-1, 3).double()
+            rotation = torch.linalg.lstsq(before, after).solution.T
+            torch.testing.assert_close(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), atol=1e-5, rtol=0)
+            assert torch.linalg.det(rotation) == pytest.approx(1.0, abs=1e-5)
+            torch.testing.assert_close(after, before @ rotation.T, atol=1e-5, rtol=0)
+            rotations.append(rotation)
             signs = torch.tensor([-1.0 if flip_x else 1.0, -1.0 if flip_y else 1.0])
             flipped_motion = _flip(plain["motion"], flip_x, flip_y) * signs.view(2, 1, 1)
             torch.testing.assert_close(augmented["motion"], flipped_motion)
@@ -100,6 +106,9 @@ def test_augmentation_flips_motion_and_jitter_signs_and_scales_radiance(dataset_
     assert seen_flips == set(itertools.product((False, True), repeat=2))
     assert BRIGHTNESS_RANGE[0] <= min(factors) and max(factors) <= BRIGHTNESS_RANGE[1]
     assert max(factors) / min(factors) > 1.5  # the factor really varies
+    # The rotations vary too, and cover every direction: where the y axis goes, averaged, is near 0.
+    assert min(float((r - torch.eye(3, dtype=r.dtype)).abs().max()) for r in rotations) > 0.01
+    assert float(torch.stack([r[:, 1] for r in rotations]).mean(0).norm()) < 0.5
 
 
 def test_flipped_samples_warp_like_the_original(dataset_root):
@@ -252,3 +261,13 @@ def test_a_cached_spatial_estimate_is_cropped_flipped_and_brightened_like_the_co
              if torch.equal(_flip(sample["albedo"], *f), other["albedo"])]
     factor = float(other["color"].sum() / _flip(sample["color"], *flips[0]).sum())
     torch.testing.assert_close(other["spatial_estimate"], _flip(sample["spatial_estimate"], *flips[0]) * factor)
+
+
+def test_random_rotations_are_proper_and_uniform():
+    rng = np.random.default_rng(0)
+    rotations = torch.stack([random_rotation(rng) for _ in range(2000)]).double()
+    identity = torch.eye(3, dtype=torch.float64).expand(2000, 3, 3)
+    torch.testing.assert_close(rotations @ rotations.transpose(1, 2), identity, atol=1e-5, rtol=0)
+    assert torch.allclose(torch.linalg.det(rotations), torch.ones(2000, dtype=torch.float64), atol=1e-5)
+    # Uniform: every rotation's matrix averages to 0 (a bias towards the identity would show on the diagonal).
+    assert float(rotations.mean(0).abs().max()) < 0.05
