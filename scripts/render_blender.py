@@ -20,7 +20,8 @@ Why these settings:
   "Denoising Normal" passes follow glossy and transmissive bounces until a diffuse-ish surface, choosing a lobe at
   random per sample, so at 1 spp they are noisy wherever a surface is glossy; they are not rendered here.
 - References: the same scene with ``--ref-spp`` samples and a 1 px box pixel filter, so each reference pixel is
-  the average over its square (the frame bundle's definition of a reference).
+  the average over its square (the frame bundle's definition of a reference); ``--ref-scale 2`` renders them at
+  twice the resolution, which the import turns into 2x and 1x references.
 - Motion blur off: Cycles writes the Vector pass only without it.
 
 A user's own ``.blend``: its camera, objects and animation are used as they are; only the render settings above
@@ -55,6 +56,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--frame-start", type=int, default=1, help="first frame of the .blend's timeline to render")
     parser.add_argument("--size", default="64", help="render resolution N or WxH")
     parser.add_argument("--ref-spp", type=int, default=128, help="samples per pixel of the references (0: none)")
+    parser.add_argument("--ref-scale", type=int, choices=(1, 2), default=1,
+                        help="references at this multiple of --size (2: for evaluating 2x upscaling)")
     parser.add_argument("--seed", type=int, default=0, help="varies the procedural scene and the noise")
     parser.add_argument("--max-bounces", type=int, default=6, help="Cycles' total bounce limit")
     args = parser.parse_args(argv)
@@ -195,7 +198,7 @@ def configure(scene, width: int, height: int, max_bounces: int) -> None:
         layer.use_pass_glossy_color = True
 
 
-def render(scene, path: Path, frame: int, samples: int, reference: bool) -> None:
+def render(scene, path: Path, frame: int, samples: int, reference: bool, ref_scale: int = 1) -> None:
     scene.frame_set(frame)
     scene.render.use_stamp_note = True  # written as the header attribute 'Note'
     scene.render.stamp_note_text = f"fov_y_degrees={math.degrees(camera_fov(scene)[1]):.6f}"
@@ -204,6 +207,9 @@ def render(scene, path: Path, frame: int, samples: int, reference: bool) -> None
     # which puts the one sample at the pixel centre.
     scene.cycles.pixel_filter_type = "BOX" if reference else "GAUSSIAN"
     scene.cycles.filter_width = 1.0 if reference else 0.01
+    # A 2x reference: the same camera at twice the resolution, each pixel the average over its own (quarter) square;
+    # its 2x2 mean is then the 1x reference (the import derives it).
+    scene.render.resolution_percentage = 100 * ref_scale if reference else 100
     scene.render.filepath = str(path)
     bpy.ops.render.render(write_still=True)
 
@@ -260,7 +266,7 @@ def main(argv: list[str]) -> None:
         render(scene, noisy / name, first + index, 1, reference=False)
         cameras.append(camera_record(scene, index))
         if args.ref_spp:
-            render(scene, references / name, first + index, args.ref_spp, reference=True)
+            render(scene, references / name, first + index, args.ref_spp, reference=True, ref_scale=args.ref_scale)
         print(f"frame {index + 1}/{args.frames}: {noisy / name}", flush=True)
     # Not needed by the import (it skips non-EXR files); kept for checks against known geometry.
     (args.out / "cameras.json").write_text(json.dumps(cameras, indent=1) + "\n")
