@@ -43,7 +43,7 @@ except ImportError:  # pragma: no cover - only without the optional extra
     sys.exit("scripts/render_blender.py needs Blender as a Python module: pip install -e '.[blender]'")
 
 
-SCENES = ("orbit", "pan", "moving_object")
+SCENES = ("orbit", "pan", "moving_object", "room_dolly", "room_light")
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -51,7 +51,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--out", required=True, type=Path, help="output folder (references/ inside)")
     parser.add_argument("--blend", type=Path, help="a .blend scene to render (default: a procedural scene)")
     parser.add_argument("--scene", choices=SCENES, default="orbit",
-                        help="procedural scene: camera orbit, camera pan, or a static camera and a moving cube")
+                        help="procedural scene: camera orbit, camera pan, or a static camera and a moving cube (an "
+                             "open floor under sun and sky), or a closed room under a point light with the camera "
+                             "moving in (room_dolly) or the light circling (room_light)")
     parser.add_argument("--frames", type=int, default=4, help="number of frames")
     parser.add_argument("--frame-start", type=int, default=1, help="first frame of the .blend's timeline to render")
     parser.add_argument("--size", default="64", help="render resolution N or WxH")
@@ -99,6 +101,91 @@ def _add(primitive, material, **kwargs):
     obj = bpy.context.active_object
     obj.data.materials.append(material)
     return obj
+
+
+def _noise_material(name: str, color: tuple[float, float, float], roughness: float, scale: float):
+    """A Principled BSDF whose colour is Blender's noise texture between 0.3 x ``color`` and ``color``."""
+    material = bpy.data.materials.new(name)
+    material.use_nodes = True
+    nodes = material.node_tree.nodes
+    bsdf = nodes["Principled BSDF"]
+    texture = nodes.new("ShaderNodeTexNoise")
+    texture.inputs["Scale"].default_value = scale
+    ramp = nodes.new("ShaderNodeValToRGB")
+    ramp.color_ramp.elements[0].color = (*(0.3 * c for c in color), 1.0)
+    ramp.color_ramp.elements[1].color = (*color, 1.0)
+    material.node_tree.links.new(texture.outputs["Fac"], ramp.inputs["Fac"])
+    material.node_tree.links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+    bsdf.inputs["Roughness"].default_value = roughness
+    return material
+
+
+def build_room_scene(kind: str, frames: int, seed: int) -> None:
+    """A closed room (noise-textured walls, floor and ceiling) with boxes and spheres under one point light and a
+    dim world: the camera moves in (``room_dolly``) or stands while the light circles (``room_light``). A scene
+    style unlike the open floors above, for training models on Cycles' frames without their recipes."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    rng = random.Random(seed)
+    scene = bpy.context.scene
+
+    def colour() -> tuple[float, float, float]:
+        return tuple(rng.uniform(0.2, 0.85) for _ in range(3))
+
+    _add(bpy.ops.mesh.primitive_plane_add, _noise_material("floor", colour(), 0.6, rng.uniform(4, 12)), size=10.0)
+    walls = [((0, 5, 2.5), (math.pi / 2, 0, 0)), ((-5, 0, 2.5), (0, math.pi / 2, 0)),
+             ((5, 0, 2.5), (0, math.pi / 2, 0)), ((0, 0, 5), (0, 0, 0)), ((0, -5, 2.5), (math.pi / 2, 0, 0))]
+    for index, (location, rotation) in enumerate(walls):
+        wall = _noise_material(f"wall{index}", colour(), 0.8, rng.uniform(2, 20))
+        _add(bpy.ops.mesh.primitive_plane_add, wall, size=10.0, location=location, rotation=rotation)
+    for index in range(4):
+        material = _material(f"object{index}", colour(), rng.uniform(0.1, 0.9), metallic=float(rng.random() < 0.3),
+                             checker=rng.choice([0.0, 0.0, 3.0]))
+        if rng.random() < 0.5:
+            size = rng.uniform(0.5, 1.0)
+            location = (rng.uniform(-2.5, 2.5), rng.uniform(-1, 3), size / 2)
+            _add(bpy.ops.mesh.primitive_cube_add, material, size=size, location=location,
+                 rotation=(0, 0, rng.uniform(0, math.pi)))
+        else:
+            radius = rng.uniform(0.3, 0.7)
+            location = (rng.uniform(-2.5, 2.5), rng.uniform(-1, 3), radius)
+            _add(bpy.ops.mesh.primitive_uv_sphere_add, material, radius=radius, location=location)
+    bpy.ops.object.light_add(type="POINT", location=(rng.uniform(-2, 2), rng.uniform(-1, 2), 3.5))
+    light = bpy.context.active_object
+    light.data.energy = rng.uniform(400, 900)
+    light.data.shadow_soft_size = 0.2
+    world = bpy.data.worlds.new("dim")
+    world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.05
+    scene.world = world
+
+    bpy.ops.object.camera_add()
+    camera = bpy.context.active_object
+    camera.data.lens = 22.0
+    scene.camera = camera
+    scene.frame_start, scene.frame_end = 1, frames
+    track = camera.constraints.new("TRACK_TO")
+    bpy.ops.object.empty_add(location=(0.0, 1.5, 0.8))
+    track.target = bpy.context.active_object
+    phase = rng.uniform(0, 2 * math.pi)
+    for frame in range(1, frames + 1):
+        t = frame - 1
+        if kind == "room_dolly":
+            camera.location = (0.8 * math.cos(phase) + 0.05 * t, -4.2 + 0.15 * t, 1.6 + 0.03 * t)
+        else:
+            camera.location = (0.5, -4.2, 1.8)
+        camera.keyframe_insert("location", frame=frame)
+        if kind == "room_light":
+            light.location = (2.5 * math.cos(phase + 0.35 * t), 1 + 2.0 * math.sin(phase + 0.35 * t), 3.2)
+            light.keyframe_insert("location", frame=frame)
+    _linear_keyframes()
+
+
+def _linear_keyframes() -> None:
+    # Linear interpolation: constant speed, so the motion between frames is the same everywhere in the clip.
+    for action in bpy.data.actions:
+        for curve in _fcurves(action):
+            for point in curve.keyframe_points:
+                point.interpolation = "LINEAR"
 
 
 def build_procedural_scene(kind: str, frames: int, seed: int) -> None:
@@ -151,11 +238,7 @@ def build_procedural_scene(kind: str, frames: int, seed: int) -> None:
         for frame in range(1, frames + 1):
             cube.location = (-1.5 + 0.5 * (frame - 1), -1.5, 0.6)
             cube.keyframe_insert("location", frame=frame)
-    # Linear interpolation: constant speed, so the motion between frames is the same everywhere in the clip.
-    for action in bpy.data.actions:
-        for curve in _fcurves(action):
-            for point in curve.keyframe_points:
-                point.interpolation = "LINEAR"
+    _linear_keyframes()
 
 
 def _fcurves(action):
@@ -251,7 +334,8 @@ def main(argv: list[str]) -> None:
         bpy.ops.wm.open_mainfile(filepath=str(args.blend))
         first = args.frame_start
     else:
-        build_procedural_scene(args.scene, args.frames, args.seed)
+        build = build_room_scene if args.scene.startswith("room_") else build_procedural_scene
+        build(args.scene, args.frames, args.seed)
         first = 1
     scene = bpy.context.scene
     configure(scene, args.width, args.height, args.max_bounces)

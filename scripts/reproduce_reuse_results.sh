@@ -64,7 +64,7 @@ wait
 # The normals' world frame rotated at random per sample (what the augment option does now), with the display-error
 # term: a fine-tune of each model. Two stages at 1x were run: the first (1500 steps) scored 32.86 dB on this
 # validation split and 29.10 on Blender's validation sequences, a second 1500 steps from it 33.01 and 28.45; the
-# first is shipped (a model for every renderer), and the fast / high presets are fine-tuned from it. At 2x the
+# first is kept (a model for every renderer) and fine-tuned on both renderers' frames below. At 2x the
 # second balanced stage is shipped (31.12 / 26.55 dB against 31.07 / 26.44); a second fast stage (30.92 / 25.88
 # against 30.87 / 26.19) was not.
 rot=(.venv/bin/denoiser train --data "$DATA" --batch 4 --lr 5e-4 --warmup 10 --threads 1 --quiet --display-weight 50)
@@ -86,11 +86,24 @@ wait
 "${rot[@]}" --scale 2 --crop 48 --frames-per-sample 10 --method fused:balanced \
   --init-from runs/fused-balanced-x2-rot/best.pt --steps 1000 --validate-every 250 --checkpoint-every 250 \
   --out runs/fused-balanced-x2-rot2 > runs-fused-balanced-x2-rot2.log 2>&1
+# Then the 1x model fine-tuned on Mitsuba and Blender Cycles frames together (scripts/generate_blender_training_data.sh,
+# needs bpy): 1500 steps from the rotation fine-tune, the checkpoint of step 1250 (validation 32.90 dB; on Blender's
+# orbit_s1 / pan_s1 29.44 / 29.57 against 28.96 / 29.29 before); the fast / high presets 200 steps from it.
+bash scripts/generate_blender_training_data.sh
+mixed=(.venv/bin/denoiser train --data data/reuse-mixed --batch 4 --lr 5e-4 --warmup 10 --threads 1 --quiet
+       --display-weight 50 --scale 1 --crop 64 --frames-per-sample 12)
+"${mixed[@]}" --method fused:balanced --init-from runs/fused-balanced-x1-rot/best.pt --steps 1500 --validate-every 250 \
+  --checkpoint-every 250 --out runs/fused-balanced-x1-mixed > runs-fused-balanced-x1-mixed.log 2>&1
+for quality in fast high; do
+  "${mixed[@]}" --method "fused:$quality" --init-from runs/fused-balanced-x1-mixed/best.pt --steps 200 \
+    --validate-every 100 --checkpoint-every 100 --out "runs/fused-$quality-x1-mixed" > "runs-fused-$quality-x1-mixed.log" 2>&1 &
+done
+wait
 mkdir -p docs/results
 for scale in 1 2; do
   if [ "$scale" = 1 ]; then
-    ours=(--method runs/fused-balanced-x1-rot/best.pt --method runs/fused-fast-x1-rot/best.pt
-          --method runs/fused-high-x1-rot/best.pt)
+    ours=(--method runs/fused-balanced-x1-mixed/best.pt --method runs/fused-fast-x1-mixed/best.pt
+          --method runs/fused-high-x1-mixed/best.pt)
   else
     ours=(--method runs/fused-balanced-x2-rot2/best.pt --method runs/fused-fast-x2-rot/best.pt)
   fi
@@ -106,7 +119,7 @@ picture() {  # SEQUENCE FRAME SCALE ZOOM OUT CHECKPOINT
     --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced \
     --method "$6=fused-balanced" --out "$5"
 }
-x1=runs/fused-balanced-x1-rot/best.pt
+x1=runs/fused-balanced-x1-mixed/best.pt
 x2=runs/fused-balanced-x2-rot2/best.pt
 picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png "$x1"
 picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png "$x1"
@@ -120,7 +133,7 @@ ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-scrip
 "${ship[@]}" "$x1" --name fused-balanced-x1 --stage runs/fused-balanced-x1/best.pt \
   --stage runs/fused-balanced-x1-long/best.pt --stage runs/fused-balanced-x1-display-600/best.pt \
   --stage runs/fused-balanced-x1-display-1000/best.pt --stage runs/fused-balanced-x1-display-1500/best.pt \
-  --report docs/results/reuse_x1.json
+  --stage runs/fused-balanced-x1-rot/best.pt --report docs/results/reuse_x1.json
 "${ship[@]}" "$x2" --name fused-balanced-x2 --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-balanced-x2-display/best.pt --stage runs/fused-balanced-x2-rot/best.pt \
   --report docs/results/reuse_x2.json

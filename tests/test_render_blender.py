@@ -71,3 +71,17 @@ def test_references_at_twice_the_resolution_import_as_2x_and_1x_references(tmp_p
     assert read_layout_reference(out / "references" / "frame_0000.exr", LAYOUT)["reference"].shape == (32, 32, 3)
     report = import_sequence(out, LAYOUT, tmp_path / "data")
     assert report.warnings == [] and report.scales == (1, 2)
+
+
+def test_a_room_with_a_circling_light_imports_with_still_geometry_and_changing_light(tmp_path):
+    out = tmp_path / "room"
+    subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--scene", "room_light", "--frames", "2",
+                    "--size", "24", "--ref-spp", "16", "--seed", "11"], check=True, capture_output=True, timeout=300)
+    report = import_sequence(out, LAYOUT, tmp_path / "data")
+    assert report.frames == 2 and report.warnings == []
+    frame = read_layout_frame(out / "frame_0001.exr", LAYOUT).frame
+    assert np.abs(frame.motion).max() < 1e-3  # camera and objects stand still
+    assert (frame.depth > 0).all()  # a closed room: every pixel hits a surface
+    first, second = (read_layout_reference(out / "references" / f"frame_000{i}.exr", LAYOUT)["reference"]
+                     for i in (0, 1))
+    assert np.abs(second - first).mean() > 0.01  # the light moved
