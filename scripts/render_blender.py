@@ -103,6 +103,19 @@ def _add(primitive, material, **kwargs):
     return obj
 
 
+def _tracking_camera(scene, frames: int, lens: float, target: tuple[float, float, float]):
+    """The scene's camera for frames 1..``frames``, always turned towards ``target`` (a track-to constraint)."""
+    bpy.ops.object.camera_add()
+    camera = bpy.context.active_object
+    camera.data.lens = lens
+    scene.camera = camera
+    scene.frame_start, scene.frame_end = 1, frames
+    track = camera.constraints.new("TRACK_TO")
+    bpy.ops.object.empty_add(location=target)
+    track.target = bpy.context.active_object
+    return camera
+
+
 def _noise_material(name: str, color: tuple[float, float, float], roughness: float, scale: float):
     """A Principled BSDF whose colour is Blender's noise texture between 0.3 x ``color`` and ``color``."""
     material = bpy.data.materials.new(name)
@@ -158,14 +171,7 @@ def build_room_scene(kind: str, frames: int, seed: int) -> None:
     world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.05
     scene.world = world
 
-    bpy.ops.object.camera_add()
-    camera = bpy.context.active_object
-    camera.data.lens = 22.0
-    scene.camera = camera
-    scene.frame_start, scene.frame_end = 1, frames
-    track = camera.constraints.new("TRACK_TO")
-    bpy.ops.object.empty_add(location=(0.0, 1.5, 0.8))
-    track.target = bpy.context.active_object
+    camera = _tracking_camera(scene, frames, lens=22.0, target=(0.0, 1.5, 0.8))
     phase = rng.uniform(0, 2 * math.pi)
     for frame in range(1, frames + 1):
         t = frame - 1
@@ -215,14 +221,7 @@ def build_procedural_scene(kind: str, frames: int, seed: int) -> None:
     world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.6
     scene.world = world
 
-    bpy.ops.object.camera_add()
-    camera = bpy.context.active_object
-    camera.data.lens = 30.0
-    scene.camera = camera
-    scene.frame_start, scene.frame_end = 1, frames
-    track = camera.constraints.new("TRACK_TO")
-    bpy.ops.object.empty_add(location=(0.0, 1.0, 0.6))
-    track.target = bpy.context.active_object
+    camera = _tracking_camera(scene, frames, lens=30.0, target=(0.0, 1.0, 0.6))
     for frame in range(1, frames + 1):
         t = frame - 1
         if kind == "orbit":

@@ -66,7 +66,8 @@ def test_a_users_blend_file_renders_at_a_non_square_size_and_its_depth_lands_on_
 def test_references_at_twice_the_resolution_import_as_2x_and_1x_references(tmp_path):
     out = tmp_path / "orbit"
     subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--scene", "orbit", "--frames", "1",
-                    "--size", "16", "--ref-spp", "16", "--ref-scale", "2"], check=True, capture_output=True, timeout=300)
+                    "--size", "16", "--ref-spp", "16", "--ref-scale", "2"],
+                   check=True, capture_output=True, timeout=300)
     assert read_layout_frame(out / "frame_0000.exr", LAYOUT).frame.resolution == (16, 16)
     assert read_layout_reference(out / "references" / "frame_0000.exr", LAYOUT)["reference"].shape == (32, 32, 3)
     report = import_sequence(out, LAYOUT, tmp_path / "data")
