@@ -10,10 +10,9 @@ whatever the precision: methods test it against thresholds to decide where histo
 flips that decision at the pixels near the threshold (a few of a 1080p frame's two million), where the output then
 differs by the whole history rather than by a rounding. Bool tensors are bit-packed. Each payload is
 zlib-compressed (level 1) when a 4 kB probe of it saves at least three quarters: masks, counters and constant
-planes shrink by 95% and more for next to nothing,
-while float planes save 13-65% at 45-100 MB/s of zlib on this CPU (the fused model's 1080p history: 1.6 s of zlib
-to save 35 of 100 MB; a 128x128 MUNet history: 12 ms of a 60 ms frame), when writing those bytes to a local Redis
-takes a few milliseconds per 10 MB, so those are left raw.
+planes shrink by 95% and more for next to nothing, while float planes save 13-65% at 45-100 MB/s of zlib on this
+CPU (the fused model's 1080p history: 1.6 s of zlib to save 35 of 100 MB; a 128x128 MUNet history: 12 ms of a 60 ms
+frame), when writing those bytes to a local Redis takes a few milliseconds per 10 MB, so those are left raw.
 
 Decoding gives every tensor back with its original dtype and shape; bytes that are not a state this module
 wrote raise ``StateFormatError`` naming what is wrong.

@@ -13,7 +13,8 @@ for fp32 forms, bf16 gemm for bf16 ones), and the lowest PSNR of the form's outp
 over the stream (display-encoded; a form is usable at ``MIN_PSNR_DB`` and above). The chosen form is the fastest
 usable one, eager unless another is at least 5% faster; compiled forms are timed with ``--compile`` and chosen only
 with ``--allow-compile`` (their first frame at each resolution compiles, which the table prints as ``compile s``).
-``--write`` stores the table (merged into an existing one, which keeps the keys and sizes not measured now). """
+``--write`` stores the table (merged into an existing one, which keeps the keys and sizes not measured now).
+"""
 
 from __future__ import annotations
 

@@ -23,22 +23,20 @@ render() {  # SCENE SEED
 (render room_light 11; render room_light 12; render room_light 13) &
 wait
 .venv/bin/python - <<'PY'
-import json
 from pathlib import Path
 
-mixed = Path("data/reuse-mixed")
-mixed.mkdir(exist_ok=True)
-sequences = {}
+from model.dataset import MANIFEST, Dataset
+
+root = Path("data/reuse-mixed")
+mixed = Dataset(root) if (root / MANIFEST).is_file() else Dataset.create(root)
 for source, copies, splits in (("reuse", 1, ("train", "validation")), ("blender-train", 3, ("train",))):
-    entries = json.loads(Path("data", source, "manifest.json").read_text())["sequences"]
-    for name, entry in entries.items():
-        if entry["split"] not in splits:
-            continue
-        for copy in range(copies):
-            link = mixed / (name if copies == 1 else f"{name}_c{copy}")
-            if not link.exists():
-                link.symlink_to(Path("..", source, name))
-            sequences[link.name] = entry
-(mixed / "manifest.json").write_text(json.dumps({"format": "denoiser-dataset/1", "sequences": sequences}, indent=2))
-print(f"data/reuse-mixed: {len(sequences)} sequences")
+    dataset = Dataset(Path("data", source))
+    for split in splits:
+        for name in dataset.names(split):
+            for copy in range(copies):
+                link = root / (name if copies == 1 else f"{name}_c{copy}")
+                if not link.exists():
+                    link.symlink_to(Path("..", source, name))
+                mixed.add_sequence_dir(link.name, split, replace=True)
+print(f"data/reuse-mixed: {len(mixed.names())} sequences")
 PY
