@@ -30,8 +30,8 @@ newest revision handed to it) that serializes the state and writes it; the API s
 response is sent. The session's next frame waits only until that history is serialized (the step may then replace
 it), runs its step while the write goes on, and waits for the write to land before it is answered; a reset or
 delete waits for the write first. So Redis is at most one frame behind memory, the frame in flight, and a large
-history's write (a 1080p one takes a few hundred milliseconds) overlaps the next step instead of preceding it. Closing the store (the API's shutdown) waits for every pending write, so
-a clean restart loses nothing. If the process dies between answering frame N and its mirror landing, the
+history's write (a 1080p one takes a few hundred milliseconds) overlaps the next step instead of preceding it.
+Closing the store (the API's shutdown) waits for every pending write, so a clean restart loses nothing. If the process dies between answering frame N and its mirror landing, the
 restarted process holds the session as it was after frame N - 1 and expects frame N: the client's next frame,
 N + 1, is a gap under the frame-order rules (history restarted with ``on_gap="reset"``, 409 "frame_gap" with
 ``on_gap="reject"``), and resending frame N continues exactly. A restored history is never paired with a frame
@@ -43,7 +43,9 @@ Loaded methods are shared by every session of the same model version (one copy o
 ``for_inference`` form under ``torch.no_grad``. Frames of one session are serialized by a per-session lock;
 different sessions run concurrently, except that every tensor operation (steps, loading weights, (de)serializing
 histories) runs on the store's one torch thread (``api.torch_thread``: one OpenMP team, not one per request
-thread); on a CPU each step uses every core, so running two at once would gain nothing. If Redis is unreachable,
+thread); on a CPU each step uses every core, so running two at once would gain nothing. Stream frames are read
+into tensors (``read_frame``) on threads of one torch thread each (no OpenMP team), so a read overlaps the previous
+frame's history being serialized on the session thread. If Redis is unreachable,
 sessions keep working from memory (a warning is logged, by the background writer for frames) but cannot survive a
 restart meanwhile.
 """
@@ -63,7 +65,7 @@ import uuid
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 import redis
@@ -88,6 +90,7 @@ from core.settings import Settings
 from api.torch_thread import TorchPool
 
 log = logging.getLogger("denoiser.sessions")
+T = TypeVar("T")
 
 KEY_PREFIX = "denoiser:session:"
 ON_GAP_POLICIES = ("reset", "reject")
@@ -206,6 +209,19 @@ class Session:
 
 
 @dataclass(frozen=True)
+class ReadFrame:
+    """A frame read straight into its batch (a stream message, by ``SessionStore.read_frame``): what the frame
+    rules need, the batch on the session device, and the repairs made reading it."""
+
+    frame_index: int
+    width: int
+    height: int
+    camera_cut: bool
+    batch: FrameBatch = field(repr=False)
+    repairs: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class FrameResult:
     output: np.ndarray  # (H * scale, W * scale, 3) float32, a view of (3, H * scale, W * scale) planes of its own
     frame_index: int
@@ -213,6 +229,7 @@ class FrameResult:
     inference_ms: float  # method.step alone
     sanitized: SanitizeReport  # NaN / Inf / out-of-range input pixels repaired before the step
     session: Session
+    repairs: tuple[str, ...] = ()  # what reading a ReadFrame repaired (a FrameBundle's reader reports its own)
 
 
 def state_fields(data: bytes, chunk_bytes: int = STATE_CHUNK_BYTES) -> dict[str, bytes | int]:
@@ -391,6 +408,9 @@ class SessionStore:
         # a slow session holds one worker while the others serve the rest (api.torch_thread).
         self.workers, self.threads_per_worker = session_thread_budget(settings)
         self._torch = TorchPool(self.workers, self.threads_per_worker, name="session-torch")
+        # Frames are read into tensors on threads of one torch thread each (no OpenMP team), not on the session
+        # threads: a read then overlaps the previous frame's history being serialized there (read_frame).
+        self._readers = TorchPool(self.workers, 1, name="session-read")
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, threading.Lock] = {}
         self._methods: dict[tuple, Method] = {}  # SessionModelSource.key -> method
@@ -505,7 +525,12 @@ class SessionStore:
         if writer is not None:
             writer.start()
 
-    def process_frame(self, session_id: str, frame: FrameBundle, *, start_mirror: bool = True,
+    def read_frame(self, read: Callable[[torch.device], T]) -> T:
+        """``read(device)`` on a frame-reading thread: a frame's arrays to tensors on the session device, before
+        the session is touched (whatever it raises, the session is as it was)."""
+        return self._readers.run(read, self.device)
+
+    def process_frame(self, session_id: str, frame: FrameBundle | ReadFrame, *, start_mirror: bool = True,
                       frame_index_given: bool = True) -> FrameResult:
         """Run one frame through the session's method; raises SessionNotFound or FrameRejected.
 
@@ -532,7 +557,8 @@ class SessionStore:
                     code="resolution_mismatch",
                     details={"expected": list(session.resolution), "received": list(resolution)})
             history, state = self._history_for(session, frame)
-            image, state, inference_ms, sanitized = self._torch.run(self._step, session.method, frame, state)
+            image, state, inference_ms, sanitized, repairs = self._torch.run(self._step, session.method, frame,
+                                                                             state)
             self._wait_for_mirror(session_id)  # Redis lags by one frame at most: the one being answered
             if not sanitized.clean:
                 log.warning("session %s frame %s: repaired input pixels (%s)", session_id, frame.frame_index,
@@ -545,13 +571,18 @@ class SessionStore:
             session.revision += 1
             self._mirror(session, wait=False, start=start_mirror)
             return FrameResult(output=image, frame_index=frame.frame_index, history=history,
-                               inference_ms=inference_ms, sanitized=sanitized, session=session)
+                               inference_ms=inference_ms, sanitized=sanitized, session=session, repairs=repairs)
 
-    def _step(self, method: Method, frame: FrameBundle,
-              state: State | None) -> tuple[np.ndarray, State, float, SanitizeReport]:
-        """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms and
-        what was repaired in the input first (a NaN let into the history would poison every later frame)."""
-        batch, sanitized = sanitize_frame(FrameBatch.from_bundles([frame], scale=None, device=self.device))
+    def _step(self, method: Method, frame: FrameBundle | ReadFrame,
+              state: State | None) -> tuple[np.ndarray, State, float, SanitizeReport, tuple[str, ...]]:
+        """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms,
+        what was repaired in the input first (a NaN let into the history would poison every later frame) and what
+        reading a ReadFrame repaired."""
+        if isinstance(frame, ReadFrame):
+            batch, repairs = frame.batch, frame.repairs
+        else:
+            batch, repairs = FrameBatch.from_bundles([frame], scale=None, device=self.device), ()
+        batch, sanitized = sanitize_frame(batch)
         with torch.no_grad():
             start = time.perf_counter()
             output, state = method.step(batch, state)
@@ -561,7 +592,7 @@ class SessionStore:
         # A copy (the response is encoded after the lock is released, while the next frame of this session may
         # already run), kept as contiguous R, G, B planes, which the EXR encoder takes without copying.
         planes = output[0].detach().to("cpu", torch.float32, copy=True)
-        return planes.permute(1, 2, 0).numpy(), state, inference_ms, sanitized
+        return planes.permute(1, 2, 0).numpy(), state, inference_ms, sanitized, repairs
 
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until every mirror handed to the background writers is written (or failed); False on timeout."""
@@ -582,6 +613,7 @@ class SessionStore:
             log.warning("session store closed with mirror writes still pending")
         self._mirror_pool.shutdown(wait=False)
         self._torch.shutdown()
+        self._readers.shutdown()
         with self._lock:
             self._sessions.clear()
             self._locks.clear()
@@ -847,6 +879,6 @@ def get_session_store() -> SessionStore:
         return _store
 
 
-__all__ = ["FrameRejected", "FrameResult", "ModelNotLoadable", "Session", "SessionError", "SessionLimitReached",
-           "SessionModel", "SessionNotFound", "SessionStore", "SessionStoreUnavailable", "UnknownModelError",
-           "get_session_store"]
+__all__ = ["FrameRejected", "FrameResult", "ModelNotLoadable", "ReadFrame", "Session", "SessionError",
+           "SessionLimitReached", "SessionModel", "SessionNotFound", "SessionStore", "SessionStoreUnavailable",
+           "UnknownModelError", "get_session_store"]

@@ -69,7 +69,7 @@ class StreamMessageError(ValueError):
 @dataclass(frozen=True)
 class StreamFrame:
     """A frame message unpacked: each buffer a read-only view of the message, (C, H, W) or (H, W) for one
-    component, in the dtype it was sent in."""
+    component, in the dtype it was sent in; ``planes`` all of them, (channels, H, W) in ``buffers``' order."""
 
     frame_index: int | None
     width: int
@@ -79,6 +79,7 @@ class StreamFrame:
     jitter: tuple[float, float]
     camera_cut: bool = False
     output_dtype: str = "float32"
+    planes: np.ndarray | None = field(default=None, repr=False)
 
     def hwc(self, name: str) -> np.ndarray:
         """Buffer ``name`` as the frame bundle holds it: (H, W, C) or (H, W), a view (no copy)."""
@@ -291,14 +292,13 @@ def decode_frame(data: bytes, *, max_pixels: int | None = None) -> StreamFrame:
             f"the arrays are {len(data) - offset} bytes; the header declares {width}x{height} pixels of "
             f"{layout} = {sum(counts.values()) // (width * height)} {dtype} planes = {expected} bytes",
             "invalid_frame", {"received_bytes": len(data) - offset, "expected_bytes": expected})
-    buffers = {}
+    planes = np.frombuffer(data, DTYPES[dtype], sum(counts.values()), offset).reshape(-1, height, width)
+    buffers, first = {}, 0
     for name in names:
-        planes = np.frombuffer(data, DTYPES[dtype], counts[name], offset)
         components = _components(name)
-        buffers[name] = planes.reshape(height, width) if components == 1 else planes.reshape(components, height,
-                                                                                             width)
-        offset += counts[name] * itemsize
-    return StreamFrame(frame_index, width, height, dtype, buffers, jitter, camera_cut, output_dtype)
+        buffers[name] = planes[first] if components == 1 else planes[first:first + components]
+        first += components
+    return StreamFrame(frame_index, width, height, dtype, buffers, jitter, camera_cut, output_dtype, planes)
 
 
 def decode_output(data: bytes) -> StreamOutput:

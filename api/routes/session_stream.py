@@ -1,8 +1,9 @@
 """GET /sessions/{id}/stream: a session's frames over one WebSocket, raw arrays instead of EXR files.
 
 The same session, frame rules and model step as POST /sessions/{id}/frames (api.sessions.SessionStore.
-process_frame, the frame read as the ``denoiser`` layout reads it in live mode: model.layouts.read_bundle_buffers),
-without the per-frame HTTP request and the EXR encode and decode on either side. Messages are packed by
+process_frame, the frame read as the ``denoiser`` layout reads it in live mode: model.stream_batch, which gives
+what model.layouts.read_bundle_buffers does, from the message's planes, as torch tensors), without the per-frame
+HTTP request and the EXR encode and decode on either side. Messages are packed by
 model.stream_codec (the protocol is described there and in the README, "Streaming a session over a WebSocket").
 
 One connection drives one session; its binary messages are frames, answered in order, one output message each. A
@@ -31,13 +32,13 @@ from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
 from starlette.concurrency import run_in_threadpool
 
 from model.frames import FrameError
-from model.layouts import read_bundle_buffers
 from api.auth import API_KEY_HEADER, require_api_key
 from api.errors import ApiError
 from api.request_limits import frame_budget
 from api.routes.sessions import SESSION_TOKEN_HEADER, check_owner, session_errors
-from api.sessions import SessionStore, get_session_store
+from api.sessions import ReadFrame, SessionStore, get_session_store
 from core.settings import Settings, get_settings
+from model.stream_batch import stream_frame_batch
 from model.stream_codec import StreamMessageError, decode_frame, encode_output
 
 log = logging.getLogger("denoiser.sessions")
@@ -131,25 +132,23 @@ async def _frame(store: SessionStore, settings: Settings, session_id: str, data:
 
 
 def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: int, started: float) -> bytes:
-    """The output message of a frame message, on a worker thread: unpack, read as POST reads a frame, step;
-    _FrameFailed otherwise."""
-    index = None
+    """The output message of a frame message, on a worker thread: unpack, read as POST reads a frame (on one of
+    the store's frame-reading threads), step; _FrameFailed otherwise."""
     try:
         message = decode_frame(data, max_pixels=max_pixels)
-        index = message.frame_index
-        read = read_bundle_buffers({name: message.hwc(name) for name in message.buffers}, jitter=message.jitter,
-                                   frame_index=message.frame_index or 0, camera_cut=message.camera_cut,
-                                   source=STREAM_SOURCE)
     except StreamMessageError as error:
         status = {"frame_too_large": 413}.get(error.code, 400)
-        raise _FrameFailed(ApiError(status, error.code, error.message, error.details), index) from None
+        raise _FrameFailed(ApiError(status, error.code, error.message, error.details)) from None
+    index = message.frame_index
+    try:
+        batch, repairs = store.read_frame(lambda device: stream_frame_batch(message, device, STREAM_SOURCE))
     except FrameError as error:
         raise _FrameFailed(ApiError(400, "invalid_frame", str(error), {"buffer": error.buffer,
                                                                        "problem": error.problem}), index) from None
+    frame = ReadFrame(index or 0, message.width, message.height, message.camera_cut, batch, repairs)
     try:
         with session_errors():
-            result = store.process_frame(session_id, read.frame, start_mirror=False,
-                                         frame_index_given=message.frame_index is not None)
+            result = store.process_frame(session_id, frame, start_mirror=False, frame_index_given=index is not None)
     except ApiError as error:
         raise _FrameFailed(error, index) from None
     try:
@@ -157,8 +156,8 @@ def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: in
                   "inference_ms": round(result.inference_ms, 3), "sanitized_pixels": result.sanitized.total}
         if not result.sanitized.clean:
             header["sanitized"] = result.sanitized.describe()
-        if read.repairs:
-            header["repairs"] = "; ".join(read.repairs)
+        if result.repairs:
+            header["repairs"] = "; ".join(result.repairs)
         header["server_ms"] = round((time.perf_counter() - started) * 1000, 3)
         return encode_output(result.output, dtype=message.output_dtype, **header)
     except BaseException:

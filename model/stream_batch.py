@@ -1,0 +1,81 @@
+"""A session stream's frame message (model.stream_codec.StreamFrame) straight to the FrameBatch a step takes.
+
+The reference reading of a stream frame is model.layouts.read_bundle_buffers (what a POSTed EXR of the ``denoiser``
+layout goes through in a live session) followed by FrameBatch.from_bundles: NumPy, and shaped for EXR files, so
+the message's planar arrays are turned to (H, W, C) float32 and back to (C, H, W). At 128x128 that round trip and
+its checks cost about 1 ms a frame, a fifth of the fastest model's step. ``stream_frame_batch`` builds the same
+batch from the planes in torch: the float16 -> float32 cast, the ``denoiser`` layout's one conversion (no normal
+where nothing is hit) and, as the clean-frame test, the two checks a sanitizable frame is still held to (unit-length
+normals where depth > 0; diffuse + specular == color). A frame that is not clearly clean by them (a normal to
+renormalise or refuse, a lobe split off by more than the tolerance, or within a rounding of either bound) goes the
+reference way, which repairs, reports or refuses it exactly as the POST route does; so the batch, the repairs and
+the errors are the reference's in every case, and the fast way only ever answers frames it has proved clean.
+
+Run it where the session's torch work runs (api.torch_thread): its tensor ops use that thread's OpenMP team.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+
+from model.frames import LOBE_SPLIT_TOLERANCE, NORMAL_LENGTH_TOLERANCE
+from model.layouts.read import read_bundle_buffers
+from model.methods.base import FrameBatch
+from model.stream_codec import StreamFrame
+
+# Test bounds drawn this much inside the reference's, so float rounding (torch's sums against NumPy's) can never
+# call a frame clean that the reference would repair or refuse; a frame this close to a bound goes the slow way.
+_MARGIN = 1e-5
+
+
+def stream_frame_batch(message: StreamFrame, device: torch.device | str = "cpu",
+                       source: str = "<frame message>") -> tuple[FrameBatch, tuple[str, ...]]:
+    """The frame of a message from ``decode_frame`` as a batch of one on ``device`` and the repairs made reading
+    it (lossy normals renormalised), exactly as ``read_bundle_buffers`` + ``FrameBatch.from_bundles`` give them;
+    FrameError naming ``source`` for a frame they refuse."""
+    with warnings.catch_warnings():  # a read-only view is fine: it is only read, into a tensor of its own
+        warnings.simplefilter("ignore", UserWarning)
+        view = torch.from_numpy(message.planes)
+    # One cast for every buffer (they lie one after another in the message), then a view per buffer.
+    planes = view.to(device=device, dtype=torch.float32, copy=True).unsqueeze(0)
+    buffers, first = {}, 0
+    for name, array in message.buffers.items():
+        count = 1 if array.ndim == 2 else array.shape[0]
+        buffers[name] = planes[:, first:first + count]
+        first += count
+    depth = buffers["depth"]
+    buffers["normal"] = torch.where(depth > 0, buffers["normal"], torch.zeros((), device=depth.device))
+    if not _clearly_clean(buffers):
+        return _reference_batch(message, device, source)
+    jitter = torch.tensor([message.jitter], dtype=torch.float32, device=device)
+    camera_cut = torch.tensor([message.camera_cut], dtype=torch.bool, device=device)
+    return FrameBatch(jitter=jitter, camera_cut=camera_cut, **buffers), ()
+
+
+def _clearly_clean(buffers: dict[str, torch.Tensor]) -> bool:
+    """Whether the reference reading would neither repair nor refuse the frame: every normal where depth > 0 is
+    unit length within the tolerance, and diffuse and specular come together and add up to color. Normals with a
+    NaN or Inf are the sanitizer's either way; here they only send the frame the reference way."""
+    normal, depth = buffers["normal"], buffers["depth"]
+    squared = normal.square().sum(dim=1, keepdim=True)  # |n| within 1 +- t  <=>  |n|^2 within (1 +- t)^2
+    tolerance = NORMAL_LENGTH_TOLERANCE - _MARGIN
+    if bool((((squared < (1 - tolerance) ** 2) | (squared > (1 + tolerance) ** 2)) & (depth > 0)).any()):
+        return False
+    diffuse, specular = buffers.get("diffuse"), buffers.get("specular")
+    if diffuse is None and specular is None:
+        return True
+    if diffuse is None or specular is None:
+        return False  # the reference names the missing one
+    color = buffers["color"]
+    excess = (diffuse + specular - color).abs() - (LOBE_SPLIT_TOLERANCE - _MARGIN) * (1.0 + color)
+    return not bool((torch.isfinite(excess) & (excess > 0)).any())
+
+
+def _reference_batch(message: StreamFrame, device: torch.device | str,
+                     source: str) -> tuple[FrameBatch, tuple[str, ...]]:
+    read = read_bundle_buffers({name: message.hwc(name) for name in message.buffers}, jitter=message.jitter,
+                               frame_index=message.frame_index or 0, camera_cut=message.camera_cut, source=source)
+    return FrameBatch.from_bundles([read.frame], scale=None, device=device), read.repairs
