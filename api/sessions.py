@@ -23,31 +23,30 @@ matching pair (a history and the frame index it continues at), never one without
 - Redis is the record of which sessions exist: a key that expired or was deleted ends the session;
 - a memory copy older than Redis (another API process served the session) is reloaded before use.
 
-When the mirror is written. Creating and resetting a session write Redis before they answer (a reset lost in a
-crash could let the old history meet the new stream). A frame's mirror is written off the request's critical path:
-each session has a background writer (tasks of a small thread pool, one write at a time per session, always the
-newest revision handed to it) that serializes the state and writes it; the API starts it once the frame's
-response is sent. The session's next frame waits only until that history is serialized (the step may then replace
-it), runs its step while the write goes on, and waits for the write to land before it is answered; a reset or
-delete waits for the write first. So Redis is at most one frame behind memory, the frame in flight, and a large
-history's write (a 1080p one takes a few hundred milliseconds) overlaps the next step instead of preceding it.
-Closing the store (the API's shutdown) waits for every pending write, so a clean restart loses nothing. If the process dies between answering frame N and its mirror landing, the
-restarted process holds the session as it was after frame N - 1 and expects frame N: the client's next frame,
-N + 1, is a gap under the frame-order rules (history restarted with ``on_gap="reset"``, 409 "frame_gap" with
-``on_gap="reject"``), and resending frame N continues exactly. A restored history is never paired with a frame
-it does not precede. For the same reason the frames of one session belong on one API process: another process
-reading Redis in that window sees the same one-frame lag.
+When the mirror is written. Creating and resetting a session write Redis before they answer (a reset lost in a crash
+could let the old history meet the new stream). A frame's mirror is written off the request's critical path: each
+session has a background writer (tasks of a small thread pool, one write at a time per session, always the newest
+revision handed to it) that serializes the state and writes it; the API starts it once the frame's response is sent.
+The session's next frame waits only until that history is serialized (the step may then replace it), runs its step
+while the write goes on, and waits for the write to land before it is answered; a reset or delete waits for the
+write first. So Redis is at most one frame behind memory, the frame in flight, and a large history's write (a 1080p
+one takes a few hundred milliseconds) overlaps the next step instead of preceding it. Closing the store (the API's
+shutdown) waits for every pending write, so a clean restart loses nothing. If the process dies between answering
+frame N and its mirror landing, the restarted process holds the session as it was after frame N - 1 and expects
+frame N: the client's next frame, N + 1, is a gap under the frame-order rules (history restarted with
+``on_gap="reset"``, 409 "frame_gap" with ``on_gap="reject"``), and resending frame N continues exactly. A restored
+history is never paired with a frame it does not precede. For the same reason the frames of one session belong on
+one API process: another process reading Redis in that window sees the same one-frame lag.
 
 Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
 Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
 ``for_inference`` form under ``torch.no_grad``. Frames of one session are serialized by a per-session lock;
 different sessions run concurrently, except that every tensor operation (steps, loading weights, (de)serializing
-histories) runs on the store's one torch thread (``api.torch_thread``: one OpenMP team, not one per request
-thread); on a CPU each step uses every core, so running two at once would gain nothing. Stream frames are read
-into tensors (``read_frame``) on threads of one torch thread each (no OpenMP team), so a read overlaps the previous
-frame's history being serialized on the session thread. If Redis is unreachable,
-sessions keep working from memory (a warning is logged, by the background writer for frames) but cannot survive a
-restart meanwhile.
+histories) runs on the store's one torch thread (``api.torch_thread``: one OpenMP team, not one per request thread);
+on a CPU each step uses every core, so running two at once would gain nothing. Stream frames are read into tensors
+(``read_frame``) on threads of one torch thread each (no OpenMP team), so a read overlaps the previous frame's
+history being serialized on the session thread. If Redis is unreachable, sessions keep working from memory (a
+warning is logged, by the background writer for frames) but cannot survive a restart meanwhile.
 """
 
 from __future__ import annotations
@@ -211,14 +210,13 @@ class Session:
 @dataclass(frozen=True)
 class ReadFrame:
     """A frame read straight into its batch (a stream message, by ``SessionStore.read_frame``): what the frame
-    rules need, the batch on the session device, and the repairs made reading it."""
+    rules need and the batch on the session device."""
 
     frame_index: int
     width: int
     height: int
     camera_cut: bool
     batch: FrameBatch = field(repr=False)
-    repairs: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -229,7 +227,6 @@ class FrameResult:
     inference_ms: float  # method.step alone
     sanitized: SanitizeReport  # NaN / Inf / out-of-range input pixels repaired before the step
     session: Session
-    repairs: tuple[str, ...] = ()  # what reading a ReadFrame repaired (a FrameBundle's reader reports its own)
 
 
 def state_fields(data: bytes, chunk_bytes: int = STATE_CHUNK_BYTES) -> dict[str, bytes | int]:
@@ -557,8 +554,7 @@ class SessionStore:
                     code="resolution_mismatch",
                     details={"expected": list(session.resolution), "received": list(resolution)})
             history, state = self._history_for(session, frame)
-            image, state, inference_ms, sanitized, repairs = self._torch.run(self._step, session.method, frame,
-                                                                             state)
+            image, state, inference_ms, sanitized = self._torch.run(self._step, session.method, frame, state)
             self._wait_for_mirror(session_id)  # Redis lags by one frame at most: the one being answered
             if not sanitized.clean:
                 log.warning("session %s frame %s: repaired input pixels (%s)", session_id, frame.frame_index,
@@ -571,17 +567,14 @@ class SessionStore:
             session.revision += 1
             self._mirror(session, wait=False, start=start_mirror)
             return FrameResult(output=image, frame_index=frame.frame_index, history=history,
-                               inference_ms=inference_ms, sanitized=sanitized, session=session, repairs=repairs)
+                               inference_ms=inference_ms, sanitized=sanitized, session=session)
 
     def _step(self, method: Method, frame: FrameBundle | ReadFrame,
-              state: State | None) -> tuple[np.ndarray, State, float, SanitizeReport, tuple[str, ...]]:
-        """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms,
-        what was repaired in the input first (a NaN let into the history would poison every later frame) and what
-        reading a ReadFrame repaired."""
-        if isinstance(frame, ReadFrame):
-            batch, repairs = frame.batch, frame.repairs
-        else:
-            batch, repairs = FrameBatch.from_bundles([frame], scale=None, device=self.device), ()
+              state: State | None) -> tuple[np.ndarray, State, float, SanitizeReport]:
+        """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms and
+        what was repaired in the input first (a NaN let into the history would poison every later frame)."""
+        batch = frame.batch if isinstance(frame, ReadFrame) else FrameBatch.from_bundles([frame], scale=None,
+                                                                                          device=self.device)
         batch, sanitized = sanitize_frame(batch)
         with torch.no_grad():
             start = time.perf_counter()
@@ -592,7 +585,7 @@ class SessionStore:
         # A copy (the response is encoded after the lock is released, while the next frame of this session may
         # already run), kept as contiguous R, G, B planes, which the EXR encoder takes without copying.
         planes = output[0].detach().to("cpu", torch.float32, copy=True)
-        return planes.permute(1, 2, 0).numpy(), state, inference_ms, sanitized, repairs
+        return planes.permute(1, 2, 0).numpy(), state, inference_ms, sanitized
 
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until every mirror handed to the background writers is written (or failed); False on timeout."""

@@ -145,7 +145,7 @@ def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: in
     except FrameError as error:
         raise _FrameFailed(ApiError(400, "invalid_frame", str(error), {"buffer": error.buffer,
                                                                        "problem": error.problem}), index) from None
-    frame = ReadFrame(index or 0, message.width, message.height, message.camera_cut, batch, repairs)
+    frame = ReadFrame(index or 0, message.width, message.height, message.camera_cut, batch)
     try:
         with session_errors():
             result = store.process_frame(session_id, frame, start_mirror=False, frame_index_given=index is not None)
@@ -156,8 +156,8 @@ def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: in
                   "inference_ms": round(result.inference_ms, 3), "sanitized_pixels": result.sanitized.total}
         if not result.sanitized.clean:
             header["sanitized"] = result.sanitized.describe()
-        if result.repairs:
-            header["repairs"] = "; ".join(result.repairs)
+        if repairs:
+            header["repairs"] = "; ".join(repairs)
         header["server_ms"] = round((time.perf_counter() - started) * 1000, 3)
         return encode_output(result.output, dtype=message.output_dtype, **header)
     except BaseException:
