@@ -27,9 +27,12 @@ is client.rest.DenoiserClient. Timed per frame, after ``--warmup`` frames, media
 - server: the X-Server-Ms header (body read, EXR decode, step, EXR encode; the Redis mirror is written in the
   background), or the output message's server_ms (unpack, step);
 - step: the X-Inference-Ms header or the output's inference_ms (method.step in the session);
-- in process: method.step on the same frames, here, with the same torch thread count, history carried.
+- in process: method.step on the same frames, here, with the same torch thread count, history carried;
+- bare echo (API started here only): a uvicorn app that answers each message with one of the stream's output size
+  and does nothing else, driven by the same WebSocket client with the stream's message sizes: the transport's
+  own cost on this machine, which the round trip can never go below (printed beside the stream's).
 
-The three run in alternating blocks, ``--rounds`` times (HTTP stream, WebSocket stream, in-process stream, HTTP
+They run in alternating blocks, ``--rounds`` times (HTTP stream, WebSocket stream, echoes, in-process stream, HTTP
 stream, ...; a new session and a new history each round), and each median is over every timed frame of its blocks:
 blocks, not frame-by-frame interleaving, because the server's work after answering a frame (its Redis mirror
 write) would otherwise run beside the in-process step on a 2-core machine and slow it, while a client stepping
@@ -232,6 +235,61 @@ class ThreadApi:
         self.server.should_exit = True
 
 
+# A bare ASGI app served by uvicorn like the API: it answers every WebSocket message with a message of the size its
+# query string names, and does nothing else. Its round trip is what the transport alone costs on this machine.
+ECHO_SERVER = """
+import sys
+import uvicorn
+
+async def app(scope, receive, send):
+    if scope["type"] != "websocket":
+        return
+    answer = bytes(int(scope["query_string"] or b"0"))
+    await receive()
+    await send({"type": "websocket.accept"})
+    while (await receive())["type"] != "websocket.disconnect":
+        await send({"type": "websocket.send", "bytes": answer})
+
+uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[1]), ws_max_size=int(sys.argv[2]), log_level="warning")
+"""
+
+
+class EchoServer:
+    """ECHO_SERVER as a child process, stopped on ``stop()``."""
+
+    def __init__(self, max_bytes: int) -> None:
+        port = free_port()
+        self.process = subprocess.Popen([sys.executable, "-c", ECHO_SERVER, str(port), str(max_bytes)])
+        self.url = f"ws://127.0.0.1:{port}"
+        deadline = time.monotonic() + 60
+        while True:
+            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=1):
+                return
+            if self.process.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                raise SystemExit("the WebSocket echo server did not start")
+            time.sleep(0.1)
+
+    def times(self, bytes_in: int, bytes_out: int, count: int) -> list[float]:
+        """Round trips (ms) of ``count`` messages of ``bytes_in`` answered with ``bytes_out``, over one connection
+        opened as client.stream opens a session's (websockets' sync client, no compression)."""
+        from websockets.sync.client import connect
+
+        message, times = bytes(bytes_in), []
+        with connect(f"{self.url}/?{bytes_out}", max_size=None, compression=None, ping_interval=None) as socket_:
+            for _ in range(count):
+                started = time.perf_counter()
+                socket_.send(message)
+                socket_.recv()
+                times.append((time.perf_counter() - started) * 1000)
+        return times
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(30)
+
+
 def session_body(model: str) -> dict:
     if "@" in model:
         name, alias = model.split("@", 1)
@@ -313,18 +371,21 @@ def websocket_stream(client: DenoiserClient, model: str, frames: list[FrameBundl
     return {**result, "bytes_out": result["outputs"][-1].size * np.dtype(dtype).itemsize}
 
 
-def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, warmup: int, rounds: int,
-        api_key: str | None, compression: str | None, stream_dtype: str, all_buffers: bool = False) -> dict:
-    """``rounds`` x (the stream over HTTP, over the WebSocket, then in process); times of frames after ``warmup``
-    in each stream."""
+def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, echo: EchoServer | None, warmup: int,
+        rounds: int, api_key: str | None, compression: str | None, stream_dtype: str,
+        all_buffers: bool = False) -> dict:
+    """``rounds`` x (the stream over HTTP, over the WebSocket, as many bare echoes of its messages' sizes, then in
+    process); times of frames after ``warmup`` in each stream."""
     names = ("encode", "round_trip", "server", "inference")
     times = {transport: {name: [] for name in names} for transport in ("http", "websocket")}
-    times["local"] = []
+    times["local"], times["echo"] = [], []
     difference = {"http": 0.0, "websocket": 0.0}
     with DenoiserClient(url, api_key=api_key, timeout=120) as client:
         for _ in range(rounds):
             http = http_stream(client, model, frames, compression)
             websocket = websocket_stream(client, model, frames, stream_dtype, all_buffers)
+            if echo is not None:
+                times["echo"] += echo.times(websocket["bytes_in"], websocket["bytes_out"], len(frames))[warmup:]
             expected, local_times = local.stream(frames)
             for transport, result in (("http", http), ("websocket", websocket)):
                 for name, values in result["times"].items():
@@ -341,6 +402,8 @@ def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, warmu
 
 
 def main() -> None:
+    from core.settings import get_settings
+
     args = parse_args()
     torch.set_num_threads(args.threads)
     total = args.warmup + args.frames
@@ -365,10 +428,13 @@ def main() -> None:
             server = (ProcessApi if args.server == "process" else ThreadApi)(env)
             url = server.url
         local = InProcess(checkpoint)
+        echo = None if args.url else EchoServer(get_settings().max_frame_bytes)  # loopback only: beside our API
         try:
-            result = run(url, model, frames, local, args.warmup, args.rounds, args.api_key, args.compression,
+            result = run(url, model, frames, local, echo, args.warmup, args.rounds, args.api_key, args.compression,
                          args.stream_dtype, args.all_buffers)
         finally:
+            if echo is not None:
+                echo.stop()
             if server is not None:
                 server.stop()
 
@@ -397,6 +463,13 @@ def main() -> None:
         print(f"    step in the session    median {step_ms:8.2f} ms   (server outside the step: "
               f"{server_ms - step_ms:.2f}; round trip / this step {round_trip / step_ms:.2f}x)")
         print(f"    max |session output - in-process output| over the stream: {result['difference'][transport]:.3g}")
+    if not times["echo"]:
+        return
+    echo_ms = median(times["echo"])
+    rest = median(times["websocket"]["round_trip"]) - local_ms - echo_ms
+    print("  bare WebSocket echo (uvicorn, the stream's message sizes, no session)")
+    print(f"    round trip             median {echo_ms:8.2f} ms/frame   the transport alone: the stream's round trip "
+          f"is the in-process step + {echo_ms:.2f} + {rest:.2f} ms")
 
 
 if __name__ == "__main__":
