@@ -11,7 +11,8 @@ renormalise or refuse, a lobe split off by more than the tolerance, or within a 
 reference way, which repairs, reports or refuses it exactly as the POST route does; so the batch, the repairs and
 the errors are the reference's in every case, and the fast way only ever answers frames it has proved clean.
 
-Run it where the session's torch work runs (api.torch_thread): its tensor ops use that thread's OpenMP team.
+Run it on a thread whose torch thread count is set (api.torch_thread; sessions use threads of one torch thread,
+SessionStore.read_frame), not on a request thread, which would grow an OpenMP team of its own.
 """
 
 from __future__ import annotations
