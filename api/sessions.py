@@ -26,10 +26,10 @@ matching pair (a history and the frame index it continues at), never one without
 When the mirror is written. Creating and resetting a session write Redis before they answer (a reset lost in a crash
 could let the old history meet the new stream). A frame's mirror is written off the request's critical path: each
 session has a background writer (tasks of a small thread pool, one write at a time per session, always the newest
-revision handed to it) that serializes the state and writes it; the API starts it once the frame's response is sent.
-The session's next frame waits only until that history is serialized (the step may then replace it), runs its step
-while the write goes on, and waits for the write to land before it is answered; a reset or delete waits for the
-write first. So Redis is at most one frame behind memory, the frame in flight, and a large history's write (a 1080p
+revision handed to it) that serializes the state (on a frame-reading thread) and writes it; the API starts it once
+the frame's response is sent, or the session's next frame does. That frame does not wait for it: its step runs while
+the history is serialized and written (a step never changes the state it is given, which a test holds every method
+to), and the frame waits for the write to land before it is answered; a reset or delete waits for the write first. So Redis is at most one frame behind memory, the frame in flight, and a large history's write (a 1080p
 one takes a few hundred milliseconds) overlaps the next step instead of preceding it. Closing the store (the API's
 shutdown) waits for every pending write, so a clean restart loses nothing. If the process dies between answering
 frame N and its mirror landing, the restarted process holds the session as it was after frame N - 1 and expects
@@ -41,11 +41,10 @@ one API process: another process reading Redis in that window sees the same one-
 Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
 Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
 ``for_inference`` form under ``torch.no_grad``. Frames of one session are serialized by a per-session lock;
-different sessions run concurrently, except that every tensor operation (steps, loading weights, (de)serializing
-histories) runs on the store's one torch thread (``api.torch_thread``: one OpenMP team, not one per request thread);
-on a CPU each step uses every core, so running two at once would gain nothing. Stream frames are read into tensors
-(``read_frame``) on threads of one torch thread each (no OpenMP team), so a read overlaps the previous frame's
-history being serialized on the session thread. If Redis is unreachable, sessions keep working from memory (a
+different sessions run concurrently, except that every step, weight load and history restore runs on the store's
+session torch threads (``api.torch_thread``: one OpenMP team each, not one per request thread); on a CPU each step
+uses every core, so running two at once would gain nothing. Stream frames are read into tensors (``read_frame``) and
+histories serialized for Redis on threads of one torch thread each (no OpenMP team), beside the steps. If Redis is unreachable, sessions keep working from memory (a
 warning is logged, by the background writer for frames) but cannot survive a restart meanwhile.
 """
 
@@ -250,7 +249,7 @@ def state_from_fields(fields: dict[bytes, bytes], device: torch.device | str = "
 @dataclass(frozen=True)
 class _Snapshot:
     """One revision of a session as Redis is to hold it: metadata taken when handed over, the state tensors by
-    reference (nothing changes them until they are serialized: the session's next step waits for that)."""
+    reference (nothing changes them: a step makes a new state and never alters the one it is given)."""
 
     session: Session
     revision: int
@@ -274,11 +273,9 @@ class _MirrorWriter:
     handed over sooner waits (newer ones replace it) and is written when the interval is over, by a timer if no
     other call comes; ``wait()`` writes at once.
 
-    ``write(snapshot, encoded)`` calls ``encoded()`` once it no longer reads the snapshot's tensors (they are
-    serialized), which is what ``wait(encoded_only=True)`` waits for.
     """
 
-    def __init__(self, write: Callable[[_Snapshot, Callable[[], None]], None], executor: ThreadPoolExecutor,
+    def __init__(self, write: Callable[[_Snapshot], None], executor: ThreadPoolExecutor,
                  min_interval: float = 0.0, monotonic: Callable[[], float] = time.monotonic,
                  timer: Callable[[float, Callable[[], None]], Any] | None = None) -> None:
         self._write = write
@@ -289,7 +286,6 @@ class _MirrorWriter:
         self._condition = threading.Condition()
         self._pending: _Snapshot | None = None
         self._running = False
-        self._encoded = True  # whether the running write has serialized its snapshot's tensors
         self._min_interval = min_interval
         self._not_before = 0.0  # time.monotonic() before which start() defers a write
         self._timer: threading.Timer | None = None
@@ -313,9 +309,8 @@ class _MirrorWriter:
         except RuntimeError:  # the pool is shut down (the store is closing): write here
             self._drain()
 
-    def wait(self, timeout: float | None = None, encoded_only: bool = False) -> bool:
-        """Until nothing is pending or being written (a held or deferred snapshot is started), or with
-        ``encoded_only`` until nothing is pending and the running write has serialized its snapshot; False on
+    def wait(self, timeout: float | None = None) -> bool:
+        """Until nothing is pending or being written (a held or deferred snapshot is started); False on
         ``timeout``."""
         with self._condition:
             self._forced += 1
@@ -323,8 +318,7 @@ class _MirrorWriter:
             self.start()
             with self._condition:
                 return self._condition.wait_for(
-                    lambda: self._pending is None and (not self._running or (encoded_only and self._encoded)),
-                    timeout)
+                    lambda: self._pending is None and not self._running, timeout)
         finally:
             with self._condition:
                 self._forced -= 1
@@ -361,19 +355,11 @@ class _MirrorWriter:
                     self._condition.notify_all()
                     return
                 self._pending = None
-                self._encoded = False
                 self._not_before = self._monotonic() + self._min_interval
             try:
-                self._write(snapshot, self._mark_encoded)
+                self._write(snapshot)
             except Exception:  # never leave the writer marked running: the session would wait forever
                 log.exception("session %s: writing its mirror failed", snapshot.session.id)
-            finally:
-                self._mark_encoded()
-
-    def _mark_encoded(self) -> None:
-        with self._condition:
-            self._encoded = True
-            self._condition.notify_all()
 
 
 class SessionStore:
@@ -405,8 +391,8 @@ class SessionStore:
         # a slow session holds one worker while the others serve the rest (api.torch_thread).
         self.workers, self.threads_per_worker = session_thread_budget(settings)
         self._torch = TorchPool(self.workers, self.threads_per_worker, name="session-torch")
-        # Frames are read into tensors on threads of one torch thread each (no OpenMP team), not on the session
-        # threads: a read then overlaps the previous frame's history being serialized there (read_frame).
+        # Frames are read into tensors, and histories serialized for Redis, on threads of one torch thread each (no
+        # OpenMP team), not on the session threads, so both overlap the steps there (read_frame, _write_mirror).
         self._readers = TorchPool(self.workers, 1, name="session-read")
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, threading.Lock] = {}
@@ -538,9 +524,9 @@ class SessionStore:
         """
         self._purge_expired()
         with self._lock_for(session_id):
-            # The previous frame's history must be serialized before this step (which may replace it in place);
-            # its Redis write goes on meanwhile and must land before this frame is answered (module notes).
-            self._wait_for_mirror(session_id, encoded_only=True)
+            # The previous frame's mirror is written while this step runs (a step never changes the state it is
+            # given: tests/model/methods/test_registry.py) and must land before this frame is answered.
+            self.start_mirror(session_id)
             session = self._current(session_id, activate=True)
             if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
                 session.method = self._method(session.model.origin)
@@ -655,12 +641,12 @@ class SessionStore:
         with self._lock:
             return self._writers.get(session_id)
 
-    def _wait_for_mirror(self, session_id: str, encoded_only: bool = False) -> None:
-        """Until the previous frame's mirror is written (or, ``encoded_only``, serialized), so Redis lags by one
-        frame at most; with a mirror interval, Redis may lag by that long instead and the frame does not wait."""
+    def _wait_for_mirror(self, session_id: str) -> None:
+        """Until the previous frame's mirror is written, so Redis lags by one frame at most; with a mirror
+        interval, Redis may lag by that long instead and the frame does not wait."""
         writer = self._writer_of(session_id)
         if writer is not None and not self.mirror_interval:
-            writer.wait(encoded_only=encoded_only)
+            writer.wait()
 
     def _forget(self, session_id: str) -> None:
         with self._lock:
@@ -748,13 +734,13 @@ class SessionStore:
         if wait:
             writer.wait()
 
-    def _write_mirror(self, snapshot: _Snapshot, encoded: Callable[[], None]) -> None:
-        """Write one snapshot (metadata and state together) to Redis and restart the key's TTL; ``encoded()``
-        once its tensors are serialized."""
+    def _write_mirror(self, snapshot: _Snapshot) -> None:
+        """Write one snapshot (metadata and state together) to Redis and restart the key's TTL."""
         session = snapshot.session
         key = self._key(session.id)
-        data = self._torch.run(encode_state, snapshot.state, self.history_precision)
-        encoded()
+        # On a reader thread (one torch thread, no OpenMP team): the session threads run the next frame's step
+        # meanwhile, which reads the same tensors but never changes them.
+        data = self._readers.run(encode_state, snapshot.state, self.history_precision)
         mapping = {"meta": snapshot.meta, **state_fields(data, STATE_CHUNK_BYTES)}
 
         def write(client: redis.Redis) -> None:

@@ -65,3 +65,20 @@ def test_a_method_may_declare_only_optional_render_buffers():
     with pytest.raises(ValueError, match="color are not optional render buffers"):
         register(MethodSpec(name="bad", description="", factory=lambda preset, scale: None,
                             optional_buffers=("color",)))
+
+
+@pytest.mark.parametrize("name, scale", _every_method())
+def test_a_step_leaves_the_state_it_is_given_as_it_was(name, scale):
+    # A session serializes frame t's history for Redis while frame t + 1 already steps on it (api.sessions).
+    torch.manual_seed(0)
+    method = build_method(name, scale=scale).for_inference()
+    frames = [example_batch(16, 16, seed=seed) for seed in range(3)]
+    with torch.no_grad():
+        _, state = method.step(frames[0], None)
+        for frame in frames[1:]:
+            before = {key: value.clone() for key, value in state.items()}
+            _, new_state = method.step(frame, state)
+            assert state.keys() == before.keys()
+            for key, value in state.items():
+                assert torch.equal(value, before[key]), f"{name} at {scale}x changed state[{key!r}] in place"
+            state = new_state
