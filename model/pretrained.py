@@ -240,9 +240,6 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     folder.mkdir(parents=True, exist_ok=True)
     train_config = content.get("train_config") or {}
     best = content.get("best_metric")
-    weights = save_checkpoint(folder / WEIGHTS, method=method, train_config=train_config, step=content["step"],
-                              epoch=content.get("epoch", 0.0), best_metric=best)
-    params, flops = inference_cost(method)
     training: dict[str, Any] = {
         "script": training_script, "steps": train_config.get("steps"), "step": int(content["step"]),
         "seed": train_config.get("seed"), "best_metric": best, "train_config": train_config}
@@ -264,6 +261,10 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
         held_out = held_out_from_report(report, report_source or str(checkpoint), method.name, method.preset,
                                         method.scale)
         held_out["report"] = report_path
+    # Written only once every input above was read: a missing stage or a bad report leaves a shipped model as it was.
+    weights = save_checkpoint(folder / WEIGHTS, method=method, train_config=train_config, step=content["step"],
+                              epoch=content.get("epoch", 0.0), best_metric=best)
+    params, flops = inference_cost(method)
     manifest = {"format": PRETRAINED_FORMAT, "name": name, "method": method.name, "preset": method.preset,
                 "scale": method.scale, "params": params, "flops_per_pixel": flops, "file": WEIGHTS,
                 "sha256": file_sha256(weights), "bytes": weights.stat().st_size, "training": training,

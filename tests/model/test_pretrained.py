@@ -17,6 +17,7 @@ from model.pretrained import (
     held_out_from_report,
     load_pretrained,
     pretrained_names,
+    ship_checkpoint,
     verify,
 )
 from tests.builders import report_for, ship_tiny
@@ -45,6 +46,20 @@ def test_earlier_training_stages_are_recorded(tmp_path):
     shipped = ship_tiny(tmp_path / "pretrained", stages=[first])
     (stage,) = shipped.manifest["training"]["stages"]
     assert stage["step"] == 400 and stage["train_config"]["frames_per_sample"] == 8
+
+
+def test_a_failed_reshipping_leaves_the_shipped_model_as_it_was(tmp_path):
+    shipped = ship_tiny(tmp_path / "pretrained")
+    weights, manifest = shipped.path.read_bytes(), (shipped.folder / "manifest.json").read_text()
+    torch.manual_seed(9)  # other weights than the shipped ones
+    other = save_checkpoint(tmp_path / "other.pt", method=build_method("wskpn:xs", 1), step=50)
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        ship_checkpoint(other, "wskpn-xs-x1", root=tmp_path / "pretrained", stages=[tmp_path / "missing.pt"])
+    with pytest.raises(PretrainedError, match="0 rows"):
+        ship_checkpoint(other, "wskpn-xs-x1", root=tmp_path / "pretrained", report=report_for(),
+                        report_source="runs/other.pt")
+    assert shipped.path.read_bytes() == weights and (shipped.folder / "manifest.json").read_text() == manifest
+    verify(get_pretrained("wskpn-xs-x1", tmp_path / "pretrained"))
 
 
 def test_without_a_report_the_held_out_metrics_are_pending(tmp_path):
