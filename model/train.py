@@ -420,7 +420,13 @@ class _Training:
         if checkpoint is None:
             _seed_everything(_derived_seed(self.config.seed, self.rank, 0))
             return
+        parameters = [id(parameter) for parameter in self.method.parameters()]
         self.method.load_state_dict(checkpoint["model"])
+        if [id(parameter) for parameter in self.method.parameters()] != parameters:
+            # A method that rebuilds itself to fit older weights (fused before its running-mean candidates) would
+            # leave the optimizer holding the parameters it replaced.
+            raise ValueError(f"{self.out / LAST_CHECKPOINT} holds an older network of {self.method.label} than "
+                             f"this version trains; continue from it with --init-from and a new --out")
         self.optimizer.load_state_dict(checkpoint["optimizer"])
         self.scheduler.load_state_dict(checkpoint["scheduler"])
         self.step = checkpoint["step"]

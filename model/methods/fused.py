@@ -16,8 +16,19 @@ accumulated branch. Per frame:
 3. ``r`` = ``h`` rectified: clipped to ``s``'s 3 x 3 neighbourhood mean +- 1 sigma in YCoCg (``model.ops.rectify``);
 4. a small U-Net reads ``s``, the noisy frame, the guides (albedo, normal, depth), ``h``, ``r``, ``|h - s|``, the
    validity and length of the history, the recurrent features (and the jitter at scale 2) at render resolution,
-   and predicts, per output pixel, softmax fusion weights over (``s``, ``h``, ``r``) and a 3 x 3 softmax kernel;
-5. output = kernel * (w_s s + w_h h + w_r r), back to linear radiance; it is the next frame's history.
+   and predicts, per output pixel, softmax fusion weights over (``s``, ``h``, ``r``, ``c``) and a 3 x 3 softmax
+   kernel;
+5. output = kernel * (w_s s + w_h h + w_r r + w_c c), back to linear radiance; it is the next frame's history.
+
+``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to
+``MEAN_FRAMES`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
+``r``, and the network also reads ``m`` and ``|m - s|``. Its own output ``h`` carries its kernels' blur and its clips
+into every later frame; ``m`` is an unbiased average of OIDN's estimates where the scene is static (which the
+network, reading its own output, had not learned to reproduce: an unclipped running mean scored 0.4-0.7 dB above it
+on static held-out recipes). ``m`` itself as a candidate ghosted more (it keeps a moving lamp's old positions
+wherever the depth test passes), so only its clipped form is one. Checkpoints from before the running mean load as
+the three-candidate network they are (``load_state_dict``), with its cost; ``--init-from`` one of them starts this
+network with the new inputs' weights at zero and the new candidate's weight at ``NEW_CANDIDATE_WEIGHT``.
 
 Where there is no history (disocclusion, a cut, the first frame), ``h`` is ``s`` itself and ``r`` is ``s`` clipped to
 its own neighbourhood, so the output is made of OIDN's estimate alone: the method falls back to the spatial
@@ -47,12 +58,18 @@ from model.ops.warp import backward_warp, upscale_motion
 
 __all__ = ["Fused", "FusionNet", "unjittered_resample"]
 
-CANDIDATES = 3  # spatial estimate, history, rectified history
+CANDIDATES = 4  # spatial estimate, history, rectified history, clipped running mean
+LEGACY_CANDIDATES = 3  # checkpoints from before the running mean: spatial estimate, history, rectified history
+MEAN_FRAMES = 16.0  # the running mean's 1 / n weights stop falling here (then an exponential average; training
+# samples hold 12 frames, so the count input stays near what training saw)
+MEAN_INPUTS = 3 + 3 + 1  # the running mean, |mean - s| and log(1 + frames in it), at render resolution
+NEW_CANDIDATE_WEIGHT = 0.01  # the clipped mean's share when fine-tuning starts from a legacy checkpoint
 KERNEL = 3
 HIDDEN = 4  # recurrent feature channels carried from frame to frame
 MAX_HISTORY = 8.0  # the history-length input saturates here (longer histories look alike to the network)
-# Initial fusion: TAA's 0.2 * current + 0.8 * rectified history, almost nothing on the raw history.
-INITIAL_WEIGHTS = (0.2, 0.002, 0.798)
+# Initial fusion: TAA's 0.2 * current + 0.8 * rectified history, almost nothing on the raw history or the means.
+INITIAL_WEIGHTS = (0.2, 0.002, 0.796, 0.002)
+LEGACY_INITIAL_WEIGHTS = (0.2, 0.002, 0.798)
 INITIAL_CENTRE_LOGIT = 7.0  # the 3 x 3 kernel starts as (almost) the identity: 0.993 on the centre tap
 WIDTH = 16
 
@@ -84,21 +101,23 @@ def _conv(inputs: int, outputs: int) -> nn.Sequential:
 class FusionNet(nn.Module):
     """Two-level U-Net at render resolution; the head predicts scale^2 sub-pixels' weights and kernels each."""
 
-    def __init__(self, inputs: int, scale: int, width: int = WIDTH):
+    def __init__(self, inputs: int, scale: int, width: int = WIDTH, candidates: int = CANDIDATES):
         super().__init__()
         self.scale = scale
+        self.candidates = candidates
         self.encoder = nn.Sequential(_conv(inputs, width), _conv(width, width))
         self.bottom = nn.Sequential(_conv(width, 2 * width), _conv(2 * width, 2 * width))
         self.decoder = _conv(3 * width, width)
-        per_pixel = CANDIDATES + KERNEL * KERNEL
+        per_pixel = candidates + KERNEL * KERNEL
         self.head = nn.Conv2d(width, scale * scale * per_pixel + HIDDEN, 1)
         self._initialise_head(per_pixel)
 
     def _initialise_head(self, per_pixel: int) -> None:
         nn.init.zeros_(self.head.weight[: self.scale ** 2 * per_pixel])
         bias = torch.zeros(per_pixel)
-        bias[:CANDIDATES] = torch.log(torch.tensor(INITIAL_WEIGHTS))
-        bias[CANDIDATES + KERNEL * KERNEL // 2] = INITIAL_CENTRE_LOGIT
+        weights = torch.tensor(INITIAL_WEIGHTS if self.candidates == CANDIDATES else LEGACY_INITIAL_WEIGHTS)
+        bias[:self.candidates] = torch.log(weights)
+        bias[self.candidates + KERNEL * KERNEL // 2] = INITIAL_CENTRE_LOGIT
         with torch.no_grad():
             self.head.bias.zero_()
             # Channel layout (PixelShuffle): channel c * scale^2 + sub-pixel, so each value repeats per sub-pixel.
@@ -111,9 +130,9 @@ class FusionNet(nn.Module):
         bottom = self.bottom(F.avg_pool2d(top, 2, ceil_mode=True))
         up = F.interpolate(bottom, size=(h, w), mode="bilinear", align_corners=False)
         out = self.head(self.decoder(torch.cat([top, up], dim=1)))
-        per_pixel = self.scale ** 2 * (CANDIDATES + KERNEL * KERNEL)
+        per_pixel = self.scale ** 2 * (self.candidates + KERNEL * KERNEL)
         fine = F.pixel_shuffle(out[:, :per_pixel], self.scale) if self.scale > 1 else out[:, :per_pixel]
-        return fine[:, :CANDIDATES], fine[:, CANDIDATES:], torch.tanh(out[:, per_pixel:])
+        return fine[:, :self.candidates], fine[:, self.candidates:], torch.tanh(out[:, per_pixel:])
 
 
 class Fused(Method):
@@ -132,8 +151,65 @@ class Fused(Method):
         self.spatial_prior = preset
         self.depth_rel_tol = depth_rel_tol
         self.normal_cos_tol = normal_cos_tol
-        inputs = 3 * 7 + 3 + HIDDEN + (2 if scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
-        self.net = FusionNet(inputs, scale)
+        self.net = self._network(CANDIDATES)
+
+    def _network(self, candidates: int) -> FusionNet:
+        inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
+        if candidates == CANDIDATES:
+            inputs += MEAN_INPUTS
+        return FusionNet(inputs, self.scale, candidates=candidates)
+
+    @property
+    def has_mean(self) -> bool:
+        return self.net.candidates == CANDIDATES
+
+    def _candidates_in(self, state_dict: dict[str, torch.Tensor]) -> int:
+        rows = state_dict["net.head.weight"].shape[0]
+        return (rows - HIDDEN) // self.scale ** 2 - KERNEL * KERNEL
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Load a checkpoint of either network: one from before the running mean rebuilds this method as the
+        three-candidate network it was trained as (the same outputs and cost as then)."""
+        candidates = self._candidates_in(state_dict)
+        if candidates != self.net.candidates:
+            if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
+                raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
+                                 f"({LEGACY_CANDIDATES} or {CANDIDATES})")
+            device = self.net.head.weight.device
+            self.net = self._network(candidates).to(device)
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
+        """``--init-from``: a three-candidate checkpoint starts this network as the same function, nearly: the
+        new inputs' weights are zero and the clipped running mean starts at ``NEW_CANDIDATE_WEIGHT``."""
+        if self._candidates_in(state_dict) != LEGACY_CANDIDATES or not self.has_mean:
+            self.load_state_dict(state_dict)
+            return
+        expanded = dict(state_dict)
+        first = "net.encoder.0.0.weight"
+        old = state_dict[first]
+        grown = old.new_zeros(old.shape[0], old.shape[1] + MEAN_INPUTS, *old.shape[2:])
+        grown[:, :old.shape[1]] = old  # the new inputs come after every old one
+        expanded[first] = grown
+        sub = self.scale ** 2
+        old_weight, old_bias = state_dict["net.head.weight"], state_dict["net.head.bias"]
+        weight = old_weight.new_zeros(self.net.head.weight.shape)
+        bias = old_bias.new_zeros(self.net.head.bias.shape)
+        # Head rows are channel * scale^2 + sub-pixel (PixelShuffle); the new candidate goes after the old three.
+        for channel in range(LEGACY_CANDIDATES + KERNEL * KERNEL):
+            new = channel if channel < LEGACY_CANDIDATES else channel + CANDIDATES - LEGACY_CANDIDATES
+            weight[new * sub:(new + 1) * sub] = old_weight[channel * sub:(channel + 1) * sub]
+            bias[new * sub:(new + 1) * sub] = old_bias[channel * sub:(channel + 1) * sub]
+        # Its logit: the old candidates' log-sum-exp (their biases) plus log of its share.
+        old_logits = old_bias[:LEGACY_CANDIDATES * sub].view(LEGACY_CANDIDATES, sub)
+        start = torch.logsumexp(old_logits, dim=0) + torch.log(torch.tensor(NEW_CANDIDATE_WEIGHT))
+        for new in range(LEGACY_CANDIDATES, CANDIDATES):
+            bias[new * sub:(new + 1) * sub] = start
+        rows = (LEGACY_CANDIDATES + KERNEL * KERNEL) * sub
+        weight[CANDIDATES * sub + KERNEL * KERNEL * sub:] = old_weight[rows:]  # the hidden features' rows
+        bias[CANDIDATES * sub + KERNEL * KERNEL * sub:] = old_bias[rows:]
+        expanded["net.head.weight"], expanded["net.head.bias"] = weight, bias
+        self.load_state_dict(expanded)
 
     def for_inference(self) -> Fused:
         """Eval mode with the network in channels_last: 2.5x faster convolutions on this CPU at 128x128 (6.3 against
@@ -153,6 +229,7 @@ class Fused(Method):
         n, _, height, width = frame.color.shape
         s = self.spatial_estimate(frame)
         s_out = unjittered_resample(s, frame.jitter, self.scale) if self.scale > 1 else s
+        mean = count = None
         if state is None:
             valid = torch.zeros_like(frame.depth, dtype=torch.bool)
             history, hidden = s_out, frame.color.new_zeros(n, HIDDEN, height, width)
@@ -162,6 +239,8 @@ class Fused(Method):
             valid_out = _upsample_mask(valid, self.scale)
             history = torch.where(valid_out, history, s_out)
             hidden = hidden * valid
+            if self.has_mean and "mean" in state:  # a legacy session's state has no mean: it starts here
+                mean, count = self._reproject_mean(frame, state, valid)
         rectified = variance_clip(history, s_out)
         length = torch.where(valid, (length + 1).clamp_max(MAX_HISTORY), torch.zeros_like(length))
 
@@ -174,16 +253,39 @@ class Fused(Method):
                  (history_r - s).abs(), depth, valid.to(s.dtype), length / MAX_HISTORY, hidden]
         if self.scale > 1:
             parts.append(frame.jitter.view(n, 2, 1, 1).expand(n, 2, height, width).to(s.dtype))
+        candidates = [s_out, history, rectified]
+        if self.has_mean:
+            if mean is None:
+                mean, count = s_out, torch.ones_like(frame.depth)
+            else:  # 1 / n weights over the frames the history held, the current one included
+                count_out = _upsample_values(count, self.scale)
+                mean = mean + (s_out - mean) / count_out
+            mean_r = at_render(mean)
+            parts += [mean_r, (mean_r - s).abs(), torch.log1p(count) / torch.log1p(torch.tensor(MEAN_FRAMES))]
+            candidates.append(variance_clip(mean, s_out))
         features = torch.cat(parts, dim=1)
         if self.net.head.weight.is_contiguous(memory_format=torch.channels_last) and features.dim() == 4:
             features = features.contiguous(memory_format=torch.channels_last)
         weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
-        blended = weights[:, 0:1] * s_out + weights[:, 1:2] * history + weights[:, 2:3] * rectified
+        blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
         output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
         new_state = {"history": output, "hidden": new_hidden, "length": length, "depth": frame.depth,
                      "normal": frame.normal, "jitter": frame.jitter}
+        if self.has_mean:
+            new_state.update(mean=mean, count=count)
         return reinhard_inverse(output), new_state
+
+    def _reproject_mean(self, frame: FrameBatch, state: State, valid: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the running mean at output resolution, the frames it will hold with this one) warped into this frame;
+        where the history is invalid the count is 1, so the caller's update replaces the mean with ``s``."""
+        motion_out = upscale_motion(frame.motion, self.scale) if self.scale > 1 else frame.motion
+        mean, _ = backward_warp(state["mean"], motion_out, mode="bicubic")
+        mean = mean.clamp(0.0, 1.0 - 1e-4)
+        count, _ = backward_warp(state["count"], frame.motion, mode="nearest")
+        count = torch.where(valid, (count + 1).clamp_max(MEAN_FRAMES), torch.ones_like(count))
+        return mean, count
 
     def _reproject(self, frame: FrameBatch, state: State
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -201,6 +303,12 @@ class Fused(Method):
                                   jitter=frame.jitter - state["jitter"])
         # A camera cut zeroes the state (drop_history): its normals are 0 then, which fails the test above.
         return history, render[:, :HIDDEN], render[:, HIDDEN:], valid
+
+
+def _upsample_values(values: torch.Tensor, scale: int) -> torch.Tensor:
+    if scale == 1:
+        return values
+    return F.interpolate(values, scale_factor=scale, mode="nearest")
 
 
 def _upsample_mask(mask: torch.Tensor, scale: int) -> torch.Tensor:

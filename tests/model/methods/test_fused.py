@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.fused import Fused, unjittered_resample
+from model.methods.fused import LEGACY_CANDIDATES, Fused, unjittered_resample
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, inference_cost, method_spec
@@ -137,3 +137,63 @@ def test_resampling_next_to_a_bright_emitter_does_not_overshoot():
     image[..., 3:5, 3:5] = 0.98  # x / (1 + x) of radiance 49: a visible light
     resampled = unjittered_resample(image, torch.tensor([[0.37, -0.41]]), 2)
     assert float(resampled.max()) <= 0.98 + 1e-6 and float(resampled.min()) >= 0.02 - 1e-6
+
+
+def legacy_state_dict(seed: int = 4) -> dict[str, torch.Tensor]:
+    """A three-candidate network's weights (as checkpoints from before the running mean hold), off its initial
+    head so every path matters."""
+    torch.manual_seed(seed)
+    legacy = build_method("fused")
+    legacy.net = legacy._network(LEGACY_CANDIDATES)
+    for parameter in legacy.parameters():
+        parameter.data += 0.05 * torch.randn_like(parameter)
+    return legacy.state_dict()
+
+
+def test_the_running_mean_is_the_mean_of_the_spatial_estimates_while_history_holds():
+    estimates = [truth() * (1 + 0.2 * k) for k in range(4)]
+    method, state = build_method("fused"), None
+    for estimate in estimates:
+        _, state = method.step(frame_with_estimate(estimate), state)
+    expected = torch.stack([reinhard(estimate) for estimate in estimates]).mean(dim=0)
+    torch.testing.assert_close(state["mean"], expected, atol=1e-5, rtol=1e-5)
+    assert float(state["count"].min()) == float(state["count"].max()) == 4.0
+    # A cut restarts it at the current estimate.
+    _, state = method.step(frame_with_estimate(truth(), camera_cut=[True]), state)
+    torch.testing.assert_close(state["mean"], reinhard(truth()))
+    assert float(state["count"].max()) == 1.0
+
+
+def test_a_checkpoint_from_before_the_running_mean_loads_as_the_network_it_was():
+    weights = legacy_state_dict()
+    method = build_method("fused")
+    method.load_state_dict(weights)
+    assert method.net.candidates == LEGACY_CANDIDATES and not method.has_mean
+    frames = [frame_with_estimate(truth() * (1 + 0.1 * k)) for k in range(3)]
+    state = None
+    with torch.no_grad():
+        for frame in frames:
+            output, state = method.step(frame, state)
+    assert "mean" not in state and torch.isfinite(output).all()
+    with pytest.raises(ValueError, match="fusion candidates"):
+        method.load_state_dict({**weights, "net.head.weight": weights["net.head.weight"][:-2 * 1]})
+
+
+def test_init_from_an_older_checkpoint_starts_as_nearly_the_same_function():
+    weights = legacy_state_dict()
+    legacy = build_method("fused")
+    legacy.load_state_dict(weights)
+    grown = build_method("fused")
+    grown.load_initial_weights(weights)
+    assert grown.has_mean
+    frames = [frame_with_estimate(truth() * (1 + 0.3 * (k % 2))) for k in range(4)]
+    state_a = state_b = None
+    with torch.no_grad():
+        for frame in frames:
+            out_a, state_a = legacy.eval().step(frame, state_a)
+            out_b, state_b = grown.eval().step(frame, state_b)
+            # One new candidate at 1%, everything else as it was.
+            assert float((out_b - out_a).abs().max()) < 0.02 * float(out_a.abs().max())
+    # A legacy session's state (no running mean) continues on the new network.
+    output, state = grown.step(frames[0], {k: v for k, v in state_a.items()})
+    assert torch.isfinite(output).all() and float(state["count"].max()) == 1.0
