@@ -29,14 +29,15 @@ session has a background writer (tasks of a small thread pool, one write at a ti
 revision handed to it) that serializes the state (on a frame-reading thread) and writes it; the API starts it once
 the frame's response is sent, or the session's next frame does. That frame does not wait for it: its step runs while
 the history is serialized and written (a step never changes the state it is given, which a test holds every method
-to), and the frame waits for the write to land before it is answered; a reset or delete waits for the write first. So Redis is at most one frame behind memory, the frame in flight, and a large history's write (a 1080p
-one takes a few hundred milliseconds) overlaps the next step instead of preceding it. Closing the store (the API's
-shutdown) waits for every pending write, so a clean restart loses nothing. If the process dies between answering
-frame N and its mirror landing, the restarted process holds the session as it was after frame N - 1 and expects
-frame N: the client's next frame, N + 1, is a gap under the frame-order rules (history restarted with
-``on_gap="reset"``, 409 "frame_gap" with ``on_gap="reject"``), and resending frame N continues exactly. A restored
-history is never paired with a frame it does not precede. For the same reason the frames of one session belong on
-one API process: another process reading Redis in that window sees the same one-frame lag.
+to), and the frame waits for the write to land before it is answered; a reset or delete waits for the write first.
+So Redis is at most one frame behind memory, the frame in flight, and a large history's write (a 1080p one takes a
+few hundred milliseconds) overlaps the next step instead of preceding it. Closing the store (the API's shutdown)
+waits for every pending write, so a clean restart loses nothing. If the process dies between answering frame N and
+its mirror landing, the restarted process holds the session as it was after frame N - 1 and expects frame N: the
+client's next frame, N + 1, is a gap under the frame-order rules (history restarted with ``on_gap="reset"``, 409
+"frame_gap" with ``on_gap="reject"``), and resending frame N continues exactly. A restored history is never paired
+with a frame it does not precede. For the same reason the frames of one session belong on one API process: another
+process reading Redis in that window sees the same one-frame lag.
 
 Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
 Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
@@ -44,8 +45,9 @@ Loaded methods are shared by every session of the same model version (one copy o
 different sessions run concurrently, except that every step, weight load and history restore runs on the store's
 session torch threads (``api.torch_thread``: one OpenMP team each, not one per request thread); on a CPU each step
 uses every core, so running two at once would gain nothing. Stream frames are read into tensors (``read_frame``) and
-histories serialized for Redis on threads of one torch thread each (no OpenMP team), beside the steps. If Redis is unreachable, sessions keep working from memory (a
-warning is logged, by the background writer for frames) but cannot survive a restart meanwhile.
+histories serialized for Redis on threads of one torch thread each (no OpenMP team), beside the steps. If Redis is
+unreachable, sessions keep working from memory (a warning is logged, by the background writer for frames) but cannot
+survive a restart meanwhile.
 """
 
 from __future__ import annotations

@@ -423,7 +423,7 @@ class _Training:
         parameters = [id(parameter) for parameter in self.method.parameters()]
         self.method.load_state_dict(checkpoint["model"])
         if [id(parameter) for parameter in self.method.parameters()] != parameters:
-            # A method that rebuilds itself to fit older weights (fused before its running-mean candidates) would
+            # A method that rebuilds itself to fit older weights (fused before its running-mean candidate) would
             # leave the optimizer holding the parameters it replaced.
             raise ValueError(f"{self.out / LAST_CHECKPOINT} holds an older network of {self.method.label} than "
                              f"this version trains; continue from it with --init-from and a new --out")

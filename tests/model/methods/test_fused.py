@@ -176,7 +176,7 @@ def test_a_checkpoint_from_before_the_running_mean_loads_as_the_network_it_was()
             output, state = method.step(frame, state)
     assert "mean" not in state and torch.isfinite(output).all()
     with pytest.raises(ValueError, match="fusion candidates"):
-        method.load_state_dict({**weights, "net.head.weight": weights["net.head.weight"][:-2 * 1]})
+        method.load_state_dict({**weights, "net.head.weight": weights["net.head.weight"][:-2]})
 
 
 def test_init_from_an_older_checkpoint_starts_as_nearly_the_same_function():
