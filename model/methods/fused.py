@@ -52,7 +52,7 @@ from model.methods.oidn import QUALITIES, oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import MethodSpec, register
 from model.ops.kernels import apply_pixel_kernels
-from model.ops.rectify import variance_clip
+from model.ops.rectify import clip_to_moments, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
 from model.ops.warp import backward_warp, upscale_motion
 
@@ -229,19 +229,18 @@ class Fused(Method):
         n, _, height, width = frame.color.shape
         s = self.spatial_estimate(frame)
         s_out = unjittered_resample(s, frame.jitter, self.scale) if self.scale > 1 else s
-        mean = count = None
+        mean = count = None  # the running mean and its frame count, when the network has one
         if state is None:
             valid = torch.zeros_like(frame.depth, dtype=torch.bool)
             history, hidden = s_out, frame.color.new_zeros(n, HIDDEN, height, width)
             length = torch.zeros_like(frame.depth)
         else:
-            history, hidden, length, valid = self._reproject(frame, state)
+            history, hidden, length, valid, mean, count = self._reproject(frame, state)
             valid_out = _upsample_mask(valid, self.scale)
             history = torch.where(valid_out, history, s_out)
             hidden = hidden * valid
-            if self.has_mean and "mean" in state:  # a legacy session's state has no mean: it starts here
-                mean, count = self._reproject_mean(frame, state, valid)
-        rectified = variance_clip(history, s_out)
+        guide = neighbourhood_moments(s_out)  # both clipped candidates are clipped to s's neighbourhood
+        rectified = clip_to_moments(history, *guide)
         length = torch.where(valid, (length + 1).clamp_max(MAX_HISTORY), torch.zeros_like(length))
 
         def at_render(image: torch.Tensor) -> torch.Tensor:
@@ -262,7 +261,7 @@ class Fused(Method):
                 mean = mean + (s_out - mean) / count_out
             mean_r = at_render(mean)
             parts += [mean_r, (mean_r - s).abs(), torch.log1p(count) / torch.log1p(torch.tensor(MEAN_FRAMES))]
-            candidates.append(variance_clip(mean, s_out))
+            candidates.append(clip_to_moments(mean, *guide))
         features = torch.cat(parts, dim=1)
         if self.net.head.weight.is_contiguous(memory_format=torch.channels_last) and features.dim() == 4:
             features = features.contiguous(memory_format=torch.channels_last)
@@ -276,33 +275,31 @@ class Fused(Method):
             new_state.update(mean=mean, count=count)
         return reinhard_inverse(output), new_state
 
-    def _reproject_mean(self, frame: FrameBatch, state: State, valid: torch.Tensor
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(the running mean at output resolution, the frames it will hold with this one) warped into this frame;
-        where the history is invalid the count is 1, so the caller's update replaces the mean with ``s``."""
+    def _reproject(self, frame: FrameBatch, state: State) -> tuple[torch.Tensor, ...]:
+        """(history at output resolution, hidden features, history length, valid, running mean at output
+        resolution, frames the mean will hold with this one) warped into this frame; the last two are None when
+        the network has no mean or the state none (a session from before it: the mean starts at this frame).
+        Where the history is invalid the count is 1, so the caller's update replaces the mean with ``s``."""
         motion_out = upscale_motion(frame.motion, self.scale) if self.scale > 1 else frame.motion
-        mean, _ = backward_warp(state["mean"], motion_out, mode="bicubic")
-        mean = mean.clamp(0.0, 1.0 - 1e-4)
-        count, _ = backward_warp(state["count"], frame.motion, mode="nearest")
-        count = torch.where(valid, (count + 1).clamp_max(MEAN_FRAMES), torch.ones_like(count))
-        return mean, count
-
-    def _reproject(self, frame: FrameBatch, state: State
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(history at output resolution, hidden features, history length, valid) warped into this frame."""
-        motion_out = upscale_motion(frame.motion, self.scale) if self.scale > 1 else frame.motion
+        with_mean = self.has_mean and "mean" in state
         # Bicubic: a bilinear read blurs the history a little every frame under camera motion, which adds up over
         # a long history (measured on held-out glass with OIDN + TAA: 29.97 dB bicubic against 29.25 bilinear).
-        # Its overshoot is clamped: the values are x / (1 + x) in [0, 1).
-        history, _ = backward_warp(state["history"], motion_out, mode="bicubic")
-        history = history.clamp(0.0, 1.0 - 1e-4)
+        # Its overshoot is clamped: the values are x / (1 + x) in [0, 1). The running mean is read with it.
+        images = torch.cat([state["history"], state["mean"]], dim=1) if with_mean else state["history"]
+        images, _ = backward_warp(images, motion_out, mode="bicubic")
+        images = images.clamp(0.0, 1.0 - 1e-4)
+        history = images[:, :3]
         render, _ = backward_warp(torch.cat([state["hidden"], state["length"]], dim=1), frame.motion,
                                   mode="bilinear")
         valid = disocclusion_mask(frame.depth, frame.normal, state["depth"], state["normal"], frame.motion,
                                   depth_rel_tol=self.depth_rel_tol, normal_cos_tol=self.normal_cos_tol,
                                   jitter=frame.jitter - state["jitter"])
         # A camera cut zeroes the state (drop_history): its normals are 0 then, which fails the test above.
-        return history, render[:, :HIDDEN], render[:, HIDDEN:], valid
+        mean = count = None
+        if with_mean:
+            count, _ = backward_warp(state["count"], frame.motion, mode="nearest")
+            mean, count = images[:, 3:], torch.where(valid, (count + 1).clamp_max(MEAN_FRAMES), torch.ones_like(count))
+        return history, render[:, :HIDDEN], render[:, HIDDEN:], valid, mean, count
 
 
 def _upsample_values(values: torch.Tensor, scale: int) -> torch.Tensor:
@@ -314,7 +311,7 @@ def _upsample_values(values: torch.Tensor, scale: int) -> torch.Tensor:
 def _upsample_mask(mask: torch.Tensor, scale: int) -> torch.Tensor:
     if scale == 1:
         return mask
-    return F.interpolate(mask.to(torch.float32), scale_factor=scale, mode="nearest") > 0.5
+    return _upsample_values(mask.to(torch.float32), scale) > 0.5
 
 
 register(MethodSpec(

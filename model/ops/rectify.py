@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip",
-           "variance_clip_hdr"]
+           "clip_to_moments", "variance_clip_hdr"]
 
 
 def rgb_to_ycocg(rgb: torch.Tensor) -> torch.Tensor:
@@ -79,7 +79,12 @@ def variance_clip(history: torch.Tensor, guide: torch.Tensor, size: int = 3, gam
     _check(history, guide, size)
     if gamma < 0:
         raise ValueError(f"gamma must be >= 0, got {gamma}")
-    mean, std = neighbourhood_moments(guide, size)
+    return clip_to_moments(history, *neighbourhood_moments(guide, size), gamma)
+
+
+def clip_to_moments(history: torch.Tensor, mean: torch.Tensor, std: torch.Tensor, gamma: float = 1.0) -> torch.Tensor:
+    """``variance_clip`` against moments already taken (``neighbourhood_moments``): several histories clipped to one
+    guide take its moments once."""
     spread = gamma * std
     return ycocg_to_rgb(torch.maximum(torch.minimum(rgb_to_ycocg(history), mean + spread), mean - spread))
 
