@@ -211,13 +211,17 @@ class Session:
 @dataclass(frozen=True)
 class ReadFrame:
     """A frame read straight into its batch (a stream message, by ``SessionStore.read_frame``): what the frame
-    rules need and the batch on the session device."""
+    rules need and the batch on the session device; ``plainly_valid``: the read proved the input check would
+    repair nothing (model.stream_batch), so the step skips it; ``output_dtype``: "float32" or "float16", the
+    output's dtype (the stream's answer is packed in it: torch casts it on the step's thread, faster than NumPy)."""
 
     frame_index: int
     width: int
     height: int
     camera_cut: bool
     batch: FrameBatch = field(repr=False)
+    plainly_valid: bool = False
+    output_dtype: str = "float32"
 
 
 @dataclass(frozen=True)
@@ -401,7 +405,9 @@ class SessionStore:
         self._methods: dict[tuple, Method] = {}  # SessionModelSource.key -> method
         self._writers: dict[str, _MirrorWriter] = {}
         self._lock = threading.RLock()  # guards the four dicts
-        self._mirror_pool = ThreadPoolExecutor(MIRROR_WRITERS, thread_name_prefix="session-mirror")
+        # Each writer serializes the history itself, with one torch thread (no OpenMP team, no hop to another thread).
+        self._mirror_pool = ThreadPoolExecutor(MIRROR_WRITERS, thread_name_prefix="session-mirror",
+                                               initializer=torch.set_num_threads, initargs=(1,))
         self._methods_lock = threading.Lock()  # one method load at a time, so each version loads once
         self._create_lock = threading.Lock()  # the capacity check and the insert are one step
 
@@ -561,9 +567,14 @@ class SessionStore:
               state: State | None) -> tuple[np.ndarray, State, float, SanitizeReport]:
         """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms and
         what was repaired in the input first (a NaN let into the history would poison every later frame)."""
-        batch = frame.batch if isinstance(frame, ReadFrame) else FrameBatch.from_bundles([frame], scale=None,
-                                                                                          device=self.device)
-        batch, sanitized = sanitize_frame(batch)
+        if isinstance(frame, ReadFrame):
+            batch, dtype = frame.batch, getattr(torch, frame.output_dtype)
+        else:
+            batch, dtype = FrameBatch.from_bundles([frame], scale=None, device=self.device), torch.float32
+        if isinstance(frame, ReadFrame) and frame.plainly_valid:
+            sanitized = SanitizeReport(frames=batch.batch_size)
+        else:
+            batch, sanitized = sanitize_frame(batch)
         with torch.no_grad():
             start = time.perf_counter()
             output, state = method.step(batch, state)
@@ -572,7 +583,7 @@ class SessionStore:
             inference_ms = (time.perf_counter() - start) * 1000
         # A copy (the response is encoded after the lock is released, while the next frame of this session may
         # already run), kept as contiguous R, G, B planes, which the EXR encoder takes without copying.
-        planes = output[0].detach().to("cpu", torch.float32, copy=True)
+        planes = output[0].detach().to("cpu", dtype, copy=True)
         return planes.permute(1, 2, 0).numpy(), state, inference_ms, sanitized
 
     def flush(self, timeout: float | None = None) -> bool:
@@ -740,9 +751,8 @@ class SessionStore:
         """Write one snapshot (metadata and state together) to Redis and restart the key's TTL."""
         session = snapshot.session
         key = self._key(session.id)
-        # On a reader thread (one torch thread, no OpenMP team): the session threads run the next frame's step
-        # meanwhile, which reads the same tensors but never changes them.
-        data = self._readers.run(encode_state, snapshot.state, self.history_precision)
+        # Beside the next frame's step, which reads the same tensors but never changes them.
+        data = encode_state(snapshot.state, self.history_precision)
         mapping = {"meta": snapshot.meta, **state_fields(data, STATE_CHUNK_BYTES)}
 
         def write(client: redis.Redis) -> None:

@@ -28,6 +28,7 @@ counted, so a valid frame reports nothing. References are never touched: a metho
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -35,7 +36,7 @@ import torch
 from model.frames import BUFFERS, JITTER_LIMIT, NORMAL_LENGTH_TOLERANCE
 from model.methods.base import FrameBatch
 
-__all__ = ["SanitizeReport", "sanitize_frame", "RADIANCE_BUFFERS"]
+__all__ = ["PLAIN_RANGES", "SanitizeReport", "bounds_need_no_repair", "sanitize_frame", "RADIANCE_BUFFERS"]
 
 RADIANCE_BUFFERS = ("color", "diffuse", "specular")
 UNIT_BUFFERS = {"albedo": 0.0, "specular_albedo": 0.0, "roughness": 1.0}  # buffer -> replacement for NaN/Inf
@@ -196,29 +197,42 @@ def _jitter(jitter: torch.Tensor, report: SanitizeReport) -> torch.Tensor:
     return jitter
 
 
+# The range each buffer's values keep without a repair (None: unbounded); any other buffer only has to be finite.
+PLAIN_RANGES: dict[str, tuple[float | None, float | None]] = {
+    "color": (0.0, None), "diffuse": (0.0, None), "specular": (0.0, None), "albedo": (0.0, 1.0),
+    "specular_albedo": (0.0, 1.0), "roughness": (0.0, 1.0), "depth": (0.0, None), "motion": (None, None)}
+
+
+def bounds_need_no_repair(bounds: Mapping[str, tuple[float, float]], jitter: Iterable[float]) -> bool:
+    """Whether each buffer's lowest and highest value (``bounds``, by name) and the jitter show nothing to repair:
+    all finite, each inside its PLAIN_RANGES entry. Normal lengths are not judged here (``_plainly_valid`` checks
+    them; a stream frame proves them where it is read, model.stream_batch)."""
+    for name, (lowest, highest) in bounds.items():
+        if not (math.isfinite(lowest) and math.isfinite(highest)):
+            return False
+        low, high = PLAIN_RANGES.get(name, (None, None))
+        if (low is not None and lowest < low) or (high is not None and highest > high):
+            return False
+    return all(math.isfinite(value) and abs(value) <= JITTER_LIMIT for value in jitter)
+
+
 def _plainly_valid(frame: FrameBatch) -> bool:
     """True when one min/max per buffer shows nothing to repair (min and max propagate NaN); False means "look
     pixel by pixel", not that something is wrong. A clean 128x128 frame costs about 0.3 ms here, the pixel-wise
     pass about 2.5 ms, which a session would pay on every frame."""
-    bounds = {"color": (0.0, None), "diffuse": (0.0, None), "specular": (0.0, None), "albedo": (0.0, 1.0),
-              "specular_albedo": (0.0, 1.0), "roughness": (0.0, 1.0), "depth": (0.0, None), "motion": (None, None)}
-    for name, (low, high) in bounds.items():
+    bounds = {}
+    for name in PLAIN_RANGES:
         tensor = getattr(frame, name)
-        if tensor is None:
-            continue
-        lowest, highest = (float(v) for v in torch.aminmax(tensor))
-        if not (math.isfinite(lowest) and math.isfinite(highest)):
-            return False
-        if (low is not None and lowest < low) or (high is not None and highest > high):
-            return False
+        if tensor is not None:
+            lowest, highest = (float(v) for v in torch.aminmax(tensor))
+            bounds[name] = (lowest, highest)
+    if not bounds_need_no_repair(bounds, frame.jitter.reshape(-1).tolist()):
+        return False
     squared = (frame.normal * frame.normal).sum(dim=1)
     # |n|^2 within (1 +- tol)^2 where anything was hit, or exactly 0: no normal is renormalized.
     inside = (squared == 0) | (((1 - NORMAL_LENGTH_TOLERANCE) ** 2 < squared)
                                & (squared < (1 + NORMAL_LENGTH_TOLERANCE) ** 2))
-    if not bool(inside.all()):
-        return False
-    jitter = frame.jitter
-    return bool(torch.isfinite(jitter).all()) and bool((jitter.abs() <= JITTER_LIMIT).all())
+    return bool(inside.all())
 
 
 def sanitize_frame(frame: FrameBatch) -> tuple[FrameBatch, SanitizeReport]:

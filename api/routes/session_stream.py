@@ -141,11 +141,12 @@ def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: in
         raise _FrameFailed(ApiError(status, error.code, error.message, error.details)) from None
     index = message.frame_index
     try:
-        batch, repairs = store.read_frame(lambda device: stream_frame_batch(message, device, STREAM_SOURCE))
+        read = store.read_frame(lambda device: stream_frame_batch(message, device, STREAM_SOURCE))
     except FrameError as error:
         raise _FrameFailed(ApiError(400, "invalid_frame", str(error), {"buffer": error.buffer,
                                                                        "problem": error.problem}), index) from None
-    frame = ReadFrame(index or 0, message.width, message.height, message.camera_cut, batch)
+    frame = ReadFrame(index or 0, message.width, message.height, message.camera_cut, read.batch,
+                      plainly_valid=read.plainly_valid, output_dtype=message.output_dtype)
     try:
         with session_errors():
             result = store.process_frame(session_id, frame, start_mirror=False, frame_index_given=index is not None)
@@ -156,8 +157,8 @@ def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: in
                   "inference_ms": round(result.inference_ms, 3), "sanitized_pixels": result.sanitized.total}
         if not result.sanitized.clean:
             header["sanitized"] = result.sanitized.describe()
-        if repairs:
-            header["repairs"] = "; ".join(repairs)
+        if read.repairs:
+            header["repairs"] = "; ".join(read.repairs)
         header["server_ms"] = round((time.perf_counter() - started) * 1000, 3)
         return encode_output(result.output, dtype=message.output_dtype, **header)
     except BaseException:

@@ -78,7 +78,7 @@ def test_a_clean_frame_takes_the_fast_way_and_equals_the_reference(dtype, buffer
 def test_the_batch_owns_its_memory(fast_way_taken):
     message = decode_frame(encode_bundle(frame(), dtype="float32"))
     before = message.buffers["color"].copy()
-    batch, _ = stream_frame_batch(message)
+    batch = stream_frame_batch(message).batch
     batch.color.mul_(2)  # a view of the (read-only) message would refuse this or change the message
     np.testing.assert_array_equal(message.buffers["color"], before)
     assert fast_way_taken == []
@@ -125,3 +125,34 @@ def test_frames_the_reference_refuses_are_refused_with_its_message():
         with pytest.raises(FrameError) as slow:
             reference(message)
         assert str(fast.value) == str(slow.value) and fast.value.buffer == buffer
+
+
+def _broken(bundle, seed: int):
+    """One value of the frame made something the input check repairs (chosen by ``seed``), or nothing."""
+    rng = np.random.default_rng(seed)
+    changes = {}
+    choice = seed % 8
+    y, x = rng.integers(0, bundle.height), rng.integers(0, bundle.width)
+    for name, value in (("color", np.nan), ("albedo", 1.5), ("depth", -1.0), ("motion", np.inf),
+                        ("roughness", -0.2), ("specular_albedo", np.nan)):
+        if choice == 0:
+            array = getattr(bundle, name).copy()
+            array[y, x] = value
+            changes[name] = array
+            break
+        choice -= 1
+    frame_changes = {"jitter": (0.75, 0.0)} if choice == 0 else {}
+    return dataclasses.replace(bundle, **changes, **frame_changes)
+
+
+@pytest.mark.parametrize("seed", range(16))
+def test_the_plainly_valid_verdict_is_the_input_checks(seed, fast_way_taken):
+    """A frame the read calls plainly valid is one the input check returns untouched and reports clean; a clean
+    frame is called so (the step then skips the check), a frame with anything to repair is not."""
+    from model.sanitize import sanitize_frame
+
+    bundle = _broken(frame(seed=seed), seed)
+    read = stream_frame_batch(decode_frame(encode_bundle(bundle, dtype="float16" if seed % 2 else "float32")))
+    checked, report = sanitize_frame(read.batch)
+    assert read.plainly_valid == (checked is read.batch and report.clean)
+    assert read.plainly_valid == (seed % 8 == 7)  # seeds 7 and 15 break nothing
