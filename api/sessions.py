@@ -25,8 +25,8 @@ matching pair (a history and the frame index it continues at), never one without
 
 When the mirror is written. Creating and resetting a session write Redis before they answer (a reset lost in a crash
 could let the old history meet the new stream). A frame's mirror is written off the request's critical path: each
-session has a background writer (tasks of a small thread pool, one write at a time per session, always the newest
-revision handed to it) that serializes the state (on a frame-reading thread) and writes it; the API starts it once
+session has a background writer (tasks of a small thread pool of one torch thread each, one write at a time per
+session, always the newest revision handed to it) that serializes the state and writes it; the API starts it once
 the frame's response is sent, or the session's next frame does. That frame does not wait for it: its step runs while
 the history is serialized and written (a step never changes the state it is given, which a test holds every method
 to), and the frame waits for the write to land before it is answered; a reset or delete waits for the write first.
