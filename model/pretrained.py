@@ -220,11 +220,15 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                     dataset_dir: str | os.PathLike | None = None, dataset_script: str | None = None,
                     training_script: str | None = None, report: dict[str, Any] | None = None,
                     report_source: str | None = None, report_path: str | None = None,
-                    stages: list[str | os.PathLike] | None = None) -> PretrainedModel:
+                    stages: list[str | os.PathLike] | None = None,
+                    after_shipped: str | None = None) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
     an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
     earlier trainings this one started from (``--init-from``), first to last; their step, best metric and training
-    settings are recorded as ``training.stages``."""
+    settings are recorded as ``training.stages``. ``after_shipped``: the name of a shipped model (in ``root``) the
+    first of them, or this checkpoint, started from (``--init-from pretrained/NAME/model.pt``): its recorded stages
+    and its own training come first, so a fine-tune of a shipped model keeps the whole recipe where the earlier
+    runs are gone (a fresh checkout holds none)."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -247,9 +251,19 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     if dataset_dir is not None:
         dataset.update(dataset_summary(dataset_dir))
     training["dataset"] = dataset
-    if stages:
-        training["stages"] = []
-        for stage in stages:
+    earlier_stages: list[dict[str, Any]] = []
+    if after_shipped is not None:
+        shipped = get_pretrained(after_shipped, root)
+        recorded = shipped.manifest.get("training") or {}
+        earlier_stages += list(recorded.get("stages") or [])
+        earlier_stages.append({"checkpoint": f"pretrained/{after_shipped}/{shipped.manifest['file']}",
+                               "sha256": shipped.manifest["sha256"], "method": {"method": shipped.method, "preset": shipped.manifest["preset"],
+                                          "scale": shipped.manifest["scale"]},
+                               "step": recorded.get("step"), "best_metric": recorded.get("best_metric"),
+                               "train_config": recorded.get("train_config")})
+    if stages or earlier_stages:
+        training["stages"] = earlier_stages
+        for stage in stages or ():
             earlier = load_checkpoint(stage)
             training["stages"].append({"checkpoint": str(stage), "method": earlier["method"],
                                        "step": int(earlier["step"]), "best_metric": earlier.get("best_metric"),

@@ -7,6 +7,9 @@ load, and the held-out metrics copied from an evaluation report of the same run 
         --training-script scripts/reproduce_reuse_results.sh --report docs/results/reuse_x1.json
 
 --report-source is the checkpoint path as the report's row names it (default: the checkpoint argument).
+--after-shipped NAME: the checkpoint was fine-tuned from the shipped model NAME (--init-from pretrained/NAME/model.pt);
+the stages recorded in its manifest, then that model itself, are recorded before any --stage (its earlier runs need
+not exist here).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.pretrained import PRETRAINED_DIR, PretrainedError, ship_checkpoint  # noqa: E402
+from model.pretrained import PRETRAINED_DIR, PretrainedError, UnknownPretrained, ship_checkpoint  # noqa: E402
 
 
 def main() -> int:
@@ -32,6 +35,9 @@ def main() -> int:
     parser.add_argument("--report-source", default=None, help="the checkpoint as the report's row names it")
     parser.add_argument("--stage", type=Path, action="append", default=None, metavar="CHECKPOINT",
                         help="an earlier training this checkpoint started from (--init-from); repeat, first to last")
+    parser.add_argument("--after-shipped", default=None, metavar="NAME",
+                        help="the shipped model the first stage (or the checkpoint) was fine-tuned from (--init-from "
+                             "pretrained/NAME/model.pt): its recorded stages and itself are recorded first")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
     report = None
@@ -44,8 +50,9 @@ def main() -> int:
         model = ship_checkpoint(args.checkpoint, args.name, root=args.root, dataset_dir=args.data,
                                 dataset_script=args.dataset_script, training_script=args.training_script,
                                 report=report, report_source=args.report_source,
-                                report_path=None if args.report is None else str(args.report), stages=args.stage)
-    except (PretrainedError, FileNotFoundError, ValueError) as error:
+                                report_path=None if args.report is None else str(args.report), stages=args.stage,
+                                after_shipped=args.after_shipped)
+    except (PretrainedError, UnknownPretrained, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     print(f"shipped {model.name}: {model.path} ({model.manifest['bytes']} bytes, sha256 {model.sha256[:12]}..., "

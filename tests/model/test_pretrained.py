@@ -143,3 +143,21 @@ def test_names_no_model_can_have_are_simply_not_pretrained(tmp_path):
     for name in ("0" * 600, "../pretrained", "Wskpn-XS-x1", "", "a/b"):
         assert not is_pretrained(name, tmp_path / "pretrained")
     assert is_pretrained("wskpn-xs-x1", tmp_path / "pretrained")
+
+
+def test_a_fine_tune_of_a_shipped_model_keeps_its_recorded_stages(tmp_path):
+    torch.manual_seed(1)
+    first = save_checkpoint(tmp_path / "first.pt", method=build_method("wskpn:xs", 1), step=400,
+                            train_config={"steps": 400, "frames_per_sample": 8})
+    shipped = ship_tiny(tmp_path / "pretrained", stages=[first])
+    old_sha, old_step = shipped.sha256, shipped.manifest["training"]["step"]
+    torch.manual_seed(2)
+    tuned = save_checkpoint(tmp_path / "tuned.pt", method=build_method("wskpn:xs", 1), step=90,
+                            train_config={"steps": 100, "init_from": str(shipped.path)})
+    reshipped = ship_checkpoint(tuned, "wskpn-xs-x1", root=tmp_path / "pretrained", after_shipped="wskpn-xs-x1")
+    stages = reshipped.manifest["training"]["stages"]
+    assert [stage["step"] for stage in stages] == [400, old_step]
+    assert stages[1]["checkpoint"] == "pretrained/wskpn-xs-x1/model.pt" and stages[1]["sha256"] == old_sha
+    assert reshipped.sha256 != old_sha and reshipped.manifest["training"]["step"] == 90
+    with pytest.raises(UnknownPretrained):
+        ship_checkpoint(tuned, "wskpn-xs-x1", root=tmp_path / "pretrained", after_shipped="no-such-model")
