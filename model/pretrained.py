@@ -257,7 +257,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
         recorded = shipped.manifest.get("training") or {}
         earlier_stages += list(recorded.get("stages") or [])
         earlier_stages.append({"checkpoint": f"pretrained/{after_shipped}/{shipped.manifest['file']}",
-                               "sha256": shipped.manifest["sha256"], "method": {"method": shipped.method, "preset": shipped.manifest["preset"],
+                               "sha256": shipped.manifest["sha256"],
+                               "method": {"method": shipped.method, "preset": shipped.manifest["preset"],
                                           "scale": shipped.manifest["scale"]},
                                "step": recorded.get("step"), "best_metric": recorded.get("best_metric"),
                                "train_config": recorded.get("train_config")})
