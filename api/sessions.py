@@ -568,13 +568,11 @@ class SessionStore:
         """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms and
         what was repaired in the input first (a NaN let into the history would poison every later frame)."""
         if isinstance(frame, ReadFrame):
-            batch, dtype = frame.batch, getattr(torch, frame.output_dtype)
+            batch, dtype, checked = frame.batch, getattr(torch, frame.output_dtype), frame.plainly_valid
         else:
-            batch, dtype = FrameBatch.from_bundles([frame], scale=None, device=self.device), torch.float32
-        if isinstance(frame, ReadFrame) and frame.plainly_valid:
-            sanitized = SanitizeReport(frames=batch.batch_size)
-        else:
-            batch, sanitized = sanitize_frame(batch)
+            batch = FrameBatch.from_bundles([frame], scale=None, device=self.device)
+            dtype, checked = torch.float32, False
+        batch, sanitized = (batch, SanitizeReport(frames=batch.batch_size)) if checked else sanitize_frame(batch)
         with torch.no_grad():
             start = time.perf_counter()
             output, state = method.step(batch, state)

@@ -67,6 +67,7 @@ def stream_frame_batch(message: StreamFrame, device: torch.device | str = "cpu",
         return StreamRead(*_reference_batch(message, device, source))
     # Bounds of the message's values (normals where nothing was hit included: a NaN there only costs the
     # pixel-wise check). After the test above, every normal left is unit length or zero, as the check wants.
+    # Every channel's own bound must be finite first: Python's min and max over a list can step past a NaN.
     lows, highs = planes.amin(dim=(0, 2, 3)).tolist(), planes.amax(dim=(0, 2, 3)).tolist()
     plainly_valid = all(map(math.isfinite, lows + highs)) and bounds_need_no_repair(
         {name: (min(lows[a:b]), max(highs[a:b])) for name, (a, b) in channels.items()}, message.jitter)
