@@ -21,7 +21,10 @@ matching pair (a history and the frame index it continues at), never one without
 
 - a restarted API process finds each live session in Redis and continues it from its last mirrored frame;
 - Redis is the record of which sessions exist: a key that expired or was deleted ends the session;
-- a memory copy older than Redis (another API process served the session) is reloaded before use.
+- a memory copy older than Redis (another API process served the session) is reloaded before use: a frame's
+  step starts on the memory copy while Redis's metadata is read, and is run again on the reloaded copy if
+  Redis holds a newer revision (so the read, which queues behind the previous frame's mirror write in Redis,
+  is off the frame's critical path).
 
 When the mirror is written. Creating and resetting a session write Redis before they answer (a reset lost in a crash
 could let the old history meet the new stream). A frame's mirror is written off the request's critical path: each
@@ -62,10 +65,10 @@ import re
 import threading
 import time
 import uuid
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, NamedTuple, TypeVar
 
 import numpy as np
 import redis
@@ -232,6 +235,19 @@ class FrameResult:
     inference_ms: float  # method.step alone
     sanitized: SanitizeReport  # NaN / Inf / out-of-range input pixels repaired before the step
     session: Session
+
+
+class _PlannedFrame(NamedTuple):
+    """A frame as the session's frame rules take it: its index filled in, its resolution, the X-History label and
+    the state its step continues."""
+
+    frame: FrameBundle | ReadFrame
+    resolution: tuple[int, int]
+    history: str
+    state: State | None
+
+
+_Stepped = tuple[np.ndarray, State, float, SanitizeReport]  # what SessionStore._step returns
 
 
 def state_fields(data: bytes, chunk_bytes: int = STATE_CHUNK_BYTES) -> dict[str, bytes | int]:
@@ -535,36 +551,65 @@ class SessionStore:
             # The previous frame's mirror is written while this step runs (a step never changes the state it is
             # given: tests/model/methods/test_registry.py) and must land before this frame is answered.
             self.start_mirror(session_id)
-            session = self._current(session_id, activate=True)
-            if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
-                session.method = self._method(session.model.origin)
-            if not frame_index_given:
-                frame = dataclasses.replace(frame, frame_index=session.next_frame_index or 0)
-            resolution = (frame.width, frame.height)
-            if session.resolution is not None and resolution != session.resolution:
-                raise FrameRejected(
-                    f"frame {frame.frame_index} is {resolution[0]}x{resolution[1]} but this session's frames are "
-                    f"{session.resolution[0]}x{session.resolution[1]}; reset the session to change resolution",
-                    code="resolution_mismatch",
-                    details={"expected": list(session.resolution), "received": list(resolution)})
-            history, state = self._history_for(session, frame)
-            image, state, inference_ms, sanitized = self._torch.run(self._step, session.method, frame, state)
+            session, planned, stepped = self._step_current(session_id, frame, frame_index_given)
+            image, state, inference_ms, sanitized = stepped
             self._wait_for_mirror(session_id)  # Redis lags by one frame at most: the one being answered
             if not sanitized.clean:
-                log.warning("session %s frame %s: repaired input pixels (%s)", session_id, frame.frame_index,
+                log.warning("session %s frame %s: repaired input pixels (%s)", session_id, planned.frame.frame_index,
                             sanitized.describe())
             session.state = state
-            session.next_frame_index = frame.frame_index + 1
+            session.next_frame_index = planned.frame.frame_index + 1
             session.frames_processed += 1
-            session.resolution = resolution
+            session.resolution = planned.resolution
             session.last_used_at = self.clock()
             session.revision += 1
             self._mirror(session, wait=False, start=start_mirror)
-            return FrameResult(output=image, frame_index=frame.frame_index, history=history,
+            return FrameResult(output=image, frame_index=planned.frame.frame_index, history=planned.history,
                                inference_ms=inference_ms, sanitized=sanitized, session=session)
 
-    def _step(self, method: Method, frame: FrameBundle | ReadFrame,
-              state: State | None) -> tuple[np.ndarray, State, float, SanitizeReport]:
+    def _step_current(self, session_id: str, frame: FrameBundle | ReadFrame,
+                      frame_index_given: bool) -> tuple[Session, _PlannedFrame, _Stepped]:
+        """The frame stepped on the up-to-date session (``_current``): the session, the plan and the step's result.
+
+        A session in memory is usually current, so its step starts at once and Redis's metadata is read while it
+        runs (that read queues behind the previous frame's mirror write in Redis); if Redis says memory is behind
+        (another process served the session, or it is gone), the step's result is dropped and the frame is planned
+        and stepped again on what Redis holds. A frame memory would refuse waits for Redis's word first."""
+        memory = self._in_memory(session_id)
+        if memory is not None and memory.method is not None:
+            try:
+                planned = self._plan(memory, frame, frame_index_given)
+            except FrameRejected:
+                planned = None  # memory may be behind another process: Redis decides before a frame is refused
+            if planned is not None:
+                stepping = self._torch.submit(self._step, memory.method, planned.frame, planned.state)
+                try:
+                    session = self._current(session_id, activate=True)
+                finally:
+                    wait([stepping])  # no second step of this session is queued while this one runs
+                if session is memory:
+                    return session, planned, stepping.result()
+        session = self._current(session_id, activate=True)
+        if session.method is None:  # a session reset while only in Redis: memory holds no weights yet
+            session.method = self._method(session.model.origin)
+        planned = self._plan(session, frame, frame_index_given)
+        return session, planned, self._torch.run(self._step, session.method, planned.frame, planned.state)
+
+    def _plan(self, session: Session, frame: FrameBundle | ReadFrame, frame_index_given: bool) -> _PlannedFrame:
+        """The frame rules applied to ``session`` before a step (FrameRejected if they refuse the frame)."""
+        if not frame_index_given:
+            frame = dataclasses.replace(frame, frame_index=session.next_frame_index or 0)
+        resolution = (frame.width, frame.height)
+        if session.resolution is not None and resolution != session.resolution:
+            raise FrameRejected(
+                f"frame {frame.frame_index} is {resolution[0]}x{resolution[1]} but this session's frames are "
+                f"{session.resolution[0]}x{session.resolution[1]}; reset the session to change resolution",
+                code="resolution_mismatch",
+                details={"expected": list(session.resolution), "received": list(resolution)})
+        history, state = self._history_for(session, frame)
+        return _PlannedFrame(frame, resolution, history, state)
+
+    def _step(self, method: Method, frame: FrameBundle | ReadFrame, state: State | None) -> _Stepped:
         """One ``method.step`` (on the torch thread): the output image (H, W, 3), the new state, the step's ms and
         what was repaired in the input first (a NaN let into the history would poison every later frame)."""
         if isinstance(frame, ReadFrame):
@@ -669,19 +714,24 @@ class SessionStore:
             for key in [key for key in self._methods if key not in used]:
                 del self._methods[key]
 
+    def _in_memory(self, session_id: str) -> Session | None:
+        """The session's memory copy unless it is idle past its TTL (SessionNotFound for an id no session has)."""
+        if not SESSION_ID.match(session_id):
+            raise SessionNotFound(f"session {session_id!r} does not exist")
+        with self._lock:
+            session = self._sessions.get(session_id)
+        if session is not None and session.expired(self.clock()):
+            self._forget(session_id)
+            return None
+        return session
+
     def _current(self, session_id: str, activate: bool) -> Session:
         """The up-to-date session: memory, unless Redis holds a newer revision or says the session is gone.
 
         ``activate``: also load its state and method into memory (frames need them; views do not).
         """
-        if not SESSION_ID.match(session_id):
-            raise SessionNotFound(f"session {session_id!r} does not exist")
+        session = self._in_memory(session_id)
         now = self.clock()
-        with self._lock:
-            session = self._sessions.get(session_id)
-        if session is not None and session.expired(now):
-            self._forget(session_id)
-            session = None
         try:
             raw = self._redis(lambda client: client.hget(self._key(session_id), "meta"))
         except redis.RedisError as error:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 import torch
@@ -47,13 +47,16 @@ class TorchPool:
             torch.set_num_threads(num_threads)
 
     def run(self, function: Callable[..., T], *args, **kwargs) -> T:
+        return self.submit(function, *args, **kwargs).result()
+
+    def submit(self, function: Callable[..., T], *args, **kwargs) -> Future[T]:
+        """``function(*args, **kwargs)`` started on a worker; its future (the caller may work meanwhile)."""
         if threading.get_ident() in self._idents:  # already on one: a nested call must not wait for a free worker
-            return function(*args, **kwargs)
+            return _called_here(function, *args, **kwargs)
         try:
-            future = self._executor.submit(function, *args, **kwargs)
+            return self._executor.submit(function, *args, **kwargs)
         except RuntimeError:  # shut down (the store is closing): run here rather than fail a last write
-            return function(*args, **kwargs)
-        return future.result()
+            return _called_here(function, *args, **kwargs)
 
     def shutdown(self) -> None:
         self._executor.shutdown(wait=True)
@@ -64,3 +67,13 @@ class TorchThread(TorchPool):
 
     def __init__(self, num_threads: int | None = None, name: str = "torch") -> None:
         super().__init__(1, num_threads, name)
+
+
+def _called_here(function: Callable[..., T], *args, **kwargs) -> Future[T]:
+    """``function`` run on the calling thread, as a done future."""
+    future: Future[T] = Future()
+    try:
+        future.set_result(function(*args, **kwargs))
+    except BaseException as error:  # handed to whoever reads the future, as the executor would
+        future.set_exception(error)
+    return future

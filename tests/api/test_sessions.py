@@ -194,6 +194,57 @@ def test_a_restarted_store_continues_each_session_from_redis(make_store, redis_d
     assert [s.id for s in restarted.list()] == [session.id]
 
 
+def observe_steps(store: SessionStore, monkeypatch) -> threading.Event:
+    """An event set once a step of ``store`` has returned."""
+    stepped, step = threading.Event(), store._step
+
+    def observed_step(*args):
+        result = step(*args)
+        stepped.set()
+        return result
+
+    monkeypatch.setattr(store, "_step", observed_step)
+    return stepped
+
+
+def test_a_memory_copy_behind_redis_is_reloaded_before_it_refuses_a_frame(make_store, redis_db):
+    frames = stream_frames(5)
+    expected = in_process_outputs(shared_registry().checkpoints["1"], frames)
+    first = make_store()
+    session = first.create(MODEL_NAME, version="1", on_gap="reject")
+    for frame in frames[:3]:
+        first.process_frame(session.id, frame)
+    assert first.flush(timeout=30)
+    restarted = make_store()
+    restarted.process_frame(session.id, frames[3])
+    assert restarted.flush(timeout=30)
+    # First's memory expects frame 3, so frame 4 is a gap it would refuse (on_gap=reject); Redis expects frame 4.
+    fifth = first.process_frame(session.id, frames[4])
+    assert (fifth.history, fifth.session.next_frame_index) == (CONTINUED, 5)
+    assert_same_image_after_half_history(fifth.output, expected[4])  # restored from a float16 history
+
+
+def test_a_frames_step_runs_while_redis_says_whether_memory_is_current(make_store, monkeypatch):
+    store = make_store()
+    session = store.create(MODEL_NAME)
+    frames = stream_frames(2)
+    store.process_frame(session.id, frames[0])
+    assert store.flush(timeout=30)
+    # The frame's Redis read is held until its step is done: it can only finish if the two run side by side.
+    stepped = observe_steps(store, monkeypatch)
+    redis_call = store._redis
+
+    def held_redis(call):
+        if threading.current_thread().name.startswith("frame"):
+            assert stepped.wait(30), "the step waited for the Redis read"
+        return redis_call(call)
+
+    monkeypatch.setattr(store, "_redis", held_redis)
+    with ThreadPoolExecutor(1, thread_name_prefix="frame") as pool:
+        second = pool.submit(store.process_frame, session.id, frames[1]).result(timeout=60)
+    assert (second.history, second.session.next_frame_index) == (CONTINUED, 2)
+
+
 def redis_meta(redis_db, store: SessionStore, session_id: str) -> dict | None:
     raw = redis_db.hget(f"{store.prefix}{session_id}", "meta")
     return None if raw is None else json.loads(raw)
@@ -223,7 +274,7 @@ def test_a_frames_step_runs_while_the_previous_mirror_is_written_and_waits_for_i
     store.process_frame(session.id, frames[0], start_mirror=False)
     # Frame 0's Redis write is held open by the test, so "during the write" holds by construction.
     writing, release = threading.Event(), threading.Event()
-    redis_call, step = store._redis, store._step
+    redis_call = store._redis
 
     def held_redis(call):
         if threading.current_thread().name.startswith("session-mirror") and not release.is_set():
@@ -231,15 +282,8 @@ def test_a_frames_step_runs_while_the_previous_mirror_is_written_and_waits_for_i
             assert release.wait(30)
         return redis_call(call)
 
-    stepped = threading.Event()
-
-    def observed_step(*args):
-        result = step(*args)
-        stepped.set()
-        return result
-
+    stepped = observe_steps(store, monkeypatch)
     monkeypatch.setattr(store, "_redis", held_redis)
-    monkeypatch.setattr(store, "_step", observed_step)
     store.start_mirror(session.id)
     assert writing.wait(30)  # frame 0's history is serialized; its write is under way
     with ThreadPoolExecutor(1) as pool:

@@ -66,3 +66,26 @@ def test_a_pool_serves_other_calls_while_one_call_is_slow():
     finally:
         released.set()
         pool.shutdown()
+
+
+def test_submit_lets_the_caller_work_while_the_call_runs():
+    worker = TorchThread()
+    started, release = threading.Event(), threading.Event()
+
+    def held() -> int:
+        started.set()
+        assert release.wait(30)
+        return threading.get_ident()
+
+    try:
+        future = worker.submit(held)
+        assert started.wait(30) and not future.done()  # the caller is here while the call is held open
+        release.set()
+        assert future.result(timeout=30) != threading.get_ident()
+        failing = worker.submit(lambda: (_ for _ in ()).throw(ValueError("bad frame")))
+        with pytest.raises(ValueError, match="bad frame"):
+            failing.result(timeout=30)
+        nested = worker.run(lambda: worker.submit(threading.get_ident))  # on the worker: run in place, done
+        assert nested.done() and nested.result() != threading.get_ident()
+    finally:
+        worker.shutdown()
