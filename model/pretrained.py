@@ -284,7 +284,25 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                 "scale": method.scale, "params": params, "flops_per_pixel": flops, "file": WEIGHTS,
                 "sha256": file_sha256(weights), "bytes": weights.stat().st_size, "training": training,
                 "held_out": held_out}
+    _write_manifest(folder, manifest)
+    return get_pretrained(name, root)
+
+
+def remeasure_shipped(name: str, report: dict[str, Any], report_source: str, report_path: str | None = None,
+                      root: str | os.PathLike | None = None) -> PretrainedModel:
+    """Replace a shipped model's held-out section with its row (``report_source``) of another evaluation run, such
+    as one that also holds newer models; the weights and the training record stay as they are (the file's sha256
+    is checked first, so the numbers belong to the file that is there)."""
+    shipped = get_pretrained(name, root)
+    verify(shipped)
+    held_out = held_out_from_report(report, report_source, shipped.method, shipped.preset, shipped.scale)
+    held_out["report"] = report_path
+    _write_manifest(shipped.folder, {**shipped.manifest, "held_out": held_out})
+    return get_pretrained(name, root)
+
+
+def _write_manifest(folder: Path, manifest: dict[str, Any]) -> None:
+    """Renamed into place, so a reader sees the old manifest or the new one whole."""
     temporary = folder / f".{MANIFEST}.{uuid.uuid4().hex[:8]}.tmp"
     temporary.write_text(json.dumps(manifest, indent=2, allow_nan=False) + "\n")
     os.replace(temporary, folder / MANIFEST)
-    return get_pretrained(name, root)

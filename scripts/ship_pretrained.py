@@ -10,6 +10,12 @@ load, and the held-out metrics copied from an evaluation report of the same run 
 --after-shipped NAME: the checkpoint was fine-tuned from the shipped model NAME (--init-from pretrained/NAME/model.pt);
 the stages recorded in its manifest, then that model itself, are recorded before any --stage (its earlier runs need
 not exist here).
+
+    .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
+        --remeasure --report docs/results/reuse_x1.json --report-source fused-balanced-x1
+
+--remeasure: the checkpoint is the shipped model NAME itself, evaluated again in the report's run (beside newer
+models); only its held-out section is replaced, its weights and training record stay.
 """
 
 from __future__ import annotations
@@ -21,7 +27,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.pretrained import PRETRAINED_DIR, PretrainedError, UnknownPretrained, ship_checkpoint  # noqa: E402
+from model.pretrained import (  # noqa: E402
+    PRETRAINED_DIR,
+    PretrainedError,
+    UnknownPretrained,
+    get_pretrained,
+    remeasure_shipped,
+    ship_checkpoint,
+)
 
 
 def main() -> int:
@@ -38,8 +51,12 @@ def main() -> int:
     parser.add_argument("--after-shipped", default=None, metavar="NAME",
                         help="the shipped model the first stage (or the checkpoint) was fine-tuned from (--init-from "
                              "pretrained/NAME/model.pt): its recorded stages and itself are recorded first")
+    parser.add_argument("--remeasure", action="store_true",
+                        help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
+    if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data):
+        parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped or --data")
     report = None
     if args.report is not None:
         if not args.report.is_file():
@@ -47,6 +64,8 @@ def main() -> int:
             return 2
         report = json.loads(args.report.read_text())
     try:
+        if args.remeasure:
+            return _remeasure(args, report)
         model = ship_checkpoint(args.checkpoint, args.name, root=args.root, dataset_dir=args.data,
                                 dataset_script=args.dataset_script, training_script=args.training_script,
                                 report=report, report_source=args.report_source,
@@ -57,6 +76,17 @@ def main() -> int:
         return 2
     print(f"shipped {model.name}: {model.path} ({model.manifest['bytes']} bytes, sha256 {model.sha256[:12]}..., "
           f"step {model.manifest['training']['step']}, held-out: {model.held_out['status']})")
+    return 0
+
+
+def _remeasure(args: argparse.Namespace, report: dict) -> int:
+    shipped = get_pretrained(args.name, args.root)
+    if args.checkpoint.resolve() != shipped.path.resolve():
+        print(f"--remeasure: {args.checkpoint} is not the shipped {args.name} ({shipped.path})", file=sys.stderr)
+        return 2
+    model = remeasure_shipped(args.name, report, args.report_source or str(args.checkpoint), str(args.report),
+                              args.root)
+    print(f"remeasured {model.name}: held-out PSNR {model.held_out_row()['psnr']} in {args.report}")
     return 0
 
 

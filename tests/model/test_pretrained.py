@@ -17,6 +17,7 @@ from model.pretrained import (
     held_out_from_report,
     load_pretrained,
     pretrained_names,
+    remeasure_shipped,
     ship_checkpoint,
     verify,
 )
@@ -161,3 +162,21 @@ def test_a_fine_tune_of_a_shipped_model_keeps_its_recorded_stages(tmp_path):
     assert reshipped.sha256 != old_sha and reshipped.manifest["training"]["step"] == 90
     with pytest.raises(UnknownPretrained):
         ship_checkpoint(tuned, "wskpn-xs-x1", root=tmp_path / "pretrained", after_shipped="no-such-model")
+
+
+def test_a_shipped_model_remeasured_in_another_run_keeps_its_weights_and_training_record(tmp_path):
+    root = tmp_path / "pretrained"
+    shipped = ship_tiny(root, report=report_for(), report_path="docs/results/old.json")
+    weights = shipped.path.read_bytes()
+    newer = report_for(source="wskpn-xs-x1")
+    newer["methods"][0]["metrics"]["psnr"] = 30.9
+    remeasured = remeasure_shipped("wskpn-xs-x1", newer, "wskpn-xs-x1", "docs/results/new.json", root)
+    assert remeasured.held_out_row()["psnr"] == 30.9 and remeasured.held_out["report"] == "docs/results/new.json"
+    assert remeasured.path.read_bytes() == weights and remeasured.sha256 == shipped.sha256
+    assert remeasured.manifest["training"] == shipped.manifest["training"]
+    with pytest.raises(PretrainedError, match="0 rows from 'runs/other.pt'"):
+        remeasure_shipped("wskpn-xs-x1", newer, "runs/other.pt", root=root)
+    assert get_pretrained("wskpn-xs-x1", root).held_out_row()["psnr"] == 30.9  # a refused report changes nothing
+    shipped.path.write_bytes(weights[:-1] + bytes([weights[-1] ^ 1]))
+    with pytest.raises(PretrainedError, match="sha256"):  # numbers are never recorded for a file that is not it
+        remeasure_shipped("wskpn-xs-x1", newer, "wskpn-xs-x1", root=root)
