@@ -3,8 +3,9 @@
 # the dataset of scripts/generate_reuse_data.sh (rendered first if missing), then evaluated on its held-out test
 # recipes at 1x and 2x against OIDN (fast, balanced, high) and OIDN + TAA at the same qualities, timed in the same
 # run, with side-by-side pictures of the moving-light and moving-object cases; then it ships the default
-# preset at both scales as the repository's pretrained models (pretrained/fused-balanced-x{1,2}: weights, recipe
-# and the held-out rows of these reports; scripts/ship_pretrained.py).
+# preset at both scales, the fast preset at both and the high one at 1x as the repository's pretrained models
+# (pretrained/fused-{balanced,fast}-x{1,2}, fused-high-x1: weights, recipe and the held-out rows of these reports;
+# scripts/ship_pretrained.py).
 # On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side (13 and
 # 25 minutes), then 600 steps with longer histories at 1x beside the fast preset fine-tuned from the 2x model, then
 # 3100 steps with the display-error term at 1x (about 18 minutes), then the fast / high presets at 1x fine-tuned
@@ -100,12 +101,13 @@ mixed=(.venv/bin/denoiser train --data data/reuse-mixed --batch 4 --lr 5e-4 --wa
 # Then the network with the clipped running mean of OIDN's estimates as a fourth candidate (model/methods/fused.py;
 # --init-from the three-candidate model grows it with the new weights at zero), on the same data at a lower
 # learning rate (2e-4, another seed's crops), a 2500-step schedule stopped at step 1250 for time (validation
-# 33.05 dB; 1000: 33.02); the fast / high presets 300 steps from it. The same run without the new candidate
+# 33.05 dB; 1000: 33.02); the fast / high presets 600 steps from it (best validation: fast step 600, 32.93 dB;
+# high step 400, 33.53 dB), shipped as fused-fast-x1 and fused-high-x1. The same run without the new candidate
 # (1500 steps) reached 32.96 dB; with the plain mean as a fifth candidate 33.04 (step 1250, more ghosting).
 "${mixed[@]}" --method fused:balanced --init-from runs/fused-balanced-x1-mixed/best.pt --lr 2e-4 --seed 2 --steps 2500 \
   --validate-every 250 --checkpoint-every 250 --out runs/fused-balanced-x1-cmean > runs-fused-balanced-x1-cmean.log 2>&1
 for quality in fast high; do
-  "${mixed[@]}" --method "fused:$quality" --init-from runs/fused-balanced-x1-cmean/best.pt --steps 300 \
+  "${mixed[@]}" --method "fused:$quality" --init-from runs/fused-balanced-x1-cmean/best.pt --steps 600 \
     --validate-every 100 --checkpoint-every 100 --out "runs/fused-$quality-x1-cmean" > "runs-fused-$quality-x1-cmean.log" 2>&1 &
 done
 wait
@@ -158,6 +160,15 @@ ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-scrip
 "${ship[@]}" "$x2" --name fused-balanced-x2 --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-balanced-x2-display/best.pt --stage runs/fused-balanced-x2-rot/best.pt \
   --stage runs/fused-balanced-x2-rot2/best.pt --report docs/results/reuse_x2.json
+# The 1x fast and high presets, fine-tuned from the 1x model above on the mixed data (its stages are theirs too).
+for quality in fast high; do
+  "${ship[@]}" "runs/fused-$quality-x1-cmean/best.pt" --name "fused-$quality-x1" --data data/reuse-mixed \
+    --dataset-script scripts/generate_blender_training_data.sh --stage runs/fused-balanced-x1/best.pt \
+    --stage runs/fused-balanced-x1-long/best.pt --stage runs/fused-balanced-x1-display-600/best.pt \
+    --stage runs/fused-balanced-x1-display-1000/best.pt --stage runs/fused-balanced-x1-display-1500/best.pt \
+    --stage runs/fused-balanced-x1-rot/best.pt --stage runs/fused-balanced-x1-mixed/best.pt --stage "$x1" \
+    --report docs/results/reuse_x1.json
+done
 "${ship[@]}" runs/fused-fast-x2-cmean/best.pt --name fused-fast-x2 --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-fast-x2/best.pt --stage runs/fused-fast-x2-display/best.pt --stage runs/fused-fast-x2-rot/best.pt \
   --report docs/results/reuse_x2.json
