@@ -28,7 +28,7 @@ render orbit_s2 orbit 12 2
 render moving_object_s3 moving_object 16 3
 
 for scale in 1 2; do
-  if [ "$scale" = 1 ]; then ours=(--method fused-balanced-x1); else ours=(--method fused-balanced-x2 --method fused-fast-x2); fi
+  if [ "$scale" = 1 ]; then ours=(--method fused-balanced-x1 --method fused-fast-x1 --method fused-high-x1); else ours=(--method fused-balanced-x2 --method fused-fast-x2); fi
   .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 "${ours[@]}" \
     --method oidn-taa:fast --method oidn-taa:balanced --method oidn-taa:high --method oidn:fast \
     --method oidn:balanced --method oidn:high --out "docs/results/blender_x$scale.json" \
