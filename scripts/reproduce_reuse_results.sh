@@ -145,7 +145,10 @@ x1=runs/fused-balanced-x1-cmean/best.pt
 x2=runs/fused-balanced-x2-cmean/best.pt
 picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png "$x1"
 picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png "$x1"
-picture moving_light_s4 -1 1 30,50,56 docs/reuse_moving_light_x1.png "$x1"
+# The moving light with the high preset too (the one at or above OIDN-high on every sequence).
+.venv/bin/denoiser compare --data "$DATA" --sequence moving_light_s4 --frame -1 --scale 1 --zoom 30,50,56 \
+  --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced --method "$x1=fused-balanced" \
+  --method runs/fused-high-x1-cmean/best.pt=fused-high --out docs/reuse_moving_light_x1.png
 picture visible_emitter_s4 10 2 80,60,112 docs/reuse_visible_emitter_x2.png "$x2"
 picture moving_object_s4 -1 2 60,80,112 docs/reuse_moving_object_x2.png "$x2"
 # The default preset at both scales as the repository's pretrained models (1x: the longer-history fine-tune, its
