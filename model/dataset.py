@@ -20,7 +20,9 @@ renames it into place, and manifests are replaced with ``os.replace``.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import json
 import os
 import shutil
@@ -343,15 +345,31 @@ def _move_folder_into_place(source: Path, target: Path, overwrite: bool) -> None
     shutil.rmtree(retired, ignore_errors=True)
 
 
+@contextlib.contextmanager
+def _manifest_lock(root: Path) -> Iterator[None]:
+    """Exclusive lock on ``root``'s dataset manifest, between processes: ``flock`` on the dataset folder itself (the
+    manifest is replaced by a rename, so it cannot hold the lock, and a lock file would be one more file in it)."""
+    root.mkdir(parents=True, exist_ok=True)
+    folder = os.open(root, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(folder, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(folder)  # closing the last descriptor releases the lock
+
+
 class Dataset:
     """A folder of sequence folders with a manifest assigning each sequence a split."""
 
     def __init__(self, root: str | os.PathLike) -> None:
         self.root = Path(root)
         self.manifest_path = self.root / MANIFEST
+        self._entries: dict[str, dict] = self._read_entries()
+
+    def _read_entries(self) -> dict[str, dict]:
         manifest = _read_manifest(self.manifest_path, "dataset", DATASET_FORMAT)
         entries = _field(manifest, "sequences", dict, self.manifest_path, "an object")
-        self._entries: dict[str, dict] = {}
+        checked: dict[str, dict] = {}
         for name, entry in entries.items():
             where = f"{self.manifest_path}: sequences['{name}']"
             if not isinstance(entry, dict):
@@ -362,16 +380,27 @@ class Dataset:
                 raise DatasetError(f"{where}: field 'scene' is {entry.get('scene')!r}, not a string or null")
             if not (self.root / name).is_dir():
                 raise DatasetError(f"{where}: folder {self.root / name} does not exist")
-            self._entries[name] = {"split": entry["split"], "scene": entry["scene"]}
+            checked[name] = {"split": entry["split"], "scene": entry["scene"]}
+        return checked
 
     @classmethod
     def create(cls, root: str | os.PathLike) -> Dataset:
         """Make an empty dataset at ``root`` (the folder may exist, but must not hold a manifest yet)."""
         root = Path(root)
-        root.mkdir(parents=True, exist_ok=True)
-        if (root / MANIFEST).exists():
-            raise FileExistsError(f"{root / MANIFEST} already exists; open it with Dataset({str(root)!r})")
-        write_json_atomically(root / MANIFEST, {"format": DATASET_FORMAT, "sequences": {}})
+        with _manifest_lock(root):
+            if (root / MANIFEST).exists():
+                raise FileExistsError(f"{root / MANIFEST} already exists; open it with Dataset({str(root)!r})")
+            write_json_atomically(root / MANIFEST, {"format": DATASET_FORMAT, "sequences": {}})
+        return cls(root)
+
+    @classmethod
+    def open_or_create(cls, root: str | os.PathLike) -> Dataset:
+        """The dataset at ``root``, made empty first if it has no manifest (one check-and-create under the lock, so
+        processes starting on the same new folder at once share one dataset)."""
+        root = Path(root)
+        with _manifest_lock(root):
+            if not (root / MANIFEST).exists():
+                write_json_atomically(root / MANIFEST, {"format": DATASET_FORMAT, "sequences": {}})
         return cls(root)
 
     def names(self, split: str | None = None) -> list[str]:
@@ -397,17 +426,19 @@ class Dataset:
         """
         _check_split(split)
         _check_folder_name(name, "sequence folder")
-        if name in self._entries and not replace:
-            raise DatasetError(f"{self.manifest_path}: sequence '{name}' is already registered")
         sequence = Sequence(self.root / name)  # checks the folder is a well-formed sequence
-        self._entries[name] = {"split": split, "scene": sequence.scene}
-        self._save()
+        with self._changing() as entries:
+            if name in entries and not replace:
+                raise DatasetError(f"{self.manifest_path}: sequence '{name}' is already registered")
+            entries[name] = {"split": split, "scene": sequence.scene}
         return sequence
 
     def set_split(self, name: str, split: str) -> None:
         _check_split(split)
-        self._entry(name)["split"] = split
-        self._save()
+        with self._changing() as entries:
+            if name not in entries:
+                raise DatasetError(f"{self.manifest_path}: no sequence named '{name}'")
+            entries[name]["split"] = split
 
     def summary(self) -> dict[str, dict]:
         """Per split: sequence count, scenes, frame count, resolutions [[w, h], ...] and reference scales.
@@ -454,8 +485,16 @@ class Dataset:
         except KeyError:
             raise DatasetError(f"{self.manifest_path}: no sequence named '{name}'") from None
 
-    def _save(self) -> None:
-        write_json_atomically(self.manifest_path, {"format": DATASET_FORMAT, "sequences": self._entries})
+    @contextlib.contextmanager
+    def _changing(self) -> Iterator[dict[str, dict]]:
+        """The manifest's entries as stored now, under the dataset's lock; written back when the block ends without
+        an error. Processes that add sequences to one dataset at once (two imports, two generators) each change the
+        manifest they read under the lock, so none drops another's sequence."""
+        with _manifest_lock(self.root):
+            entries = self._read_entries()
+            yield entries
+            write_json_atomically(self.manifest_path, {"format": DATASET_FORMAT, "sequences": entries})
+        self._entries = entries
 
     def __len__(self) -> int:
         return len(self._entries)

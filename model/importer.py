@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from model.dataset import MANIFEST, SPLITS, Dataset, DatasetError, SequenceWriter
+from model.dataset import SPLITS, Dataset, DatasetError, SequenceWriter
 from model.frames import FrameBundle, FrameValidationError, box_downsample
 from model.layouts import Layout, read_layout_frame, read_layout_reference
 from model.layouts.checks import SequenceChecks
@@ -94,7 +94,7 @@ def import_sequence(source: str | Path, layout: Layout, out: str | Path, *, name
     files = frame_files(source)
     reference_paths = reference_files(files, None if references is None else Path(references))
     out = Path(out)
-    dataset = Dataset(out) if (out / MANIFEST).exists() else Dataset.create(out)
+    dataset = Dataset.open_or_create(out)
     target = dataset.root / name
     if target.exists() and not overwrite:
         raise FileExistsError(f"sequence {target} already exists; pass overwrite to replace it")

@@ -21,7 +21,7 @@ ProgressCallback = Callable[[int, int, str], None]
 
 def open_or_create_dataset(root: str | Path) -> Dataset:
     root = Path(root)
-    return Dataset(root) if (root / "manifest.json").exists() else Dataset.create(root)
+    return Dataset.open_or_create(root)
 
 
 def default_sequence_name(scene: str, seed: int) -> str:

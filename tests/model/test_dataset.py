@@ -213,3 +213,37 @@ def test_dataset_errors(tmp_path):
     _edit_manifest(tmp_path / "manifest.json", lambda m: m["sequences"]["a"].update(split="dev"))
     with pytest.raises(DatasetError, match=r"sequences\['a'\]: field 'split' is 'dev'"):
         Dataset(tmp_path)
+
+
+def test_a_dataset_opened_twice_keeps_what_each_adds(tmp_path):
+    # Two processes importing into one dataset each hold a view read before the other's change: every change
+    # re-reads the manifest under the dataset's lock, so neither drops the other's sequence.
+    first = Dataset.open_or_create(tmp_path / "data")
+    second = Dataset.open_or_create(tmp_path / "data")
+    for name in ("a", "b", "c"):
+        write_sequence(first.root, name, count=1)
+    first.add_sequence_dir("a", "train")
+    second.add_sequence_dir("b", "train")  # second's view predates "a"
+    first.set_split("b", "test")  # first's view predates "b"
+    with pytest.raises(DatasetError, match="'a' is already registered"):
+        second.add_sequence_dir("a", "validation")  # refused by what is stored, not by a stale view
+    second.add_sequence_dir("c", "validation")
+    stored = Dataset(tmp_path / "data")
+    assert {name: stored.split_of(name) for name in stored.names()} == {"a": "train", "b": "test", "c": "validation"}
+    assert second.names() == ["a", "b", "c"] and [p.name for p in stored.root.iterdir() if p.name.startswith(".")] == []
+
+
+def test_imports_into_one_dataset_from_many_processes_lose_no_sequence(tmp_path):
+    from concurrent.futures import ProcessPoolExecutor
+
+    root = tmp_path / "data"
+    names = [f"s{index}" for index in range(12)]
+    for name in names:
+        write_sequence(root, name, count=1)
+    with ProcessPoolExecutor(4) as pool:
+        list(pool.map(_register, [root] * len(names), names))
+    assert Dataset(root).names() == sorted(names)
+
+
+def _register(root, name):
+    Dataset.open_or_create(root).add_sequence_dir(name, "train")
