@@ -15,7 +15,9 @@ A dataset is a folder of sequence folders plus ``manifest.json``::
                                                           "scene": recipe name or null}}}
 
 Folders appear complete or not at all: ``SequenceWriter`` renders into a hidden temporary folder and
-renames it into place, and manifests are replaced with ``os.replace``.
+renames it into place, and manifests are replaced with ``os.replace``. A dataset's manifest is changed only under
+an exclusive ``flock`` on its folder, re-read first, so processes adding sequences to one dataset at once keep
+each other's.
 """
 
 from __future__ import annotations
