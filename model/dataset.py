@@ -389,10 +389,8 @@ class Dataset:
     def create(cls, root: str | os.PathLike) -> Dataset:
         """Make an empty dataset at ``root`` (the folder may exist, but must not hold a manifest yet)."""
         root = Path(root)
-        with _manifest_lock(root):
-            if (root / MANIFEST).exists():
-                raise FileExistsError(f"{root / MANIFEST} already exists; open it with Dataset({str(root)!r})")
-            write_json_atomically(root / MANIFEST, {"format": DATASET_FORMAT, "sequences": {}})
+        if not cls._made_empty(root):
+            raise FileExistsError(f"{root / MANIFEST} already exists; open it with Dataset({str(root)!r})")
         return cls(root)
 
     @classmethod
@@ -400,10 +398,18 @@ class Dataset:
         """The dataset at ``root``, made empty first if it has no manifest (one check-and-create under the lock, so
         processes starting on the same new folder at once share one dataset)."""
         root = Path(root)
-        with _manifest_lock(root):
-            if not (root / MANIFEST).exists():
-                write_json_atomically(root / MANIFEST, {"format": DATASET_FORMAT, "sequences": {}})
+        cls._made_empty(root)
         return cls(root)
+
+    @staticmethod
+    def _made_empty(root: Path) -> bool:
+        """Write an empty manifest at ``root`` unless one exists (checked and written under the lock); whether it
+        did."""
+        with _manifest_lock(root):
+            if (root / MANIFEST).exists():
+                return False
+            write_json_atomically(root / MANIFEST, {"format": DATASET_FORMAT, "sequences": {}})
+            return True
 
     def names(self, split: str | None = None) -> list[str]:
         if split is not None:

@@ -19,11 +19,6 @@ from model.dataset import SPLITS, Dataset, SequenceWriter
 ProgressCallback = Callable[[int, int, str], None]
 
 
-def open_or_create_dataset(root: str | Path) -> Dataset:
-    root = Path(root)
-    return Dataset.open_or_create(root)
-
-
 def default_sequence_name(scene: str, seed: int) -> str:
     return f"{scene}_s{seed}"
 
@@ -43,7 +38,7 @@ def generate_sequence(scene: str, out: str | Path, *, frames: int = 16, settings
         raise ValueError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
     settings = settings or RenderSettings()
     name = name or default_sequence_name(scene, seed)
-    dataset = open_or_create_dataset(out)
+    dataset = Dataset.open_or_create(out)
     animation = build_scene(scene, seed, frames)
     renderer = SceneRenderer(animation, settings, seed)
     metadata = {"renderer": "mitsuba3", "variant": renderer.mi.variant(), "seed": seed,

@@ -343,9 +343,9 @@ def test_infer_writes_one_exr_per_frame_with_history_carried(store, storage, set
 def fake_generate_sequence(scene, out, *, frames, settings, seed, split, name, half, overwrite, progress,
                            on_frame):
     """Writes synthetic frames where Mitsuba would render (the job's plumbing is what is tested here)."""
-    from model.data.generate import open_or_create_dataset
+    from model.dataset import Dataset
 
-    dataset = open_or_create_dataset(out)
+    dataset = Dataset.open_or_create(out)
     write_sequence(out, name, frames, size=(settings.width, settings.height), seed=seed)
     for index in range(frames):
         on_frame(index + 1, frames, f"rendered frame {index + 1}/{frames} of {name}")
