@@ -80,7 +80,7 @@ from model.frames import FrameBundle
 from model.inference_forms import load_form_table
 from model.methods.base import FrameBatch, Method, State
 from model.sanitize import SanitizeReport, sanitize_frame
-from model.state_codec import StateFormatError, decode_state, encode_state
+from model.state_codec import CompressionMemo, StateFormatError, decode_state, encode_state
 from core.registry import Registry, UnknownModelError, registry_for
 from api.session_models import (
     REGISTERED,
@@ -187,6 +187,8 @@ class Session:
     state: State | None = field(default=None, repr=False)
     method: Method | None = field(default=None, repr=False)
     mirrored_revision: int = field(default=-1, repr=False)  # the revision Redis holds, as far as we know
+    # Used only by the session's mirror writer, one write at a time.
+    codec_memo: CompressionMemo = field(default_factory=CompressionMemo, repr=False)
 
     @property
     def expires_at(self) -> float:
@@ -800,7 +802,7 @@ class SessionStore:
         session = snapshot.session
         key = self._key(session.id)
         # Beside the next frame's step, which reads the same tensors but never changes them.
-        data = encode_state(snapshot.state, self.history_precision)
+        data = encode_state(snapshot.state, self.history_precision, session.codec_memo)
         mapping = {"meta": snapshot.meta, **state_fields(data, STATE_CHUNK_BYTES)}
 
         def write(client: redis.Redis) -> None:

@@ -13,6 +13,10 @@ zlib-compressed (level 1) when a 4 kB probe of it saves at least three quarters:
 planes shrink by 95% and more for next to nothing, while float planes save 13-65% at 45-100 MB/s of zlib on this
 CPU (the fused model's 1080p history: 1.6 s of zlib to save 35 of 100 MB; a 128x128 MUNet history: 12 ms of a 60 ms
 frame), when writing those bytes to a local Redis takes a few milliseconds per 10 MB, so those are left raw.
+A stream's history keeps its layout from frame to frame, and a plane that did not compress last frame rarely does
+the next, so a ``CompressionMemo`` carried between one stream's encodes skips the probe for such a plane (it is
+probed again every ``reprobe_every`` frames); the probes were a third of a 128x128 WSKPN history's encode. What the
+memo decides changes only the size of the bytes, never what they decode to.
 
 Decoding gives every tensor back with its original dtype and shape; bytes that are not a state this module
 wrote raise ``StateFormatError`` naming what is wrong.
@@ -28,7 +32,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-__all__ = ["PRECISIONS", "StateFormatError", "decode_state", "encode_state"]
+__all__ = ["PRECISIONS", "CompressionMemo", "StateFormatError", "decode_state", "encode_state"]
 
 MAGIC = b"DNSTATE1"
 PRECISIONS = ("half", "float")
@@ -47,8 +51,32 @@ class StateFormatError(ValueError):
     """The bytes are not a state ``encode_state`` wrote (or they were cut short)."""
 
 
-def encode_state(state: Mapping[str, torch.Tensor] | None, precision: str = "half") -> bytes:
-    """State tensors -> bytes (empty for no history); see the module notes for ``precision``."""
+class CompressionMemo:
+    """Whether each tensor of one stream's state compressed when last tried, for that stream's next encodes.
+
+    Not thread-safe: one stream's encodes run one at a time (a session's mirror writer)."""
+
+    def __init__(self, reprobe_every: int = 16) -> None:
+        if reprobe_every < 1:
+            raise ValueError(f"reprobe_every must be at least 1, got {reprobe_every}")
+        self.reprobe_every = reprobe_every
+        self._decisions: dict[tuple, list] = {}  # key -> [compressed, encodes left before the next probe]
+
+    def planned(self, key: tuple) -> bool | None:
+        """The remembered decision for ``key``, or None when it must be probed (unknown, or due again)."""
+        entry = self._decisions.get(key)
+        if entry is None or entry[1] <= 0:
+            return None
+        entry[1] -= 1
+        return entry[0]
+
+    def record(self, key: tuple, compressed: bool) -> None:
+        self._decisions[key] = [compressed, self.reprobe_every]
+
+
+def encode_state(state: Mapping[str, torch.Tensor] | None, precision: str = "half",
+                 memo: CompressionMemo | None = None) -> bytes:
+    """State tensors -> bytes (empty for no history); see the module notes for ``precision`` and ``memo``."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if state is None:
@@ -61,16 +89,28 @@ def encode_state(state: Mapping[str, torch.Tensor] | None, precision: str = "hal
         if dtype not in _TORCH_DTYPES:
             raise TypeError(f"state entry {name!r} has dtype {dtype}, which cannot be stored")
         stored, raw = _stored_bytes(tensor.detach().to("cpu"), "float" if name in GEOMETRY else precision)
-        encoding = "raw"
-        if raw and _worth_compressing(raw):
-            packed = zlib.compress(raw, _COMPRESS_LEVEL)
-            if len(packed) <= (1 - _MIN_SAVING) * len(raw):
-                raw, encoding = packed, "zlib"
+        raw, encoding = _compressed(raw, (name, stored, len(raw)), memo)
         entries.append({"name": name, "dtype": dtype, "shape": list(tensor.shape), "stored": stored,
                         "encoding": encoding, "bytes": len(raw)})
         payloads.append(raw)
     header = json.dumps({"tensors": entries}).encode()
     return b"".join([MAGIC, struct.pack("<I", len(header)), header, *payloads])
+
+
+def _compressed(raw: bytes, key: tuple, memo: CompressionMemo | None) -> tuple[bytes, str]:
+    """(payload, encoding): zlib where it saves ``_MIN_SAVING``, raw otherwise."""
+    planned = memo.planned(key) if memo is not None else None
+    if planned is False or not raw:
+        return raw, "raw"
+    if planned is None and not _worth_compressing(raw):
+        if memo is not None:
+            memo.record(key, False)
+        return raw, "raw"
+    packed = zlib.compress(raw, _COMPRESS_LEVEL)
+    compressed = len(packed) <= (1 - _MIN_SAVING) * len(raw)
+    if memo is not None:
+        memo.record(key, compressed)
+    return (packed, "zlib") if compressed else (raw, "raw")
 
 
 def _worth_compressing(raw: bytes) -> bool:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.state_codec import StateFormatError, decode_state, encode_state
+from model import state_codec
+from model.state_codec import CompressionMemo, StateFormatError, decode_state, encode_state
 
 
 def sample_state() -> dict[str, torch.Tensor]:
@@ -77,3 +78,37 @@ def test_the_previous_frames_geometry_stays_exact_in_half_precision():
              "jitter": torch.rand(1, 2, generator=generator) - 0.5}
     restored = decode_state(encode_state(state, "half"))
     assert all(torch.equal(restored[name], tensor) for name, tensor in state.items())
+
+
+def noise_plane(seed: int) -> torch.Tensor:
+    return torch.rand(1, 3, 32, 32, generator=torch.Generator().manual_seed(seed))  # 6 kB in float16: probed
+
+
+def test_a_memo_skips_the_probe_of_a_plane_that_did_not_compress_until_it_is_due_again(monkeypatch):
+    probes = []
+    real_probe = state_codec._worth_compressing
+    monkeypatch.setattr(state_codec, "_worth_compressing", lambda raw: probes.append(len(raw)) or real_probe(raw))
+    memo = CompressionMemo(reprobe_every=4)
+    for frame in range(10):  # probed on the 1st and the 6th: 4 encodes skip it after each probe
+        state = {"history": noise_plane(frame)}
+        assert torch.equal(decode_state(encode_state(state, "float", memo))["history"], state["history"])
+    assert len(probes) == 2
+    probes.clear()
+    for frame in range(3):
+        encode_state({"history": noise_plane(frame)}, "float")  # no memo: every encode probes
+    assert len(probes) == 3
+
+
+def test_a_memo_follows_a_plane_that_starts_or_stops_compressing():
+    memo = CompressionMemo(reprobe_every=3)
+    encode_state({"history": noise_plane(0)}, "half", memo)
+    zeros = {"history": torch.zeros(1, 3, 32, 32)}
+    sizes = [len(encode_state(zeros, "half", memo)) for _ in range(4)]  # raw until the probe is due again
+    assert sizes[0] > 6000 and sizes[-1] < 600 and sizes == sorted(sizes, reverse=True)
+    assert torch.equal(decode_state(encode_state(zeros, "half", memo))["history"], zeros["history"])
+    noise = {"history": noise_plane(1)}  # remembered as compressible: tried whole, kept raw
+    data = encode_state(noise, "half", memo)
+    assert len(data) > 32 * 32 * 3 * 2
+    torch.testing.assert_close(decode_state(data)["history"], noise["history"], rtol=2.0 ** -11, atol=2.0 ** -25)
+    with pytest.raises(ValueError, match="reprobe_every"):
+        CompressionMemo(reprobe_every=0)
