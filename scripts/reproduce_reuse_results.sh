@@ -17,7 +17,8 @@
 # split and Blender's orbit_s1 and pan_s1 (scripts/reproduce_blender_results.sh); see the README.
 # Last, at 1x, on Mitsuba and Blender Cycles frames together (needs bpy): 1500 steps, then the network grown by the
 # clipped running mean of OIDN's estimates, and the fast / high presets from it (about 25 minutes); then both 2x
-# models grown the same way (1000 steps each, about 20 minutes).
+# models grown the same way (1000 steps each, about 20 minutes), then fine-tuned on the mixed frames (600 steps each,
+# about 25 minutes).
 # Usage: scripts/reproduce_reuse_results.sh [DATA_DIR]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -121,13 +122,23 @@ x2tune=(.venv/bin/denoiser train --data "$DATA" --batch 4 --lr 2e-4 --warmup 10 
 "${x2tune[@]}" --method fused:fast --init-from runs/fused-fast-x2-rot/best.pt \
   --out runs/fused-fast-x2-cmean > runs-fused-fast-x2-cmean.log 2>&1 &
 wait
+# Then both 2x models fine-tuned on Mitsuba and Blender Cycles frames together, as the 1x model was
+# (data/reuse-mixed: its Blender sequences carry 2x references), 600 steps each at lr 5e-4, side by side.
+x2mixed=(.venv/bin/denoiser train --data data/reuse-mixed --batch 4 --lr 5e-4 --warmup 10 --threads 1 --quiet
+         --display-weight 50 --scale 2 --crop 48 --frames-per-sample 10 --seed 3 --steps 600 --validate-every 150
+         --checkpoint-every 150)
+for preset in balanced fast; do
+  "${x2mixed[@]}" --method "fused:$preset" --init-from "runs/fused-$preset-x2-cmean/best.pt" \
+    --out "runs/fused-$preset-x2-mixed" > "runs-fused-$preset-x2-mixed.log" 2>&1 &
+done
+wait
 mkdir -p docs/results
 for scale in 1 2; do
   if [ "$scale" = 1 ]; then
     ours=(--method runs/fused-balanced-x1-cmean/best.pt --method runs/fused-fast-x1-cmean/best.pt
           --method runs/fused-high-x1-cmean/best.pt)
   else
-    ours=(--method runs/fused-balanced-x2-cmean/best.pt --method runs/fused-fast-x2-cmean/best.pt)
+    ours=(--method runs/fused-balanced-x2-mixed/best.pt --method runs/fused-fast-x2-mixed/best.pt)
   fi
   .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 \
     "${ours[@]}" --method oidn-taa:fast --method oidn-taa:balanced \
@@ -142,7 +153,7 @@ picture() {  # SEQUENCE FRAME SCALE ZOOM OUT CHECKPOINT
     --method "$6=fused-balanced" --out "$5"
 }
 x1=runs/fused-balanced-x1-cmean/best.pt
-x2=runs/fused-balanced-x2-cmean/best.pt
+x2=runs/fused-balanced-x2-mixed/best.pt
 picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png "$x1"
 picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png "$x1"
 # The moving light with the high preset too (the one at or above OIDN-high on every sequence).
@@ -160,9 +171,11 @@ ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-scrip
   --stage runs/fused-balanced-x1-display-1000/best.pt --stage runs/fused-balanced-x1-display-1500/best.pt \
   --stage runs/fused-balanced-x1-rot/best.pt --stage runs/fused-balanced-x1-mixed/best.pt \
   --report docs/results/reuse_x1.json
-"${ship[@]}" "$x2" --name fused-balanced-x2 --stage runs/fused-balanced-x2/best.pt \
+"${ship[@]}" "$x2" --name fused-balanced-x2 --data data/reuse-mixed \
+  --dataset-script scripts/generate_blender_training_data.sh --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-balanced-x2-display/best.pt --stage runs/fused-balanced-x2-rot/best.pt \
-  --stage runs/fused-balanced-x2-rot2/best.pt --report docs/results/reuse_x2.json
+  --stage runs/fused-balanced-x2-rot2/best.pt --stage runs/fused-balanced-x2-cmean/best.pt \
+  --report docs/results/reuse_x2.json
 # The 1x fast and high presets, fine-tuned from the 1x model above on the mixed data (its stages are theirs too).
 for quality in fast high; do
   "${ship[@]}" "runs/fused-$quality-x1-cmean/best.pt" --name "fused-$quality-x1" --data data/reuse-mixed \
@@ -172,6 +185,7 @@ for quality in fast high; do
     --stage runs/fused-balanced-x1-rot/best.pt --stage runs/fused-balanced-x1-mixed/best.pt --stage "$x1" \
     --report docs/results/reuse_x1.json
 done
-"${ship[@]}" runs/fused-fast-x2-cmean/best.pt --name fused-fast-x2 --stage runs/fused-balanced-x2/best.pt \
+"${ship[@]}" runs/fused-fast-x2-mixed/best.pt --name fused-fast-x2 --data data/reuse-mixed \
+  --dataset-script scripts/generate_blender_training_data.sh --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-fast-x2/best.pt --stage runs/fused-fast-x2-display/best.pt --stage runs/fused-fast-x2-rot/best.pt \
-  --report docs/results/reuse_x2.json
+  --stage runs/fused-fast-x2-cmean/best.pt --report docs/results/reuse_x2.json
