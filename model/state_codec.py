@@ -15,8 +15,8 @@ CPU (the fused model's 1080p history: 1.6 s of zlib to save 35 of 100 MB; a 128x
 frame), when writing those bytes to a local Redis takes a few milliseconds per 10 MB, so those are left raw.
 A stream's history keeps its layout from frame to frame, and a plane that did not compress last frame rarely does
 the next, so a ``CompressionMemo`` carried between one stream's encodes skips the probe for such a plane (it is
-probed again after ``reprobe_every`` encodes without one); skipping them halved a 128x128 WSKPN history's encode. What the
-memo decides changes only the size of the bytes, never what they decode to.
+probed again after ``reprobe_every`` encodes without one); skipping them halved a 128x128 WSKPN history's
+encode. What the memo decides changes only the size of the bytes, never what they decode to.
 
 Decoding gives every tensor back with its original dtype and shape; bytes that are not a state this module
 wrote raise ``StateFormatError`` naming what is wrong.
