@@ -18,7 +18,7 @@ from model.methods.base import FrameBatch, State
 from model.methods.baselines import RenderResolutionFilter
 from model.methods.registry import MethodSpec, register
 
-__all__ = ["OIDN", "QUALITIES", "oidn_albedo", "oidn_denoise"]
+__all__ = ["OIDN", "QUALITIES", "oidn_albedo", "oidn_denoise", "oidn_device_for"]
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ def oidn_denoise(frame: FrameBatch, quality: str) -> torch.Tensor:
     if quality not in QUALITIES:
         raise KeyError(f"OIDN has no quality {quality!r}; qualities: {', '.join(QUALITIES)}")
     albedo = oidn_albedo(frame)
-    if frame.device.type == "cuda" and _cuda_oidn_usable():
+    if oidn_device_for(frame.device) == "cuda":
         try:
             return _denoise_cuda(frame, albedo, quality)
         except (TypeError, ValueError, RuntimeError) as error:  # this pyoidn build has no CUDA device after all
@@ -71,6 +71,23 @@ _CUDA_STATE: dict[str, bool] = {}
 
 def _cuda_oidn_usable() -> bool:
     return _CUDA_STATE.get("usable", True)
+
+
+def oidn_device_for(device: torch.device | str) -> str:
+    """Which OIDN device denoises frames that live on `device`: "cuda" or "cpu".
+
+    "cuda" only for a CUDA frame, when this pyoidn build has a CUDA device that supports that GPU and it has
+    not failed in this process; everything else is denoised on the CPU (benchmarks print this, so a GPU time
+    is never silently a CPU one).
+    """
+    device = torch.device(device)
+    if device.type != "cuda" or not _cuda_oidn_usable():
+        return "cpu"
+    try:
+        supported = bool(pyoidn.Device.is_cuda_available(device.index or 0))
+    except (AttributeError, OSError, RuntimeError):  # a build without the query, or without a CUDA library
+        supported = False
+    return "cuda" if supported else "cpu"
 
 
 def _denoise_cuda(frame: FrameBatch, albedo: torch.Tensor, quality: str) -> torch.Tensor:

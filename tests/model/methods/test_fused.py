@@ -8,7 +8,7 @@ import torch
 from model.methods.fused import LEGACY_CANDIDATES, Fused, unjittered_resample
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
-from model.methods.registry import build_method, inference_cost, method_spec
+from model.methods.registry import build_method, example_batch, inference_cost, method_spec
 from model.ops.rectify import variance_clip
 from tests.builders import noisy_constant, plane_frame
 
@@ -130,6 +130,27 @@ def test_the_inference_form_gives_the_training_forms_output():
             out_a, state_a = trained.eval().step(frame, state_a)
             out_b, state_b = fast.step(frame, state_b)
     torch.testing.assert_close(out_b, out_a, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("scale", [1, 2])
+def test_a_gpu_stream_gives_the_cpu_streams_output(scale):
+    """The whole step on a GPU, OIDN included (its CUDA device where pyoidn has one): output and history stay there."""
+    torch.manual_seed(3)
+    method = build_method("fused:fast", scale)
+    for parameter in method.parameters():
+        parameter.data += 0.05 * torch.randn_like(parameter)
+    method = method.eval().for_inference()
+    import copy
+    on_gpu = copy.deepcopy(method).to("cuda")
+    state_cpu = state_gpu = None
+    with torch.no_grad():
+        for seed in range(3):
+            out_cpu, state_cpu = method.step(example_batch(SIZE, SIZE, seed=seed), state_cpu)
+            out_gpu, state_gpu = on_gpu.step(example_batch(SIZE, SIZE, seed=seed, device="cuda"), state_gpu)
+            assert out_gpu.device.type == "cuda" and state_gpu["history"].device.type == "cuda"
+            # OIDN's CUDA and CPU devices agree to about 1e-2 (test_oidn); the network adds nothing to that.
+            torch.testing.assert_close(out_gpu.cpu(), out_cpu, atol=3e-2, rtol=3e-2)
 
 
 def test_resampling_next_to_a_bright_emitter_does_not_overshoot():

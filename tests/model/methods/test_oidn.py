@@ -5,7 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.oidn import OIDN, QUALITIES, oidn_albedo
+import pyoidn
+
+from model.methods.oidn import OIDN, QUALITIES, oidn_albedo, oidn_device_for
 from model.methods.registry import build_method, example_batch, flops_per_pixel, method_spec
 from tests.builders import mse, plane_frame
 
@@ -76,6 +78,17 @@ def test_cuda_input_comes_back_on_cuda():
     # OIDN's CUDA device (or the CPU fallback) gives what the CPU device gives, to float rounding.
     on_cpu, _ = build_method("oidn:fast").step(example_batch(HEIGHT, WIDTH), None)
     torch.testing.assert_close(output.cpu(), on_cpu, atol=2e-2, rtol=2e-2)
+
+
+def test_cpu_frames_are_denoised_by_oidns_cpu_device():
+    assert oidn_device_for("cpu") == oidn_device_for(torch.device("cpu")) == "cpu"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_a_gpu_frame_uses_oidns_cuda_device_when_this_build_has_one():
+    build_method("oidn:fast").step(example_batch(HEIGHT, WIDTH, device="cuda"), None)
+    expected = "cuda" if pyoidn.Device.is_cuda_available(0) else "cpu"
+    assert oidn_device_for("cuda") == expected
 
 
 def test_flops_per_pixel_and_parameter_count():
