@@ -263,6 +263,21 @@ def test_init_from_starts_a_fresh_run_from_another_checkpoints_weights(data, tmp
     assert any(not torch.equal(value, source[name]) for name, value in fresh.state_dict().items())
 
 
+def test_a_fine_tune_keeps_its_starting_weights_as_best_when_no_step_beats_them(data, tmp_path):
+    train(tiny_config(data, tmp_path / "first", steps=6, validate_every=3))
+    start = tmp_path / "first" / LAST_CHECKPOINT
+    # lr 10 wrecks the weights in one step, so every later validation is worse than the starting one.
+    result = train(tiny_config(data, tmp_path / "tune", steps=2, validate_every=1, lr=10.0, init_from=str(start)))
+    assert result["best_metric"]["step"] == 0
+    assert not result["validation"]["psnr"] >= result["best_metric"]["value"]
+    best = weights(tmp_path / "tune" / BEST_CHECKPOINT)
+    for name, value in weights(start).items():
+        assert torch.equal(best[name], value), name
+    # A run from random weights has nothing to keep: its first validation is at its first validation step.
+    fresh = train(tiny_config(data, tmp_path / "fresh", steps=2, validate_every=1, lr=10.0))
+    assert fresh["best_metric"]["step"] in (1, 2)
+
+
 def test_init_from_refuses_another_method_or_a_missing_file(data, tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         prepare(tiny_config(data, tmp_path / "a", init_from=str(tmp_path / "missing.pt")))
