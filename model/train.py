@@ -328,8 +328,8 @@ class _Training:
     def _loop(self) -> None:
         config = self.config
         if self.step == 0 and config.init_from:
-            # A fine-tune can end below where it started (a 600-step fused:fast fine-tune did, by 0.12 dB): with
-            # its starting weights validated as step 0, best.pt is never worse on validation than the init.
+            # A fine-tune can end below where it started (too high a learning rate, too little data): with its
+            # starting weights validated as step 0, best.pt is never worse on validation than the init.
             self._validate()
         while self.step < self.total_steps:
             frames = self._batch(self.step)
