@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+import pyoidn
 import pytest
 import torch
-
-import pyoidn
 
 from model.methods.oidn import OIDN, QUALITIES, oidn_albedo, oidn_device_for
 from model.methods.registry import build_method, example_batch, flops_per_pixel, method_spec
