@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import subprocess
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import pytest
 import torch
@@ -89,3 +94,41 @@ def test_submit_lets_the_caller_work_while_the_call_runs():
         assert nested.done() and nested.result() != threading.get_ident()
     finally:
         worker.shutdown()
+
+
+ARENA_COUNT = r"""
+import ctypes, ctypes.util, os, sys, tempfile, threading
+libc = ctypes.CDLL(ctypes.util.find_library("c"))
+libc.fopen.restype = libc.malloc.restype = ctypes.c_void_p
+def first_allocation():
+    libc.free(ctypes.c_void_p(libc.malloc(1 << 20)))
+if sys.argv[1] == "pool":
+    from api.torch_thread import TorchPool
+    pool = TorchPool(2)
+    for _ in range(4):
+        pool.run(first_allocation)
+    pool.shutdown()
+else:
+    for _ in range(2):
+        thread = threading.Thread(target=first_allocation)
+        thread.start()
+        thread.join()
+path = os.path.join(tempfile.mkdtemp(), "malloc.xml")
+stream = libc.fopen(path.encode(), b"w")
+libc.malloc_info(0, ctypes.c_void_p(stream))
+libc.fclose(ctypes.c_void_p(stream))
+print(open(path).read().count("<heap nr="))
+"""
+
+
+@pytest.mark.skipif(not hasattr(ctypes.CDLL(ctypes.util.find_library("c")), "malloc_info"), reason="not glibc")
+def test_the_pools_threads_allocate_from_the_main_malloc_arena():
+    # glibc's malloc_info lists one <heap> per arena: a plain thread's first allocation makes an arena of its own,
+    # the pool's threads do not (share_one_malloc_arena, set before they start).
+    def arenas(mode: str) -> int:
+        done = subprocess.run([sys.executable, "-c", ARENA_COUNT, mode], capture_output=True, text=True, check=True,
+                              cwd=Path(__file__).resolve().parents[2])
+        return int(done.stdout.strip())
+
+    assert arenas("plain") >= 2
+    assert arenas("pool") == 1
