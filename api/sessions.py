@@ -90,7 +90,7 @@ from api.session_models import (
     resolve_session_model,
 )
 from core.settings import Settings
-from api.torch_thread import TorchPool
+from api.torch_thread import TorchPool, set_own_torch_threads
 
 log = logging.getLogger("denoiser.sessions")
 T = TypeVar("T")
@@ -425,7 +425,7 @@ class SessionStore:
         self._lock = threading.RLock()  # guards the four dicts
         # Each writer serializes the history itself, with one torch thread (no OpenMP team, no hop to another thread).
         self._mirror_pool = ThreadPoolExecutor(MIRROR_WRITERS, thread_name_prefix="session-mirror",
-                                               initializer=torch.set_num_threads, initargs=(1,))
+                                               initializer=set_own_torch_threads, initargs=(1,))
         self._methods_lock = threading.Lock()  # one method load at a time, so each version loads once
         self._create_lock = threading.Lock()  # the capacity check and the insert are one step
 

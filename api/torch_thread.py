@@ -19,14 +19,14 @@ and the others keep serving the rest.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 import torch
+
+from model.malloc import tune_for_large_frames
 
 T = TypeVar("T")
 
@@ -40,14 +40,14 @@ class TorchPool:
         self.workers = workers
         self.num_threads = num_threads
         self._idents: set[int] = set()
-        share_one_malloc_arena()  # before the workers' first allocation picks their arena
+        tune_for_large_frames()  # before the workers' first allocation picks their arena
         self._executor = ThreadPoolExecutor(workers, thread_name_prefix=name, initializer=self._start,
                                             initargs=(num_threads,))
 
     def _start(self, num_threads: int | None) -> None:
         self._idents.add(threading.get_ident())
         if num_threads:
-            torch.set_num_threads(num_threads)
+            set_own_torch_threads(num_threads)
 
     def run(self, function: Callable[..., T], *args, **kwargs) -> T:
         return self.submit(function, *args, **kwargs).result()
@@ -72,23 +72,15 @@ class TorchThread(TorchPool):
         super().__init__(1, num_threads, name)
 
 
-_M_ARENA_MAX = -8  # glibc's malloc.h
+def set_own_torch_threads(num_threads: int) -> None:
+    """The calling thread's torch thread count, kept whatever other threads set later.
 
-
-def share_one_malloc_arena() -> bool:
-    """Make threads that allocate for the first time from now on use glibc's main malloc arena; False off glibc.
-
-    Why: glibc gives a new thread an arena of its own, whose heaps are at most 64 MB and shrink as blocks are
-    freed, so the tens of megabytes of tensors a large frame's step allocates fault their pages in again every
-    step. Measured on the 2-core development machine: a `wskpn:s` step at 1920x1080 took 1.95-2.06 s (median of 5)
-    on a thread of its own against 1.26-1.51 s on the main thread (3.5x the page faults, 4x the kernel time), and
-    1.47 s on a thread sharing the main arena. The sessions' steps all run on this module's threads.
-    """
-    try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
-    except (OSError, AttributeError):  # not glibc (macOS has no mallopt)
-        return False
-    return bool(mallopt(_M_ARENA_MAX, 1))
+    torch applies the process's last ``set_num_threads``, whichever thread made it, to a thread the first time
+    that thread asks for its count (its first parallel op does), so a session thread of 2 whose first step came
+    after a frame reader of 1 started stepped on one thread (a 1080p fused step 20% slower). Asking first ends
+    that first time here."""
+    torch.get_num_threads()
+    torch.set_num_threads(num_threads)
 
 
 def _called_here(function: Callable[..., T], *args, **kwargs) -> Future[T]:

@@ -109,8 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from model.frames import FrameError
+    from model.malloc import tune_for_large_frames
 
     args = build_parser().parse_args(argv)
+    tune_for_large_frames()  # before any frame is read: a 1080p step otherwise faults its tensors in every time
     try:
         return args.run(args)
     except (UsageError, FrameError, FileNotFoundError, FileExistsError, KeyError, ValueError) as error:

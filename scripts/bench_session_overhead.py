@@ -66,6 +66,7 @@ from model.checkpoint import load_method, save_checkpoint  # noqa: E402
 from model.exr import decode_image_exr  # noqa: E402
 from model.frames import FrameBundle  # noqa: E402
 from model.inference_forms import load_form_table, with_inference_forms  # noqa: E402
+from model.malloc import tune_for_large_frames  # noqa: E402
 from model.methods.base import FrameBatch  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 from client.rest import FRAME_COMPRESSIONS, DenoiserClient, frame_bytes  # noqa: E402
@@ -406,6 +407,7 @@ def main() -> None:
 
     args = parse_args()
     torch.set_num_threads(args.threads)
+    tune_for_large_frames()  # as the API's session threads and the CLI have it, so the in-process step is alike
     total = args.warmup + args.frames
     with tempfile.TemporaryDirectory(prefix="bench-session-") as folder:
         work = Path(folder)

@@ -124,7 +124,7 @@ print(open(path).read().count("<heap nr="))
 @pytest.mark.skipif(not hasattr(ctypes.CDLL(ctypes.util.find_library("c")), "malloc_info"), reason="not glibc")
 def test_the_pools_threads_allocate_from_the_main_malloc_arena():
     # glibc's malloc_info lists one <heap> per arena: a plain thread's first allocation makes an arena of its own,
-    # the pool's threads do not (share_one_malloc_arena, set before they start).
+    # the pool's threads do not (model.malloc, set before they start).
     def arenas(mode: str) -> int:
         done = subprocess.run([sys.executable, "-c", ARENA_COUNT, mode], capture_output=True, text=True, check=True,
                               cwd=Path(__file__).resolve().parents[2])
@@ -132,3 +132,22 @@ def test_the_pools_threads_allocate_from_the_main_malloc_arena():
 
     assert arenas("plain") >= 2
     assert arenas("pool") == 1
+
+
+THREAD_COUNTS = r"""
+import torch
+from api.torch_thread import TorchPool
+steps = TorchPool(1, 2, "steps")
+steps.run(lambda: None)
+readers = TorchPool(1, 1, "readers")  # started after the steps' pool, as a session's frame readers are
+readers.run(lambda: None)
+print(steps.run(torch.get_num_threads), readers.run(torch.get_num_threads))
+"""
+
+
+def test_each_pool_keeps_its_own_torch_thread_count_when_another_pool_starts_later():
+    # torch applies the process's last set_num_threads to a thread when that thread first asks for its count, so
+    # a steps pool whose first parallel op came after the readers started ran on the readers' one thread.
+    done = subprocess.run([sys.executable, "-c", THREAD_COUNTS], capture_output=True, text=True, check=True,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert done.stdout.split() == ["2", "1"]
