@@ -70,6 +70,7 @@ def child(model: str, size: str, threads: int, frames: int, device_name: str = "
     import torch
 
     from model.inference_forms import load_form_table, with_inference_forms
+    from model.malloc import tune_for_large_frames
     from model.methods.base import FrameBatch
     from model.methods.oidn import oidn_device_for
     from model.methods.registry import build_method, inference_cost
@@ -78,6 +79,7 @@ def child(model: str, size: str, threads: int, frames: int, device_name: str = "
     from model.timing import timed
 
     torch.set_num_threads(threads)
+    tune_for_large_frames()  # as the sessions and the CLI run
     device = torch.device(device_name)
     name, _, scale = model.partition("@")
     method = load_pretrained(name) if is_pretrained(name) else build_method(name, int(scale or 1))
