@@ -53,7 +53,9 @@ class EvaluationSequence:
             raise ValueError(_missing_scale_message(sequence, scale))
         count = len(sequence) if frame_limit is None else min(frame_limit, len(sequence))
         frames = [FrameBatch.from_bundles([sequence[index]], scale) for index in range(count)]
-        return cls(sequence.name, frames, [bool(f.camera_cut[0]) for f in frames], scale)
+        # The dataset's name for it (its folder), unique in the dataset: a dataset that links sequences of others
+        # may hold two whose own manifests give the same name (one scene rendered at two resolutions).
+        return cls(sequence.path.name, frames, [bool(f.camera_cut[0]) for f in frames], scale)
 
     @property
     def input_resolution(self) -> str:

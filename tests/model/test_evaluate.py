@@ -76,6 +76,18 @@ def test_metrics_are_per_frame_means_averaged_over_sequences(dataset_dir):
     assert 5 < entry["metrics"]["psnr"] < 30  # noise of sigma 0.2: clearly imperfect, clearly not garbage
 
 
+def test_sequences_are_reported_by_their_dataset_names_when_their_own_names_repeat(dataset_dir, tmp_path):
+    # A dataset of links to other datasets' sequences (one scene at two resolutions, say) can hold two whose own
+    # manifests name them alike: each gets its own row, under the name the dataset gives it.
+    mixed = Dataset.create(tmp_path / "mixed")
+    for link in ("a_128", "a_256"):
+        (tmp_path / "mixed" / link).symlink_to(dataset_dir / "a")
+        mixed.add_sequence_dir(link, "test")
+    report = run(tmp_path / "mixed", [NoisyInput()])
+    assert [s["name"] for s in report["sequences"]] == ["a_128", "a_256"]
+    assert set(report["methods"][0]["sequences"]) == {"a_128", "a_256"}
+
+
 def test_history_is_carried_reset_per_sequence_and_at_cuts_and_reference_is_hidden(dataset_dir):
     method = NoisyInput()
     run(dataset_dir, [method])
