@@ -44,15 +44,13 @@ process reading Redis in that window sees the same one-frame lag.
 
 Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
 Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
-``for_inference`` form under ``torch.inference_mode`` (histories are then inference tensors,
-only ever read outside it). Frames of one session are serialized by a per-session lock;
-different sessions run concurrently, except that every step, weight load and history restore runs on the store's
-session torch threads (``api.torch_thread``: one OpenMP team each, not one per request thread); on a CPU each step
-uses every core, so running two at once would gain nothing. Stream frames are read into tensors (``read_frame``) and
-histories serialized for Redis on threads of one torch thread each (no OpenMP team), beside the steps. If Redis is
-unreachable, sessions keep working from memory (a warning is logged, by the background writer for frames) but cannot
-survive a restart meanwhile.
-"""
+``for_inference`` form under ``torch.inference_mode`` (histories are then inference tensors, only ever read outside
+it). Frames of one session are serialized by a per-session lock; different sessions run concurrently, except that
+every step, weight load and history restore runs on the store's session torch threads (``api.torch_thread``: one
+OpenMP team each, not one per request thread); on a CPU each step uses every core, so running two at once would gain
+nothing. Stream frames are read into tensors (``read_frame``) and histories serialized for Redis on threads of one
+torch thread each (no OpenMP team), beside the steps. If Redis is unreachable, sessions keep working from memory (a
+warning is logged, by the background writer for frames) but cannot survive a restart meanwhile. """
 
 from __future__ import annotations
 
