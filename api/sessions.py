@@ -50,7 +50,8 @@ every step, weight load and history restore runs on the store's session torch th
 OpenMP team each, not one per request thread); on a CPU each step uses every core, so running two at once would gain
 nothing. Stream frames are read into tensors (``read_frame``) and histories serialized for Redis on threads of one
 torch thread each (no OpenMP team), beside the steps. If Redis is unreachable, sessions keep working from memory (a
-warning is logged, by the background writer for frames) but cannot survive a restart meanwhile. """
+warning is logged, by the background writer for frames) but cannot survive a restart meanwhile.
+"""
 
 from __future__ import annotations
 
