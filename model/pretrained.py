@@ -221,14 +221,16 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                     training_script: str | None = None, report: dict[str, Any] | None = None,
                     report_source: str | None = None, report_path: str | None = None,
                     stages: list[str | os.PathLike] | None = None,
-                    after_shipped: str | None = None) -> PretrainedModel:
+                    after_shipped: str | None = None,
+                    history_before_kernel: bool | None = None) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
     an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
     earlier trainings this one started from (``--init-from``), first to last; their step, best metric and training
     settings are recorded as ``training.stages``. ``after_shipped``: the name of a shipped model (in ``root``) the
     first of them, or this checkpoint, started from (``--init-from pretrained/NAME/model.pt``): its recorded stages
     and its own training come first, so a fine-tune of a shipped model keeps the whole recipe where the earlier
-    runs are gone (a fresh checkout holds none)."""
+    runs are gone (a fresh checkout holds none). ``history_before_kernel`` (the fused family only; None: as the
+    checkpoint has it) sets which recurrence the shipped weights run (``model.methods.fused``)."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -240,6 +242,11 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     method.load_state_dict(content["model"])
     if not method.learned:
         raise PretrainedError(f"{checkpoint} holds {method.label}, which has no weights to ship")
+    if history_before_kernel is not None:
+        if not hasattr(method, "set_history_before_kernel"):
+            raise PretrainedError(f"{checkpoint} holds {method.label}, which has no choice of recurrence (only the "
+                                  f"fused family has)")
+        method.set_history_before_kernel(history_before_kernel)
     folder = _root(root) / name
     folder.mkdir(parents=True, exist_ok=True)
     train_config = content.get("train_config") or {}

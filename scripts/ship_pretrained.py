@@ -14,6 +14,13 @@ not exist here).
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
         --remeasure --report docs/results/reuse_x1.json --report-source fused-balanced-x1
 
+--history-before-kernel / --history-after-kernel (fused only): ship the weights running that recurrence (the
+fused blend before the kernel as the next frame's history, or the filtered output; model/methods/fused.py); the
+weights are the checkpoint's.
+
+    .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
+        --after-shipped fused-balanced-x1 --history-before-kernel
+
 --remeasure: the checkpoint is the shipped model NAME itself, evaluated again in the report's run (beside newer
 models); only its held-out section is replaced, its weights and training record stay.
 """
@@ -51,12 +58,20 @@ def main() -> int:
     parser.add_argument("--after-shipped", default=None, metavar="NAME",
                         help="the shipped model the first stage (or the checkpoint) was fine-tuned from (--init-from "
                              "pretrained/NAME/model.pt): its recorded stages and itself are recorded first")
+    recurrence = parser.add_mutually_exclusive_group()
+    recurrence.add_argument("--history-before-kernel", dest="history_before_kernel", action="store_const",
+                            const=True, default=None,
+                            help="fused only: the blend before the kernel is the next frame's history")
+    recurrence.add_argument("--history-after-kernel", dest="history_before_kernel", action="store_const",
+                            const=False, help="fused only: the filtered output is the next frame's history")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
-    if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data):
-        parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped or --data")
+    if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data
+                           or args.history_before_kernel is not None):
+        parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data or "
+                     "--history-*-kernel")
     report = None
     if args.report is not None:
         if not args.report.is_file():
@@ -70,7 +85,8 @@ def main() -> int:
                                 dataset_script=args.dataset_script, training_script=args.training_script,
                                 report=report, report_source=args.report_source,
                                 report_path=None if args.report is None else str(args.report), stages=args.stage,
-                                after_shipped=args.after_shipped)
+                                after_shipped=args.after_shipped,
+                                history_before_kernel=args.history_before_kernel)
     except (PretrainedError, UnknownPretrained, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

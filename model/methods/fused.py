@@ -18,14 +18,21 @@ accumulated branch. Per frame:
    validity and length of the history, the recurrent features (and the jitter at scale 2) at render resolution,
    and predicts, per output pixel, softmax fusion weights over (``s``, ``h``, ``r``, ``c``) and a 3 x 3 softmax
    kernel;
-5. output = kernel * (w_s s + w_h h + w_r r + w_c c), back to linear radiance; it is the next frame's history.
+5. blend = w_s s + w_h h + w_r r + w_c c, output = kernel * blend, back to linear radiance; the blend, before the
+   kernel, is the next frame's history.
+
+The kernel's blur stays out of the recurrence: fed back, it compounds frame after frame, and at frame sizes above
+training's it washed the checker behind a moving lamp out (held-out, 512x512: +0.78 dB for the shipped balanced
+weights run with the blend as history, +0.14 at 256x256, +0.02 at 128x128; the README has the whole comparison).
+Checkpoints saved before this choice (no ``recurrence_before_kernel`` entry) keep the output as history, as they were
+trained; ``recurrence_before_kernel`` in the state dict says which recurrence a checkpoint runs.
 
 ``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to
 ``MEAN_FRAMES`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
-``r``, and the network also reads ``m`` and ``|m - s|``. Its own output ``h`` carries its kernels' blur and its clips
-into every later frame; ``m`` is an unbiased average of OIDN's estimates where the scene is static (which the
-network, reading its own output, had not learned to reproduce: an unclipped running mean scored 0.4-0.7 dB above it
-on static held-out recipes). ``m`` itself as a candidate ghosted more (it keeps a moving lamp's old positions
+``r``, and the network also reads ``m`` and ``|m - s|``. Its own history ``h`` carries its clips (and, with the
+output as history, its kernels' blur) into every later frame; ``m`` is an unbiased average of OIDN's estimates
+where the scene is static (which the network, reading its own output, had not learned to reproduce: an unclipped
+running mean scored 0.4-0.7 dB above it on static held-out recipes). ``m`` itself as a candidate ghosted more (it keeps a moving lamp's old positions
 wherever the depth test passes), so only its clipped form is one. Checkpoints from before the running mean load as
 the three-candidate network they are (``load_state_dict``), with its cost; ``--init-from`` one of them starts this
 network with the new inputs' weights at zero and the new candidate's weight at ``NEW_CANDIDATE_WEIGHT``.
@@ -72,6 +79,7 @@ INITIAL_WEIGHTS = (0.2, 0.002, 0.796, 0.002)
 LEGACY_INITIAL_WEIGHTS = (0.2, 0.002, 0.798)
 INITIAL_CENTRE_LOGIT = 7.0  # the 3 x 3 kernel starts as (almost) the identity: 0.993 on the centre tap
 WIDTH = 16
+RECURRENCE_KEY = "recurrence_before_kernel"  # state-dict entry: 1 = the blend before the kernel is the history
 
 
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
@@ -144,7 +152,7 @@ class Fused(Method):
     loss_weights = (1.0, 0.5)
 
     def __init__(self, preset: str = "balanced", scale: int = 1, depth_rel_tol: float = 0.1,
-                 normal_cos_tol: float = 0.9):
+                 normal_cos_tol: float = 0.9, history_before_kernel: bool = True):
         super().__init__(preset, scale)
         if preset not in QUALITIES:
             raise KeyError(f"{self.name} has no preset {preset!r}; presets: {', '.join(QUALITIES)}")
@@ -152,6 +160,19 @@ class Fused(Method):
         self.depth_rel_tol = depth_rel_tol
         self.normal_cos_tol = normal_cos_tol
         self.net = self._network(CANDIDATES)
+        # A buffer, so checkpoints record which recurrence their weights run; mirrored in a Python bool so a step
+        # never reads a device tensor to branch on it.
+        self.register_buffer(RECURRENCE_KEY, torch.tensor(float(history_before_kernel)))
+        self._history_before_kernel = bool(history_before_kernel)
+
+    @property
+    def history_before_kernel(self) -> bool:
+        """Whether the next frame's history is the fused blend before the kernel (else the filtered output)."""
+        return self._history_before_kernel
+
+    def set_history_before_kernel(self, value: bool) -> None:
+        getattr(self, RECURRENCE_KEY).fill_(float(value))
+        self._history_before_kernel = bool(value)
 
     def _network(self, candidates: int) -> FusionNet:
         inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
@@ -170,6 +191,8 @@ class Fused(Method):
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Load a checkpoint of either network: one from before the running mean rebuilds this method as the
         three-candidate network it was trained as (the same outputs and cost as then)."""
+        if RECURRENCE_KEY not in state_dict:  # saved before the choice existed: the output was the history
+            state_dict = {**state_dict, RECURRENCE_KEY: torch.tensor(0.0)}
         candidates = self._candidates_in(state_dict)
         if candidates != self.net.candidates:
             if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
@@ -177,11 +200,15 @@ class Fused(Method):
                                  f"({LEGACY_CANDIDATES} or {CANDIDATES})")
             device = self.net.head.weight.device
             self.net = self._network(candidates).to(device)
-        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+        result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        self._history_before_kernel = bool(getattr(self, RECURRENCE_KEY).item() > 0.5)
+        return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
         """``--init-from``: a three-candidate checkpoint starts this network as the same function, nearly: the
-        new inputs' weights are zero and the clipped running mean starts at ``NEW_CANDIDATE_WEIGHT``."""
+        new inputs' weights are zero and the clipped running mean starts at ``NEW_CANDIDATE_WEIGHT``. The weights
+        come from the checkpoint, the recurrence stays this method's: a fine-tune trains the current one."""
+        state_dict = {**state_dict, RECURRENCE_KEY: torch.tensor(float(self.history_before_kernel))}
         if self._candidates_in(state_dict) != LEGACY_CANDIDATES or not self.has_mean:
             self.load_state_dict(state_dict)
             return
@@ -269,7 +296,8 @@ class Fused(Method):
         weights = torch.softmax(weights, dim=1)
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
         output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
-        new_state = {"history": output, "hidden": new_hidden, "length": length, "depth": frame.depth,
+        history = blended if self.history_before_kernel else output
+        new_state = {"history": history, "hidden": new_hidden, "length": length, "depth": frame.depth,
                      "normal": frame.normal, "jitter": frame.jitter}
         if self.has_mean:
             new_state.update(mean=mean, count=count)

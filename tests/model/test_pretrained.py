@@ -180,3 +180,24 @@ def test_a_shipped_model_remeasured_in_another_run_keeps_its_weights_and_trainin
     shipped.path.write_bytes(weights[:-1] + bytes([weights[-1] ^ 1]))
     with pytest.raises(PretrainedError, match="sha256"):  # numbers are never recorded for a file that is not it
         remeasure_shipped("wskpn-xs-x1", newer, "wskpn-xs-x1", root=root)
+
+
+def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weights(tmp_path):
+    from model.methods.fused import RECURRENCE_KEY
+
+    root = tmp_path / "pretrained"
+    torch.manual_seed(5)
+    method = build_method("fused:fast", 1)
+    method.set_history_before_kernel(False)
+    source = save_checkpoint(tmp_path / "fused.pt", method=method, step=30, train_config={"steps": 30})
+    shipped = ship_checkpoint(source, "fused-fast-x1", root=root)
+    assert not load_pretrained("fused-fast-x1", root=root).history_before_kernel
+    reshipped = ship_checkpoint(shipped.path, "fused-fast-x1", root=root, after_shipped="fused-fast-x1",
+                                history_before_kernel=True)
+    assert load_pretrained("fused-fast-x1", root=root).history_before_kernel
+    before, after = (torch.load(model, weights_only=True)["model"] for model in (source, reshipped.path))
+    assert before.keys() == after.keys() and float(after[RECURRENCE_KEY]) == 1.0
+    assert all(torch.equal(before[key], after[key]) for key in before if key != RECURRENCE_KEY)
+    assert reshipped.manifest["training"]["stages"][-1]["sha256"] == shipped.sha256
+    with pytest.raises(PretrainedError, match="no choice of recurrence"):
+        ship_tiny(root, history_before_kernel=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.fused import LEGACY_CANDIDATES, Fused, unjittered_resample
+from model.methods.fused import KERNEL, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused, unjittered_resample
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -206,7 +206,8 @@ def test_init_from_an_older_checkpoint_starts_as_nearly_the_same_function():
     legacy.load_state_dict(weights)
     grown = build_method("fused")
     grown.load_initial_weights(weights)
-    assert grown.has_mean
+    assert grown.has_mean and grown.history_before_kernel  # the recurrence stays the method's own
+    grown.set_history_before_kernel(False)  # compared on the legacy network's recurrence
     frames = [frame_with_estimate(truth() * (1 + 0.3 * (k % 2))) for k in range(4)]
     state_a = state_b = None
     with torch.no_grad():
@@ -218,3 +219,45 @@ def test_init_from_an_older_checkpoint_starts_as_nearly_the_same_function():
     # A legacy session's state (no running mean) continues on the new network.
     output, state = grown.step(frames[0], {k: v for k, v in state_a.items()})
     assert torch.isfinite(output).all() and float(state["count"].max()) == 1.0
+
+
+def blurring(method: Fused) -> Fused:
+    """The method with its kernels uniform (a 3 x 3 box blur), so the output differs from the fused blend."""
+    per_pixel = method.net.candidates + KERNEL * KERNEL
+    with torch.no_grad():
+        method.net.head.bias[method.net.candidates:per_pixel] = 0.0
+    return method
+
+
+def checker() -> torch.Tensor:
+    rows = torch.arange(SIZE).view(SIZE, 1)
+    return (0.2 + 0.6 * ((rows + rows.T) % 2)).expand(1, 3, SIZE, SIZE).contiguous()
+
+
+def total_variation(image: torch.Tensor) -> float:
+    return float((image[..., 1:] - image[..., :-1]).abs().mean())
+
+
+def test_the_history_is_the_blend_before_the_kernel_unless_the_checkpoint_predates_it():
+    frame = frame_with_estimate(checker())
+    new = blurring(build_method("fused"))
+    output, state = new.step(frame, None)
+    # The blend is the checker itself here (every candidate is it); the box kernel smooths only the output.
+    assert total_variation(state["history"]) > 5 * total_variation(reinhard(output))
+    torch.testing.assert_close(state["history"], reinhard(checker()), atol=0.02, rtol=0.02)
+    old = blurring(build_method("fused"))
+    old.load_state_dict({k: v for k, v in new.state_dict().items() if k != RECURRENCE_KEY})
+    assert not old.history_before_kernel
+    old_output, old_state = old.step(frame, None)
+    torch.testing.assert_close(old_output, output)
+    torch.testing.assert_close(old_state["history"], reinhard(old_output))
+
+
+def test_a_checkpoint_records_the_recurrence_it_runs():
+    assert build_method("fused").history_before_kernel
+    saved = build_method("fused:fast", 2)
+    for value in (False, True):
+        saved.set_history_before_kernel(value)
+        loaded = build_method("fused:fast", 2)
+        loaded.load_state_dict(saved.state_dict())
+        assert loaded.history_before_kernel is value and float(loaded.state_dict()[RECURRENCE_KEY]) == float(value)
