@@ -5,7 +5,8 @@
 # run, with side-by-side pictures of the moving-light and moving-object cases; then it ships the default
 # preset at both scales, the fast preset at both and the high one at 1x as the repository's pretrained models
 # (pretrained/fused-{balanced,fast}-x{1,2}, fused-high-x1: weights, recipe and the held-out rows of these reports;
-# scripts/ship_pretrained.py).
+# scripts/ship_pretrained.py); the three 1x models are shipped running the fused blend before the kernel as history
+# (trained with the filtered output as history, as every model is), the 2x models as trained.
 # On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side (13 and
 # 25 minutes), then 600 steps with longer histories at 1x beside the fast preset fine-tuned from the 2x model, then
 # 3100 steps with the display-error term at 1x (about 18 minutes), then the fast / high presets at 1x fine-tuned
@@ -133,19 +134,12 @@ for preset in balanced fast; do
 done
 wait
 mkdir -p docs/results
-for scale in 1 2; do
-  if [ "$scale" = 1 ]; then
-    ours=(--method runs/fused-balanced-x1-cmean/best.pt --method runs/fused-fast-x1-cmean/best.pt
-          --method runs/fused-high-x1-cmean/best.pt)
-  else
-    ours=(--method runs/fused-balanced-x2-mixed/best.pt --method runs/fused-fast-x2-mixed/best.pt)
-  fi
-  .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 \
-    "${ours[@]}" --method oidn-taa:fast --method oidn-taa:balanced \
-    --method oidn-taa:high --method oidn:fast --method oidn:balanced --method oidn:high \
-    --method accumulation --method accumulation:rectified --method svgf --method svgf:rectified \
-    --out "docs/results/reuse_x$scale.json" | tee "docs/results/reuse_x$scale.md"
-done
+peers=(--method oidn-taa:fast --method oidn-taa:balanced --method oidn-taa:high --method oidn:fast
+       --method oidn:balanced --method oidn:high --method accumulation --method accumulation:rectified --method svgf
+       --method svgf:rectified)
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 \
+  --method runs/fused-balanced-x2-mixed/best.pt --method runs/fused-fast-x2-mixed/best.pt "${peers[@]}" \
+  --out docs/results/reuse_x2.json | tee docs/results/reuse_x2.md
 # The hard frames, side by side: input, OIDN-high, OIDN + TAA, ours, reference.
 picture() {  # SEQUENCE FRAME SCALE ZOOM OUT CHECKPOINT
   .venv/bin/denoiser compare --data "$DATA" --sequence "$1" --frame "$2" --scale "$3" --zoom "$4" \
@@ -154,23 +148,16 @@ picture() {  # SEQUENCE FRAME SCALE ZOOM OUT CHECKPOINT
 }
 x1=runs/fused-balanced-x1-cmean/best.pt
 x2=runs/fused-balanced-x2-mixed/best.pt
-picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png "$x1"
-picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png "$x1"
-# The moving light with the high preset too (the one at or above OIDN-high on every sequence).
-.venv/bin/denoiser compare --data "$DATA" --sequence moving_light_s4 --frame -1 --scale 1 --zoom 30,50,56 \
-  --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced --method "$x1=fused-balanced" \
-  --method runs/fused-high-x1-cmean/best.pt=fused-high --out docs/reuse_moving_light_x1.png
 picture visible_emitter_s4 10 2 80,60,112 docs/reuse_visible_emitter_x2.png "$x2"
 picture moving_object_s4 -1 2 60,80,112 docs/reuse_moving_object_x2.png "$x2"
 # The default preset at both scales as the repository's pretrained models (1x: the longer-history fine-tune, its
-# first stage recorded too).
+# first stage recorded too; the 1x models' held-out rows come from the evaluation at the end).
 ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-script scripts/generate_reuse_data.sh
       --training-script scripts/reproduce_reuse_results.sh)
 "${ship[@]}" "$x1" --name fused-balanced-x1 --stage runs/fused-balanced-x1/best.pt \
   --stage runs/fused-balanced-x1-long/best.pt --stage runs/fused-balanced-x1-display-600/best.pt \
   --stage runs/fused-balanced-x1-display-1000/best.pt --stage runs/fused-balanced-x1-display-1500/best.pt \
-  --stage runs/fused-balanced-x1-rot/best.pt --stage runs/fused-balanced-x1-mixed/best.pt \
-  --report docs/results/reuse_x1.json
+  --stage runs/fused-balanced-x1-rot/best.pt --stage runs/fused-balanced-x1-mixed/best.pt
 "${ship[@]}" "$x2" --name fused-balanced-x2 --data data/reuse-mixed \
   --dataset-script scripts/generate_blender_training_data.sh --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-balanced-x2-display/best.pt --stage runs/fused-balanced-x2-rot/best.pt \
@@ -182,10 +169,29 @@ for quality in fast high; do
     --dataset-script scripts/generate_blender_training_data.sh --stage runs/fused-balanced-x1/best.pt \
     --stage runs/fused-balanced-x1-long/best.pt --stage runs/fused-balanced-x1-display-600/best.pt \
     --stage runs/fused-balanced-x1-display-1000/best.pt --stage runs/fused-balanced-x1-display-1500/best.pt \
-    --stage runs/fused-balanced-x1-rot/best.pt --stage runs/fused-balanced-x1-mixed/best.pt --stage "$x1" \
-    --report docs/results/reuse_x1.json
+    --stage runs/fused-balanced-x1-rot/best.pt --stage runs/fused-balanced-x1-mixed/best.pt --stage "$x1"
 done
 "${ship[@]}" runs/fused-fast-x2-mixed/best.pt --name fused-fast-x2 --data data/reuse-mixed \
   --dataset-script scripts/generate_blender_training_data.sh --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-fast-x2/best.pt --stage runs/fused-fast-x2-display/best.pt --stage runs/fused-fast-x2-rot/best.pt \
   --stage runs/fused-fast-x2-cmean/best.pt --report docs/results/reuse_x2.json
+# Last, the three 1x models re-shipped running the fused blend before the kernel as the next frame's history (the
+# same weights; README: "The history before the kernel"), evaluated at 1x beside the checkpoints as trained (the
+# filtered output as history), and their manifests' held-out rows taken from that run; the 1x pictures with them.
+for quality in balanced fast high; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
+    --after-shipped "fused-$quality-x1" --history-before-kernel
+done
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
+  --method fused-fast-x1 --method fused-high-x1 --method "$x1" --method runs/fused-fast-x1-cmean/best.pt \
+  --method runs/fused-high-x1-cmean/best.pt "${peers[@]}" --out docs/results/reuse_x1.json | tee docs/results/reuse_x1.md
+for quality in balanced fast high; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
+    --remeasure --report docs/results/reuse_x1.json --report-source "pretrained:fused-$quality-x1"
+done
+picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png fused-balanced-x1
+picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png fused-balanced-x1
+# The moving light with the high preset too (the one at or above OIDN-high on every sequence).
+.venv/bin/denoiser compare --data "$DATA" --sequence moving_light_s4 --frame -1 --scale 1 --zoom 30,50,56 \
+  --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced --method fused-balanced-x1=fused-balanced \
+  --method fused-high-x1=fused-high --out docs/reuse_moving_light_x1.png

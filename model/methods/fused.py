@@ -18,14 +18,16 @@ accumulated branch. Per frame:
    validity and length of the history, the recurrent features (and the jitter at scale 2) at render resolution,
    and predicts, per output pixel, softmax fusion weights over (``s``, ``h``, ``r``, ``c``) and a 3 x 3 softmax
    kernel;
-5. blend = w_s s + w_h h + w_r r + w_c c, output = kernel * blend, back to linear radiance; the blend, before the
-   kernel, is the next frame's history.
+5. blend = w_s s + w_h h + w_r r + w_c c, output = kernel * blend, back to linear radiance; the next frame's
+   history is the output, or the blend before the kernel (``history_before_kernel``).
 
-The kernel's blur stays out of the recurrence: fed back, it compounds frame after frame, and at frame sizes above
-training's it washed the checker behind a moving lamp out (held-out, 512x512: +0.78 dB for the shipped balanced
-weights run with the blend as history, +0.14 at 256x256, +0.02 at 128x128; the README has the whole comparison).
-Checkpoints saved before this choice (no ``recurrence_before_kernel`` entry) keep the output as history, as they were
-trained; ``recurrence_before_kernel`` in the state dict says which recurrence a checkpoint runs.
+Which of the two is the history is part of a model: ``recurrence_before_kernel`` in the state dict (absent in
+checkpoints from before the choice: the output). Every model is trained with the output as history (the recipe of
+the shipped weights; fine-tunes with the blend gained no more on held-out scenes than the switch alone), and the
+shipped 1x models run with the blend: the kernel's blur, fed back, compounds frame after frame, and at frame sizes
+above training's it washed the checker behind a moving lamp out (held-out, 512x512: +0.78 dB for the balanced
+model, +0.14 at 256x256, +0.02 at 128x128; the README has the whole comparison and what it costs). ``--init-from``
+keeps the recurrence of the checkpoint it starts from.
 
 ``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to
 ``MEAN_FRAMES`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
@@ -152,7 +154,7 @@ class Fused(Method):
     loss_weights = (1.0, 0.5)
 
     def __init__(self, preset: str = "balanced", scale: int = 1, depth_rel_tol: float = 0.1,
-                 normal_cos_tol: float = 0.9, history_before_kernel: bool = True):
+                 normal_cos_tol: float = 0.9, history_before_kernel: bool = False):
         super().__init__(preset, scale)
         if preset not in QUALITIES:
             raise KeyError(f"{self.name} has no preset {preset!r}; presets: {', '.join(QUALITIES)}")
@@ -207,8 +209,7 @@ class Fused(Method):
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
         """``--init-from``: a three-candidate checkpoint starts this network as the same function, nearly: the
         new inputs' weights are zero and the clipped running mean starts at ``NEW_CANDIDATE_WEIGHT``. The weights
-        come from the checkpoint, the recurrence stays this method's: a fine-tune trains the current one."""
-        state_dict = {**state_dict, RECURRENCE_KEY: torch.tensor(float(self.history_before_kernel))}
+        come with their recurrence: a fine-tune trains the recurrence the model it starts from runs."""
         if self._candidates_in(state_dict) != LEGACY_CANDIDATES or not self.has_mean:
             self.load_state_dict(state_dict)
             return

@@ -206,8 +206,7 @@ def test_init_from_an_older_checkpoint_starts_as_nearly_the_same_function():
     legacy.load_state_dict(weights)
     grown = build_method("fused")
     grown.load_initial_weights(weights)
-    assert grown.has_mean and grown.history_before_kernel  # the recurrence stays the method's own
-    grown.set_history_before_kernel(False)  # compared on the legacy network's recurrence
+    assert grown.has_mean and not grown.history_before_kernel  # the recurrence comes with the weights
     frames = [frame_with_estimate(truth() * (1 + 0.3 * (k % 2))) for k in range(4)]
     state_a = state_b = None
     with torch.no_grad():
@@ -238,9 +237,10 @@ def total_variation(image: torch.Tensor) -> float:
     return float((image[..., 1:] - image[..., :-1]).abs().mean())
 
 
-def test_the_history_is_the_blend_before_the_kernel_unless_the_checkpoint_predates_it():
+def test_the_history_is_the_blend_before_the_kernel_where_the_model_says_so():
     frame = frame_with_estimate(checker())
     new = blurring(build_method("fused"))
+    new.set_history_before_kernel(True)
     output, state = new.step(frame, None)
     # The blend is the checker itself here (every candidate is it); the box kernel smooths only the output.
     assert total_variation(state["history"]) > 5 * total_variation(reinhard(output))
@@ -254,10 +254,21 @@ def test_the_history_is_the_blend_before_the_kernel_unless_the_checkpoint_predat
 
 
 def test_a_checkpoint_records_the_recurrence_it_runs():
-    assert build_method("fused").history_before_kernel
+    assert not build_method("fused").history_before_kernel  # what every model is trained with
     saved = build_method("fused:fast", 2)
     for value in (False, True):
         saved.set_history_before_kernel(value)
         loaded = build_method("fused:fast", 2)
         loaded.load_state_dict(saved.state_dict())
         assert loaded.history_before_kernel is value and float(loaded.state_dict()[RECURRENCE_KEY]) == float(value)
+
+
+def test_init_from_keeps_the_recurrence_of_the_checkpoint_it_starts_from():
+    source = build_method("fused")
+    source.set_history_before_kernel(True)
+    tuned = build_method("fused")
+    tuned.load_initial_weights(source.state_dict())
+    assert tuned.history_before_kernel
+    without_entry = {k: v for k, v in source.state_dict().items() if k != RECURRENCE_KEY}
+    tuned.load_initial_weights(without_entry)  # a checkpoint from before the choice: the output was its history
+    assert not tuned.history_before_kernel
