@@ -35,9 +35,10 @@ keeps the recurrence of the checkpoint it starts from.
 output as history, its kernels' blur) into every later frame; ``m`` is an unbiased average of OIDN's estimates
 where the scene is static (which the network, reading its own output, had not learned to reproduce: an unclipped
 running mean scored 0.4-0.7 dB above it on static held-out recipes). ``m`` itself as a candidate ghosted more (it
-keeps a moving lamp's old positions wherever the depth test passes), so only its clipped form is one. Checkpoints from before the running mean load as
-the three-candidate network they are (``load_state_dict``), with its cost; ``--init-from`` one of them starts this
-network with the new inputs' weights at zero and the new candidate's weight at ``NEW_CANDIDATE_WEIGHT``.
+keeps a moving lamp's old positions wherever the depth test passes), so only its clipped form is one. Checkpoints
+from before the running mean load as the three-candidate network they are (``load_state_dict``), with its cost;
+``--init-from`` one of them starts this network with the new inputs' weights at zero and the new candidate's weight
+at ``NEW_CANDIDATE_WEIGHT``.
 
 Where there is no history (disocclusion, a cut, the first frame), ``h`` is ``s`` itself and ``r`` is ``s`` clipped to
 its own neighbourhood, so the output is made of OIDN's estimate alone: the method falls back to the spatial
