@@ -61,7 +61,7 @@ from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.oidn import QUALITIES, oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import MethodSpec, register
-from model.ops.kernels import apply_pixel_kernels
+from model.ops.kernels import apply_pixel_kernels, tap_distances
 from model.ops.rectify import clip_to_moments, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
 from model.ops.warp import backward_warp, upscale_motion
@@ -83,6 +83,7 @@ LEGACY_INITIAL_WEIGHTS = (0.2, 0.002, 0.798)
 INITIAL_CENTRE_LOGIT = 7.0  # the 3 x 3 kernel starts as (almost) the identity: 0.993 on the centre tap
 WIDTH = 16
 RECURRENCE_KEY = "recurrence_before_kernel"  # state-dict entry: 1 = the blend before the kernel is the history
+ALBEDO_STOP_KEY = "kernel_albedo_stop"  # state-dict entry: the kernel's albedo edge-stopping bandwidth (0: none)
 
 
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
@@ -155,7 +156,8 @@ class Fused(Method):
     loss_weights = (1.0, 0.5)
 
     def __init__(self, preset: str = "balanced", scale: int = 1, depth_rel_tol: float = 0.1,
-                 normal_cos_tol: float = 0.9, history_before_kernel: bool = False):
+                 normal_cos_tol: float = 0.9, history_before_kernel: bool = False,
+                 albedo_stop: float = 0.0):
         super().__init__(preset, scale)
         if preset not in QUALITIES:
             raise KeyError(f"{self.name} has no preset {preset!r}; presets: {', '.join(QUALITIES)}")
@@ -167,6 +169,9 @@ class Fused(Method):
         # never reads a device tensor to branch on it.
         self.register_buffer(RECURRENCE_KEY, torch.tensor(float(history_before_kernel)))
         self._history_before_kernel = bool(history_before_kernel)
+        self.register_buffer(ALBEDO_STOP_KEY, torch.tensor(0.0))
+        self._albedo_stop = 0.0
+        self.set_albedo_stop(albedo_stop)
 
     @property
     def history_before_kernel(self) -> bool:
@@ -176,6 +181,19 @@ class Fused(Method):
     def set_history_before_kernel(self, value: bool) -> None:
         getattr(self, RECURRENCE_KEY).fill_(float(value))
         self._history_before_kernel = bool(value)
+
+    @property
+    def albedo_stop(self) -> float:
+        """The bandwidth b of the kernel's albedo edge-stopping: each tap's logit loses b * ||albedo(p) -
+        albedo(tap)||^2 (0: the kernel as predicted)."""
+        return self._albedo_stop
+
+    def set_albedo_stop(self, value: float) -> None:
+        value = float(value)
+        if not value >= 0.0 or value == float("inf"):
+            raise ValueError(f"the kernel's albedo edge-stopping bandwidth must be a finite number >= 0, got {value}")
+        getattr(self, ALBEDO_STOP_KEY).fill_(value)
+        self._albedo_stop = value
 
     def _network(self, candidates: int) -> FusionNet:
         inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
@@ -196,6 +214,8 @@ class Fused(Method):
         three-candidate network it was trained as (the same outputs and cost as then)."""
         if RECURRENCE_KEY not in state_dict:  # saved before the choice existed: the output was the history
             state_dict = {**state_dict, RECURRENCE_KEY: torch.tensor(0.0)}
+        if ALBEDO_STOP_KEY not in state_dict:  # saved before the edge-stopping existed: the kernel as predicted
+            state_dict = {**state_dict, ALBEDO_STOP_KEY: torch.tensor(0.0)}
         candidates = self._candidates_in(state_dict)
         if candidates != self.net.candidates:
             if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
@@ -205,6 +225,7 @@ class Fused(Method):
             self.net = self._network(candidates).to(device)
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._history_before_kernel = bool(getattr(self, RECURRENCE_KEY).item() > 0.5)
+        self.set_albedo_stop(getattr(self, ALBEDO_STOP_KEY).item())
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
@@ -296,6 +317,9 @@ class Fused(Method):
             features = features.contiguous(memory_format=torch.channels_last)
         weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
+        if self._albedo_stop > 0:
+            albedo = _upsample_values(frame.albedo, self.scale).to(kernels.dtype)
+            kernels = kernels - self._albedo_stop * tap_distances(albedo, KERNEL)
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
         output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
         history = blended if self.history_before_kernel else output

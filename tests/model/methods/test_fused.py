@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.fused import KERNEL, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused, unjittered_resample
+from model.methods.fused import (ALBEDO_STOP_KEY, KERNEL, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused,
+                                 unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -272,3 +273,46 @@ def test_init_from_keeps_the_recurrence_of_the_checkpoint_it_starts_from():
     without_entry = {k: v for k, v in source.state_dict().items() if k != RECURRENCE_KEY}
     tuned.load_initial_weights(without_entry)  # a checkpoint from before the choice: the output was its history
     assert not tuned.history_before_kernel
+
+
+def stripes() -> torch.Tensor:
+    """Vertical stripes 4 pixels wide: no 3 x 3 neighbourhood holds a minority that the clip would cut."""
+    columns = (torch.arange(SIZE) // 4) % 2
+    return (0.2 + 0.6 * columns.view(1, 1, 1, SIZE)).expand(1, 3, SIZE, SIZE).contiguous()
+
+
+def test_the_albedo_stop_keeps_the_kernel_from_blurring_across_albedo_edges():
+    frame = frame_with_estimate(stripes())
+    frame.albedo = stripes()
+    method = blurring(build_method("fused"))
+    blurred, _ = method.step(frame, None)
+    assert float((reinhard(blurred) - reinhard(stripes())).abs().max()) > 0.05  # the box kernel crosses the edges
+    method.set_albedo_stop(1000.0)
+    kept, _ = method.step(frame, None)
+    torch.testing.assert_close(reinhard(kept), reinhard(stripes()), atol=1e-3, rtol=0)
+    flat = frame_with_estimate(stripes())  # where the albedo is flat, the kernel filters as predicted
+    torch.testing.assert_close(method.step(flat, None)[0], blurring(build_method("fused")).step(flat, None)[0])
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_a_checkpoint_records_its_albedo_stop_and_older_ones_load_without(scale):
+    assert build_method("fused", scale).albedo_stop == 0.0
+    saved = build_method("fused:fast", scale)
+    saved.set_albedo_stop(30.0)
+    loaded = build_method("fused:fast", scale)
+    loaded.load_state_dict(saved.state_dict())
+    assert loaded.albedo_stop == 30.0
+    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != ALBEDO_STOP_KEY})
+    assert loaded.albedo_stop == 0.0 and float(loaded.state_dict()[ALBEDO_STOP_KEY]) == 0.0
+    tuned = build_method("fused:fast", scale)
+    tuned.load_initial_weights(saved.state_dict())  # --init-from keeps it
+    assert tuned.albedo_stop == 30.0
+    frame = example_batch()
+    output, _ = tuned.step(frame, None)
+    assert torch.isfinite(output).all() and output.shape[-1] == frame.width * scale
+
+
+@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf")])
+def test_an_albedo_stop_that_is_not_a_finite_non_negative_number_is_refused(value):
+    with pytest.raises(ValueError, match="albedo edge-stopping bandwidth"):
+        build_method("fused").set_albedo_stop(value)
