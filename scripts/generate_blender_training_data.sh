@@ -24,21 +24,4 @@ render() {  # SCENE SEED
 (render room_dolly 11; render room_dolly 12) &
 (render room_light 11; render room_light 12) &
 wait
-.venv/bin/python - <<'PY'
-from pathlib import Path
-
-from model.dataset import MANIFEST, Dataset
-
-root = Path("data/reuse-mixed")
-mixed = Dataset(root) if (root / MANIFEST).is_file() else Dataset.create(root)
-for source, copies, splits in (("reuse", 1, ("train", "validation")), ("blender-train", 4, ("train",))):
-    dataset = Dataset(Path("data", source))
-    for split in splits:
-        for name in dataset.names(split):
-            for copy in range(copies):
-                link = root / (name if copies == 1 else f"{name}_c{copy}")
-                if not link.exists():
-                    link.symlink_to(Path("..", source, name))
-                mixed.add_sequence_dir(link.name, split, replace=True)
-print(f"data/reuse-mixed: {len(mixed.names())} sequences")
-PY
+.venv/bin/python scripts/link_datasets.py data/reuse-mixed reuse:1:train,validation blender-train:4:train

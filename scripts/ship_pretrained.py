@@ -21,9 +21,6 @@ weights are the checkpoint's.
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
         --after-shipped fused-balanced-x1 --history-before-kernel
 
---albedo-stop B (fused only): ship the weights with their kernel edge-stopped on the albedo guide, bandwidth B (each
-tap's logit loses B times the squared albedo difference; 0: the kernel as predicted); the weights are the checkpoint's.
-
 --remeasure: the checkpoint is the shipped model NAME itself, evaluated again in the report's run (beside newer
 models); only its held-out section is replaced, its weights and training record stay.
 """
@@ -67,16 +64,14 @@ def main() -> int:
                             help="fused only: the blend before the kernel is the next frame's history")
     recurrence.add_argument("--history-after-kernel", dest="history_before_kernel", action="store_const",
                             const=False, help="fused only: the filtered output is the next frame's history")
-    parser.add_argument("--albedo-stop", type=float, default=None, metavar="B",
-                        help="fused only: the bandwidth of the kernel's albedo edge-stopping (0: none)")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
     if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data
-                           or args.history_before_kernel is not None or args.albedo_stop is not None):
-        parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data, "
-                     "--history-*-kernel or --albedo-stop")
+                           or args.history_before_kernel is not None):
+        parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data or "
+                     "--history-*-kernel")
     report = None
     if args.report is not None:
         if not args.report.is_file():
@@ -91,7 +86,7 @@ def main() -> int:
                                 report=report, report_source=args.report_source,
                                 report_path=None if args.report is None else str(args.report), stages=args.stage,
                                 after_shipped=args.after_shipped,
-                                history_before_kernel=args.history_before_kernel, albedo_stop=args.albedo_stop)
+                                history_before_kernel=args.history_before_kernel)
     except (PretrainedError, UnknownPretrained, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

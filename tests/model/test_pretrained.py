@@ -201,24 +201,3 @@ def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weigh
     assert reshipped.manifest["training"]["stages"][-1]["sha256"] == shipped.sha256
     with pytest.raises(PretrainedError, match="no choice of recurrence"):
         ship_tiny(root, history_before_kernel=True)
-
-
-def test_a_shipped_fused_model_reshipped_with_an_albedo_stop_keeps_its_weights(tmp_path):
-    from model.methods.fused import ALBEDO_STOP_KEY
-
-    root = tmp_path / "pretrained"
-    torch.manual_seed(6)
-    source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
-                             train_config={"steps": 30})
-    shipped = ship_checkpoint(source, "fused-fast-x1", root=root)
-    assert load_pretrained("fused-fast-x1", root=root).albedo_stop == 0.0
-    reshipped = ship_checkpoint(shipped.path, "fused-fast-x1", root=root, after_shipped="fused-fast-x1",
-                                albedo_stop=100.0)
-    assert load_pretrained("fused-fast-x1", root=root).albedo_stop == 100.0
-    before, after = (torch.load(model, weights_only=True)["model"] for model in (source, reshipped.path))
-    assert all(torch.equal(before[key], after[key]) for key in before if key != ALBEDO_STOP_KEY)
-    with pytest.raises(PretrainedError, match="bandwidth must be"):
-        ship_checkpoint(shipped.path, "fused-fast-x1", root=root, albedo_stop=-1.0)
-    assert load_pretrained("fused-fast-x1", root=root).albedo_stop == 100.0  # a refused ship changes nothing
-    with pytest.raises(PretrainedError, match="no kernel to edge-stop"):
-        ship_tiny(root, albedo_stop=10.0)
