@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.fused import (GATE_KEY, INITIAL_GATE_LOGIT, KERNEL, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused,
+from model.methods.fused import (GATE_GAIN, GATE_KEY, INITIAL_GATE_LOGIT, KERNEL, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused,
                                  unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
@@ -286,7 +286,7 @@ def gate_open(method: Fused, logit: float) -> Fused:
     at = (method.net.candidates + KERNEL * KERNEL) * method.scale ** 2
     with torch.no_grad():
         method.net.head.weight[at:at + method.scale ** 2] = 0.0
-        method.net.head.bias[at:at + method.scale ** 2] = logit
+        method.net.head.bias[at:at + method.scale ** 2] = logit / GATE_GAIN
     return method
 
 
