@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# Renders two training recipes at 512x512 and builds the multi-resolution dataset the gated 1x fused models were
-# fine-tuned on: at 128x128 a checker is finer than a pixel (aliased: the reference is its average, and the kernel
-# learns to blur it), at 512x512 the same checker is resolved and blurring it costs 5 dB; the network learns which
-# is which only from frames of both.
+# Renders two training recipes at 512x512 and builds the multi-resolution dataset of the README's fine-tunes in "The
+# kernel and resolved texture" (none shipped): at 128x128 a checker is finer than a pixel (the reference is its
+# pixel average, and the fused kernel learns to blur it), at 512x512 the same checker is resolved and blurring it
+# costs 5 dB; a network can only learn the difference from frames of both.
 #   data/train512: sliding_over_texture and textured_detail (training recipes; the held-out ones stay held out),
 #   seed 1, 12 frames, 128-spp references, 1x only (train split);
 #   data/mix512: links to data/reuse-mixed's sequences (scripts/generate_blender_training_data.sh) and to each

@@ -61,7 +61,7 @@ from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.oidn import QUALITIES, oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import MethodSpec, register
-from model.ops.kernels import apply_pixel_kernels, tap_distances
+from model.ops.kernels import apply_pixel_kernels
 from model.ops.rectify import clip_to_moments, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
 from model.ops.warp import backward_warp, upscale_motion
@@ -83,13 +83,6 @@ LEGACY_INITIAL_WEIGHTS = (0.2, 0.002, 0.798)
 INITIAL_CENTRE_LOGIT = 7.0  # the 3 x 3 kernel starts as (almost) the identity: 0.993 on the centre tap
 WIDTH = 16
 RECURRENCE_KEY = "recurrence_before_kernel"  # state-dict entry: 1 = the blend before the kernel is the history
-GATE_KEY = "kernel_albedo_gate"  # state-dict entry: 1 = the head predicts the albedo gate (absent: a network without)
-ALBEDO_BANDWIDTH = 100.0  # the stopped kernel's logits lose this times the squared albedo difference (RGB summed):
-# a tap across a 0.1 step in every channel keeps e^-3 of its weight. On a 2-pixel checker at 512x512 (validation)
-# 30 / 100 / 1000 here scored 30.82 / 31.14 / 31.48 dB with the kernels of a model trained without the gate.
-INITIAL_GATE_LOGIT = -3.0  # the gate starts nearly closed (5% of the stopped kernel: nearly the function it grew from)
-GATE_GAIN = 10.0  # the gate's logit is the head's output times this: Adam moves every weight by about the learning
-# rate a step, and at 2e-4 an unscaled gate moved from 5% to 9% in 800 steps (no different at 128 and 512x512)
 
 
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
@@ -117,26 +110,18 @@ def _conv(inputs: int, outputs: int) -> nn.Sequential:
 
 
 class FusionNet(nn.Module):
-    """Two-level U-Net at render resolution; the head predicts scale^2 sub-pixels' weights and kernels each (and,
-    ``gated``, the albedo gate)."""
+    """Two-level U-Net at render resolution; the head predicts scale^2 sub-pixels' weights and kernels each."""
 
-    def __init__(self, inputs: int, scale: int, width: int = WIDTH, candidates: int = CANDIDATES,
-                 gated: bool = True):
+    def __init__(self, inputs: int, scale: int, width: int = WIDTH, candidates: int = CANDIDATES):
         super().__init__()
         self.scale = scale
         self.candidates = candidates
-        self.gated = gated
         self.encoder = nn.Sequential(_conv(inputs, width), _conv(width, width))
         self.bottom = nn.Sequential(_conv(width, 2 * width), _conv(2 * width, 2 * width))
         self.decoder = _conv(3 * width, width)
-        per_pixel = self.per_pixel
+        per_pixel = candidates + KERNEL * KERNEL
         self.head = nn.Conv2d(width, scale * scale * per_pixel + HIDDEN, 1)
         self._initialise_head(per_pixel)
-
-    @property
-    def per_pixel(self) -> int:
-        """Head channels per output pixel: fusion logits, kernel logits, the gate's logit."""
-        return self.candidates + KERNEL * KERNEL + int(self.gated)
 
     def _initialise_head(self, per_pixel: int) -> None:
         nn.init.zeros_(self.head.weight[: self.scale ** 2 * per_pixel])
@@ -144,26 +129,21 @@ class FusionNet(nn.Module):
         weights = torch.tensor(INITIAL_WEIGHTS if self.candidates == CANDIDATES else LEGACY_INITIAL_WEIGHTS)
         bias[:self.candidates] = torch.log(weights)
         bias[self.candidates + KERNEL * KERNEL // 2] = INITIAL_CENTRE_LOGIT
-        if self.gated:
-            bias[self.candidates + KERNEL * KERNEL] = INITIAL_GATE_LOGIT / GATE_GAIN
         with torch.no_grad():
             self.head.bias.zero_()
             # Channel layout (PixelShuffle): channel c * scale^2 + sub-pixel, so each value repeats per sub-pixel.
             self.head.bias[: self.scale ** 2 * per_pixel] = bias.repeat_interleave(self.scale ** 2)
 
-    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor]:
-        """(fusion logits (N, candidates, sH, sW), kernel logits (N, 9, sH, sW), gate logits (N, 1, sH, sW) or None,
-        hidden features (N, HIDDEN, H, W))."""
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(fusion logits (N, 3, sH, sW), kernel logits (N, 9, sH, sW), hidden features (N, HIDDEN, H, W))."""
         top = self.encoder(features)
         h, w = top.shape[-2:]
         bottom = self.bottom(F.avg_pool2d(top, 2, ceil_mode=True))
         up = F.interpolate(bottom, size=(h, w), mode="bilinear", align_corners=False)
         out = self.head(self.decoder(torch.cat([top, up], dim=1)))
-        per_pixel = self.scale ** 2 * self.per_pixel
+        per_pixel = self.scale ** 2 * (self.candidates + KERNEL * KERNEL)
         fine = F.pixel_shuffle(out[:, :per_pixel], self.scale) if self.scale > 1 else out[:, :per_pixel]
-        kernels_end = self.candidates + KERNEL * KERNEL
-        gate = GATE_GAIN * fine[:, kernels_end:] if self.gated else None
-        return fine[:, :self.candidates], fine[:, self.candidates:kernels_end], gate, torch.tanh(out[:, per_pixel:])
+        return fine[:, :self.candidates], fine[:, self.candidates:], torch.tanh(out[:, per_pixel:])
 
 
 class Fused(Method):
@@ -175,20 +155,18 @@ class Fused(Method):
     loss_weights = (1.0, 0.5)
 
     def __init__(self, preset: str = "balanced", scale: int = 1, depth_rel_tol: float = 0.1,
-                 normal_cos_tol: float = 0.9, history_before_kernel: bool = False, gated: bool = True):
+                 normal_cos_tol: float = 0.9, history_before_kernel: bool = False):
         super().__init__(preset, scale)
         if preset not in QUALITIES:
             raise KeyError(f"{self.name} has no preset {preset!r}; presets: {', '.join(QUALITIES)}")
         self.spatial_prior = preset
         self.depth_rel_tol = depth_rel_tol
         self.normal_cos_tol = normal_cos_tol
-        self.net = self._network(CANDIDATES, gated)
+        self.net = self._network(CANDIDATES)
         # A buffer, so checkpoints record which recurrence their weights run; mirrored in a Python bool so a step
         # never reads a device tensor to branch on it.
         self.register_buffer(RECURRENCE_KEY, torch.tensor(float(history_before_kernel)))
         self._history_before_kernel = bool(history_before_kernel)
-        # Recorded beside the weights: the head's row count alone cannot tell a gate from a fourth candidate.
-        self.register_buffer(GATE_KEY, torch.tensor(float(gated)))
 
     @property
     def history_before_kernel(self) -> bool:
@@ -199,65 +177,43 @@ class Fused(Method):
         getattr(self, RECURRENCE_KEY).fill_(float(value))
         self._history_before_kernel = bool(value)
 
-    def _network(self, candidates: int, gated: bool) -> FusionNet:
+    def _network(self, candidates: int) -> FusionNet:
         inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
         if candidates == CANDIDATES:
             inputs += MEAN_INPUTS
-        return FusionNet(inputs, self.scale, candidates=candidates, gated=gated)
+        return FusionNet(inputs, self.scale, candidates=candidates)
 
     @property
     def has_mean(self) -> bool:
         return self.net.candidates == CANDIDATES
 
-    @property
-    def has_gate(self) -> bool:
-        """Whether the network gates its kernel with the albedo-stopped one (checkpoints from before: not)."""
-        return self.net.gated
-
-    @staticmethod
-    def _with_recorded_choices(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """The state dict with the entries older checkpoints lack: the output as history, no gate."""
-        missing = {key: torch.tensor(0.0) for key in (RECURRENCE_KEY, GATE_KEY) if key not in state_dict}
-        return {**state_dict, **missing} if missing else state_dict
-
-    def _layout_in(self, state_dict: dict[str, torch.Tensor]) -> tuple[int, bool]:
-        """(fusion candidates, gated) of a state dict with its recorded choices."""
-        gated = bool(float(state_dict[GATE_KEY]) > 0.5)
+    def _candidates_in(self, state_dict: dict[str, torch.Tensor]) -> int:
         rows = state_dict["net.head.weight"].shape[0]
-        return (rows - HIDDEN) // self.scale ** 2 - KERNEL * KERNEL - int(gated), gated
+        return (rows - HIDDEN) // self.scale ** 2 - KERNEL * KERNEL
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """Load a checkpoint of any of the networks: one from before the running mean, or from before the gate,
-        rebuilds this method as the network it was trained as (the same outputs and cost as then)."""
-        state_dict = self._with_recorded_choices(state_dict)
-        candidates, gated = self._layout_in(state_dict)
-        if (candidates, gated) != (self.net.candidates, self.net.gated):
+        """Load a checkpoint of either network: one from before the running mean rebuilds this method as the
+        three-candidate network it was trained as (the same outputs and cost as then)."""
+        if RECURRENCE_KEY not in state_dict:  # saved before the choice existed: the output was the history
+            state_dict = {**state_dict, RECURRENCE_KEY: torch.tensor(0.0)}
+        candidates = self._candidates_in(state_dict)
+        if candidates != self.net.candidates:
             if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
                 raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
                                  f"({LEGACY_CANDIDATES} or {CANDIDATES})")
             device = self.net.head.weight.device
-            self.net = self._network(candidates, gated).to(device)
+            self.net = self._network(candidates).to(device)
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._history_before_kernel = bool(getattr(self, RECURRENCE_KEY).item() > 0.5)
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
-        """``--init-from``: a checkpoint of an older network starts this one as the same function, nearly. From
-        before the running mean: the new inputs' weights are zero and the clipped running mean starts at
-        ``NEW_CANDIDATE_WEIGHT``; from before the gate: it starts at ``INITIAL_GATE_LOGIT`` everywhere. The weights
+        """``--init-from``: a three-candidate checkpoint starts this network as the same function, nearly: the
+        new inputs' weights are zero and the clipped running mean starts at ``NEW_CANDIDATE_WEIGHT``. The weights
         come with their recurrence: a fine-tune trains the recurrence the model it starts from runs."""
-        state_dict = self._with_recorded_choices(state_dict)
-        candidates, gated = self._layout_in(state_dict)
-        if candidates == LEGACY_CANDIDATES and self.has_mean:
-            state_dict, gated = self._grown_by_the_mean(state_dict, gated), False
-        if not gated and self.has_gate:
-            state_dict = self._grown_by_the_gate(state_dict)
-        self.load_state_dict(state_dict)
-
-    def _grown_by_the_mean(self, state_dict: dict[str, torch.Tensor], gated: bool) -> dict[str, torch.Tensor]:
-        """A three-candidate (ungated) state dict as the four-candidate network without a gate."""
-        if gated:
-            raise ValueError("fused: a three-candidate checkpoint with a gate was never trained; cannot grow it")
+        if self._candidates_in(state_dict) != LEGACY_CANDIDATES or not self.has_mean:
+            self.load_state_dict(state_dict)
+            return
         expanded = dict(state_dict)
         first = "net.encoder.0.0.weight"
         old = state_dict[first]
@@ -266,9 +222,8 @@ class Fused(Method):
         expanded[first] = grown
         sub = self.scale ** 2
         old_weight, old_bias = state_dict["net.head.weight"], state_dict["net.head.bias"]
-        rows = (CANDIDATES + KERNEL * KERNEL) * sub + HIDDEN
-        weight = old_weight.new_zeros(rows, *old_weight.shape[1:])
-        bias = old_bias.new_zeros(rows)
+        weight = old_weight.new_zeros(self.net.head.weight.shape)
+        bias = old_bias.new_zeros(self.net.head.bias.shape)
         # Head rows are channel * scale^2 + sub-pixel (PixelShuffle); the new candidate goes after the old three.
         for channel in range(LEGACY_CANDIDATES + KERNEL * KERNEL):
             new = channel if channel < LEGACY_CANDIDATES else channel + CANDIDATES - LEGACY_CANDIDATES
@@ -279,22 +234,11 @@ class Fused(Method):
         start = torch.logsumexp(old_logits, dim=0) + torch.log(torch.tensor(NEW_CANDIDATE_WEIGHT))
         for new in range(LEGACY_CANDIDATES, CANDIDATES):
             bias[new * sub:(new + 1) * sub] = start
-        old_rows = (LEGACY_CANDIDATES + KERNEL * KERNEL) * sub
-        weight[CANDIDATES * sub + KERNEL * KERNEL * sub:] = old_weight[old_rows:]  # the hidden features' rows
-        bias[CANDIDATES * sub + KERNEL * KERNEL * sub:] = old_bias[old_rows:]
+        rows = (LEGACY_CANDIDATES + KERNEL * KERNEL) * sub
+        weight[CANDIDATES * sub + KERNEL * KERNEL * sub:] = old_weight[rows:]  # the hidden features' rows
+        bias[CANDIDATES * sub + KERNEL * KERNEL * sub:] = old_bias[rows:]
         expanded["net.head.weight"], expanded["net.head.bias"] = weight, bias
-        return expanded
-
-    def _grown_by_the_gate(self, state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """An ungated state dict with the gate's rows inserted after the kernel's: zero weights, bias
-        ``INITIAL_GATE_LOGIT``."""
-        candidates, _ = self._layout_in(state_dict)
-        sub = self.scale ** 2
-        at = (candidates + KERNEL * KERNEL) * sub
-        old_weight, old_bias = state_dict["net.head.weight"], state_dict["net.head.bias"]
-        weight = torch.cat([old_weight[:at], old_weight.new_zeros(sub, *old_weight.shape[1:]), old_weight[at:]])
-        bias = torch.cat([old_bias[:at], old_bias.new_full((sub,), INITIAL_GATE_LOGIT / GATE_GAIN), old_bias[at:]])
-        return {**state_dict, "net.head.weight": weight, "net.head.bias": bias, GATE_KEY: torch.tensor(1.0)}
+        self.load_state_dict(expanded)
 
     def for_inference(self) -> Fused:
         """Eval mode with the network in channels_last: 2.5x faster convolutions on this CPU at 128x128 (6.3 against
@@ -350,15 +294,10 @@ class Fused(Method):
         features = torch.cat(parts, dim=1)
         if self.net.head.weight.is_contiguous(memory_format=torch.channels_last) and features.dim() == 4:
             features = features.contiguous(memory_format=torch.channels_last)
-        weights, kernels, gate, new_hidden = self.net(features)
+        weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
         output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
-        if gate is not None:
-            albedo = _upsample_values(frame.albedo, self.scale).to(kernels.dtype)
-            stopped = apply_pixel_kernels(blended, kernels - ALBEDO_BANDWIDTH * tap_distances(albedo, KERNEL), KERNEL,
-                                          normalize="softmax")
-            output = torch.lerp(output, stopped, torch.sigmoid(gate))
         history = blended if self.history_before_kernel else output
         new_state = {"history": history, "hidden": new_hidden, "length": length, "depth": frame.depth,
                      "normal": frame.normal, "jitter": frame.jitter}

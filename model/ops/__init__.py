@@ -15,7 +15,7 @@ Coordinate and motion conventions are spelled out in ``warp``'s docstring (and D
 """
 
 from model.ops.accumulate import accumulate, accumulate_moments, update_count
-from model.ops.kernels import apply_pixel_kernels, kernel_offsets, tap_distances
+from model.ops.kernels import apply_pixel_kernels, kernel_offsets
 from model.ops.pyramid import build_pyramid, downsample2x, upsample2x
 from model.ops.reproject import disocclusion_mask
 from model.ops.splat import WSKPN_SIZES, box_sum, fuse_kernel_sizes, weight_sharing_filter, weight_sharing_fused
@@ -35,7 +35,6 @@ __all__ = [
     "accumulate_moments",
     "update_count",
     "apply_pixel_kernels",
-    "tap_distances",
     "kernel_offsets",
     "build_pyramid",
     "downsample2x",

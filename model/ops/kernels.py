@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
-__all__ = ["apply_pixel_kernels", "kernel_offsets", "tap_distances"]
+__all__ = ["apply_pixel_kernels", "kernel_offsets"]
 
 _NORMALIZE = ("none", "softmax", "sum")
 
@@ -145,20 +145,3 @@ def _outside_bias(k: int, dilation: int, h: int, w: int, dtype: torch.dtype, dev
         return out.masked_fill_((pos < 0) | (pos >= size), float("-inf"))
 
     return (axis(h).view(k, 1, h, 1) + axis(w).view(1, k, 1, w)).view(1, k * k, h, w)
-
-
-def tap_distances(guide: torch.Tensor, k: int, dilation: int = 1) -> torch.Tensor:
-    """Squared distance ||guide(p) - guide(p + o_j)||^2 summed over channels, per pixel p and tap j: (N, C, H, W) ->
-    (N, k*k, H, W) in kernel layout. Subtracted from kernel logits (times a bandwidth) it makes a cross-bilateral
-    kernel on the guide: taps across the guide's edges lose their weight. Outside the image the border pixel is
-    read (replicate padding); ``apply_pixel_kernels`` leaves those taps out anyway."""
-    if guide.dim() != 4:
-        raise ValueError(f"guide must be (N, C, H, W), got {tuple(guide.shape)}")
-    h, w = guide.shape[-2:]
-    r = (k // 2) * dilation
-    padded = F.pad(guide, (r, r, r, r), mode="replicate")
-    distances = []
-    for j in range(k * k):
-        sy, sx = _slices(j, k, dilation, h, w)
-        distances.append((guide - padded[..., sy, sx]).square().sum(dim=1, keepdim=True))
-    return torch.cat(distances, dim=1)

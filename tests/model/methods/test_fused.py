@@ -5,8 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.fused import (GATE_GAIN, GATE_KEY, INITIAL_GATE_LOGIT, KERNEL, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused,
-                                 unjittered_resample)
+from model.methods.fused import KERNEL, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused, unjittered_resample
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -165,11 +164,11 @@ def legacy_state_dict(seed: int = 4) -> dict[str, torch.Tensor]:
     """A three-candidate network's weights (as checkpoints from before the running mean hold), off its initial
     head so every path matters."""
     torch.manual_seed(seed)
-    legacy = Fused("balanced", gated=False)
-    legacy.net = legacy._network(LEGACY_CANDIDATES, gated=False)
+    legacy = build_method("fused")
+    legacy.net = legacy._network(LEGACY_CANDIDATES)
     for parameter in legacy.parameters():
         parameter.data += 0.05 * torch.randn_like(parameter)
-    return {k: v for k, v in legacy.state_dict().items() if k != GATE_KEY}
+    return legacy.state_dict()
 
 
 def test_the_running_mean_is_the_mean_of_the_spatial_estimates_while_history_holds():
@@ -273,78 +272,3 @@ def test_init_from_keeps_the_recurrence_of_the_checkpoint_it_starts_from():
     without_entry = {k: v for k, v in source.state_dict().items() if k != RECURRENCE_KEY}
     tuned.load_initial_weights(without_entry)  # a checkpoint from before the choice: the output was its history
     assert not tuned.history_before_kernel
-
-
-def stripes() -> torch.Tensor:
-    """Vertical stripes 4 pixels wide: no 3 x 3 neighbourhood holds a minority that the clip would cut."""
-    columns = (torch.arange(SIZE) // 4) % 2
-    return (0.2 + 0.6 * columns.view(1, 1, 1, SIZE)).expand(1, 3, SIZE, SIZE).contiguous()
-
-
-def gate_open(method: Fused, logit: float) -> Fused:
-    """The method with its gate's logit fixed at ``logit`` everywhere."""
-    at = (method.net.candidates + KERNEL * KERNEL) * method.scale ** 2
-    with torch.no_grad():
-        method.net.head.weight[at:at + method.scale ** 2] = 0.0
-        method.net.head.bias[at:at + method.scale ** 2] = logit / GATE_GAIN
-    return method
-
-
-def test_the_open_gate_keeps_the_kernel_from_blurring_across_albedo_edges():
-    frame = frame_with_estimate(stripes())
-    frame.albedo = stripes()
-    closed, _ = gate_open(blurring(build_method("fused")), -30.0).step(frame, None)
-    assert float((reinhard(closed) - reinhard(stripes())).abs().max()) > 0.05  # the box kernel crosses the edges
-    opened = gate_open(blurring(build_method("fused")), 30.0)
-    kept, _ = opened.step(frame, None)
-    torch.testing.assert_close(reinhard(kept), reinhard(stripes()), atol=1e-3, rtol=0)
-    flat = frame_with_estimate(stripes())  # where the albedo is flat, the stopped kernel is the kernel
-    torch.testing.assert_close(opened.step(flat, None)[0], closed_output(flat))
-    half, _ = gate_open(blurring(build_method("fused")), 0.0).step(frame, None)
-    # Mixed half and half where the network is unsure (in the tone-mapped space the kernels filter in).
-    torch.testing.assert_close(reinhard(half), (reinhard(closed) + reinhard(kept)) / 2, atol=1e-5, rtol=1e-5)
-
-
-def closed_output(frame):
-    return gate_open(blurring(build_method("fused")), -30.0).step(frame, None)[0]
-
-
-@pytest.mark.parametrize("scale", [1, 2])
-def test_a_checkpoint_from_before_the_gate_loads_as_the_network_it_was(scale):
-    torch.manual_seed(3)
-    ungated = Fused("fast", scale, gated=False)
-    assert not ungated.has_gate and build_method("fused", scale).has_gate  # new models have it
-    state = {k: v for k, v in ungated.state_dict().items() if k != GATE_KEY}  # as saved before the gate
-    loaded = build_method("fused:fast", scale)
-    loaded.load_state_dict(state)
-    assert not loaded.has_gate
-    frame = example_batch()
-    torch.testing.assert_close(loaded.step(frame, None)[0], ungated.step(frame, None)[0])
-    again = build_method("fused:fast", scale)
-    again.load_state_dict(loaded.state_dict())  # the entry it saves now says: no gate
-    assert not again.has_gate
-
-
-@pytest.mark.parametrize("scale", [1, 2])
-def test_init_from_a_checkpoint_without_the_gate_starts_it_nearly_closed(scale):
-    torch.manual_seed(4)
-    ungated = Fused("fast", scale, gated=False)
-    state = {k: v for k, v in ungated.state_dict().items() if k != GATE_KEY}
-    tuned = build_method("fused:fast", scale)
-    tuned.load_initial_weights(state)
-    assert tuned.has_gate and float(tuned.state_dict()[GATE_KEY]) == 1.0
-    frame = example_batch()
-    _, _, gate, _ = tuned.net(torch.zeros(1, tuned.net.encoder[0][0].in_channels, 8, 8))
-    torch.testing.assert_close(gate, torch.full_like(gate, INITIAL_GATE_LOGIT))
-    # The same function, up to the gate's small share of the stopped kernel.
-    delta = (tuned.step(frame, None)[0] - ungated.step(frame, None)[0]).abs().max()
-    assert float(delta) < 0.1 * float(ungated.step(frame, None)[0].abs().max())
-    saved = build_method("fused:fast", scale)
-    saved.load_state_dict(tuned.state_dict())
-    torch.testing.assert_close(saved.step(frame, None)[0], tuned.step(frame, None)[0])
-
-
-def test_init_from_a_three_candidate_checkpoint_grows_the_mean_and_the_gate():
-    tuned = build_method("fused")
-    tuned.load_initial_weights(legacy_state_dict())
-    assert tuned.has_mean and tuned.has_gate

@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from model.ops.kernels import apply_pixel_kernels, kernel_offsets, tap_distances
+from model.ops.kernels import apply_pixel_kernels, kernel_offsets
 from tests.builders import rand
 
 
@@ -106,33 +106,3 @@ def test_rejects_wrong_kernel_shape():
         apply_pixel_kernels(torch.zeros(1, 3, 4, 4), torch.zeros(1, 9, 4, 4), 5)
     with pytest.raises(ValueError, match="normalize"):
         apply_pixel_kernels(torch.zeros(1, 3, 4, 4), torch.zeros(1, 9, 4, 4), 3, normalize="l1")
-
-
-@pytest.mark.parametrize("k,dilation", [(3, 1), (3, 2), (5, 1)])
-def test_tap_distances_match_a_naive_loop_with_the_border_pixel_outside(k, dilation):
-    guide = rand(2, 3, 7, 6, seed=4)
-    got = tap_distances(guide, k, dilation)
-    n, _, h, w = guide.shape
-    want = torch.zeros(n, k * k, h, w, dtype=guide.dtype)
-    for j, (dx, dy) in enumerate(kernel_offsets(k, dilation)):
-        for y in range(h):
-            for x in range(w):
-                ty, tx = min(max(y + dy, 0), h - 1), min(max(x + dx, 0), w - 1)
-                want[:, j, y, x] = (guide[:, :, y, x] - guide[:, :, ty, tx]).square().sum(dim=1)
-    torch.testing.assert_close(got, want)
-
-
-def test_tap_distances_stop_a_kernel_at_a_guide_edge():
-    # A step edge in the guide: a box kernel minus a large bandwidth times the distances averages each side alone.
-    guide = torch.zeros(1, 1, 4, 6)
-    guide[..., 3:] = 1.0
-    image = guide * 2.0 + 1.0  # 1 left of the edge, 3 right of it
-    logits = -100.0 * tap_distances(guide, 3)
-    torch.testing.assert_close(apply_pixel_kernels(image, logits, 3, normalize="softmax"), image)
-    blurred = apply_pixel_kernels(image, torch.zeros_like(logits), 3, normalize="softmax")
-    assert float((blurred - image).abs().max()) > 0.5
-
-
-def test_tap_distances_reject_a_batchless_guide():
-    with pytest.raises(ValueError, match="guide must be"):
-        tap_distances(torch.zeros(3, 4, 4), 3)
