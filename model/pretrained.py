@@ -222,7 +222,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                     report_source: str | None = None, report_path: str | None = None,
                     stages: list[str | os.PathLike] | None = None,
                     after_shipped: str | None = None,
-                    history_before_kernel: bool | None = None) -> PretrainedModel:
+                    history_before_kernel: bool | None = None,
+                    kernel_max_pixels: int | None = None) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
     an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
     earlier trainings this one started from (``--init-from``), first to last; their step, best metric and training
@@ -230,7 +231,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     first of them, or this checkpoint, started from (``--init-from pretrained/NAME/model.pt``): its recorded stages
     and its own training come first, so a fine-tune of a shipped model keeps the whole recipe where the earlier
     runs are gone (a fresh checkout holds none). ``history_before_kernel`` (the fused family only; None: as the
-    checkpoint has it) sets which recurrence the shipped weights run (``model.methods.fused``)."""
+    checkpoint has it) sets which recurrence the shipped weights run (``model.methods.fused``); ``kernel_max_pixels``
+    (the same) the frame size above which they skip their kernel (0: none)."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -247,6 +249,14 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
             raise PretrainedError(f"{checkpoint} holds {method.label}, which has no choice of recurrence (only the "
                                   f"fused family has)")
         method.set_history_before_kernel(history_before_kernel)
+    if kernel_max_pixels is not None:
+        if not hasattr(method, "set_kernel_max_pixels"):
+            raise PretrainedError(f"{checkpoint} holds {method.label}, which has no output kernel to limit (only the "
+                                  f"fused family has)")
+        try:
+            method.set_kernel_max_pixels(kernel_max_pixels)
+        except ValueError as error:
+            raise PretrainedError(str(error)) from error
     folder = _root(root) / name
     folder.mkdir(parents=True, exist_ok=True)
     train_config = content.get("train_config") or {}

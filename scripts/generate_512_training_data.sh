@@ -7,7 +7,7 @@
 #   seed 1, 12 frames, 128-spp references, 1x only (train split);
 #   data/mix512: links to data/reuse-mixed's sequences (scripts/generate_blender_training_data.sh) and to each
 #   512x512 sequence four times (a 512x512 sequence gives 16x the crops of a 128x128 one, but a sample reads one
-#   sequence: listed once they would be 2 of 54 windows).
+#   sequence: listed once they would be 2 of 54 training sequences, four times 8 of 60).
 # About 3 minutes on 2 CPU cores.
 # Usage: scripts/generate_512_training_data.sh  (after generate_blender_training_data.sh)
 set -euo pipefail

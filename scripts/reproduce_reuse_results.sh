@@ -6,7 +6,8 @@
 # preset at both scales, the fast preset at both and the high one at 1x as the repository's pretrained models
 # (pretrained/fused-{balanced,fast}-x{1,2}, fused-high-x1: weights, recipe and the held-out rows of these reports;
 # scripts/ship_pretrained.py); the three 1x models are shipped running the fused blend before the kernel as history
-# (trained with the filtered output as history, as every model is), the 2x models as trained.
+# (trained with the filtered output as history, as every model is) and without their kernel on frames above 32768
+# pixels, the 2x models as trained.
 # On the 2-core CPU, one torch thread per training run: fused:balanced at 1x and at 2x side by side (13 and
 # 25 minutes), then 600 steps with longer histories at 1x beside the fast preset fine-tuned from the 2x model, then
 # 3100 steps with the display-error term at 1x (about 18 minutes), then the fast / high presets at 1x fine-tuned
@@ -178,9 +179,11 @@ done
 # Last, the three 1x models re-shipped running the fused blend before the kernel as the next frame's history (the
 # same weights; README: "The history before the kernel"), evaluated at 1x beside the checkpoints as trained (the
 # filtered output as history), and their manifests' held-out rows taken from that run; the 1x pictures with them.
+# They also skip their output kernel on frames of more than 32768 render pixels (twice the 128x128 they were trained
+# on; README: "The kernel and resolved texture"): the same outputs at 128x128, the fused blend above.
 for quality in balanced fast high; do
   .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
-    --after-shipped "fused-$quality-x1" --history-before-kernel
+    --after-shipped "fused-$quality-x1" --history-before-kernel --kernel-max-pixels 32768
 done
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method fused-fast-x1 --method fused-high-x1 --method "$x1" --method runs/fused-fast-x1-cmean/best.pt \

@@ -21,6 +21,12 @@ weights are the checkpoint's.
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
         --after-shipped fused-balanced-x1 --history-before-kernel
 
+--kernel-max-pixels N (fused only): ship the weights skipping their 3x3 output kernel on frames of more than N render
+pixels (the fused blend is the output there; 0: every frame filtered); the weights are the checkpoint's.
+
+    .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
+        --after-shipped fused-balanced-x1 --kernel-max-pixels 32768
+
 --remeasure: the checkpoint is the shipped model NAME itself, evaluated again in the report's run (beside newer
 models); only its held-out section is replaced, its weights and training record stay.
 """
@@ -64,14 +70,16 @@ def main() -> int:
                             help="fused only: the blend before the kernel is the next frame's history")
     recurrence.add_argument("--history-after-kernel", dest="history_before_kernel", action="store_const",
                             const=False, help="fused only: the filtered output is the next frame's history")
+    parser.add_argument("--kernel-max-pixels", type=int, default=None, metavar="N",
+                        help="fused only: frames of more than N render pixels skip the output kernel (0: none do)")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
     if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data
-                           or args.history_before_kernel is not None):
-        parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data or "
-                     "--history-*-kernel")
+                           or args.history_before_kernel is not None or args.kernel_max_pixels is not None):
+        parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data, "
+                     "--history-*-kernel or --kernel-max-pixels")
     report = None
     if args.report is not None:
         if not args.report.is_file():
@@ -86,7 +94,8 @@ def main() -> int:
                                 report=report, report_source=args.report_source,
                                 report_path=None if args.report is None else str(args.report), stages=args.stage,
                                 after_shipped=args.after_shipped,
-                                history_before_kernel=args.history_before_kernel)
+                                history_before_kernel=args.history_before_kernel,
+                                kernel_max_pixels=args.kernel_max_pixels)
     except (PretrainedError, UnknownPretrained, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

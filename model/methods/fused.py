@@ -29,6 +29,12 @@ above training's it washed the checker behind a moving lamp out (held-out, 512x5
 model, +0.14 at 256x256, +0.02 at 128x128; the README has the whole comparison and what it costs). ``--init-from``
 keeps the recurrence of the checkpoint it starts from.
 
+A model may also skip its kernel on frames of more than ``kernel_max_pixels`` render pixels (``kernel_limit_pixels``
+in the state dict; absent or 0: every frame filtered): the blend is the output there. The kernel learned at 128x128
+to average texture finer than a pixel (the reference's pixel average); on larger frames the same textures are
+resolved and the averaging erases them (the shipped 1x models, limit 32768: +0.12-0.18 dB held-out at 256x256,
++0.26-0.56 at 512x512, unchanged at 128x128; README, "The kernel and resolved texture").
+
 ``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to
 ``MEAN_FRAMES`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
 ``r``, and the network also reads ``m`` and ``|m - s|``. Its own history ``h`` carries its clips (and, with the
@@ -83,6 +89,7 @@ LEGACY_INITIAL_WEIGHTS = (0.2, 0.002, 0.798)
 INITIAL_CENTRE_LOGIT = 7.0  # the 3 x 3 kernel starts as (almost) the identity: 0.993 on the centre tap
 WIDTH = 16
 RECURRENCE_KEY = "recurrence_before_kernel"  # state-dict entry: 1 = the blend before the kernel is the history
+KERNEL_LIMIT_KEY = "kernel_limit_pixels"  # state-dict entry: frames with more render pixels skip the kernel (0: none do)
 
 
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
@@ -155,7 +162,7 @@ class Fused(Method):
     loss_weights = (1.0, 0.5)
 
     def __init__(self, preset: str = "balanced", scale: int = 1, depth_rel_tol: float = 0.1,
-                 normal_cos_tol: float = 0.9, history_before_kernel: bool = False):
+                 normal_cos_tol: float = 0.9, history_before_kernel: bool = False, kernel_max_pixels: int = 0):
         super().__init__(preset, scale)
         if preset not in QUALITIES:
             raise KeyError(f"{self.name} has no preset {preset!r}; presets: {', '.join(QUALITIES)}")
@@ -167,6 +174,9 @@ class Fused(Method):
         # never reads a device tensor to branch on it.
         self.register_buffer(RECURRENCE_KEY, torch.tensor(float(history_before_kernel)))
         self._history_before_kernel = bool(history_before_kernel)
+        self.register_buffer(KERNEL_LIMIT_KEY, torch.tensor(0.0))
+        self._kernel_max_pixels = 0
+        self.set_kernel_max_pixels(kernel_max_pixels)
 
     @property
     def history_before_kernel(self) -> bool:
@@ -176,6 +186,19 @@ class Fused(Method):
     def set_history_before_kernel(self, value: bool) -> None:
         getattr(self, RECURRENCE_KEY).fill_(float(value))
         self._history_before_kernel = bool(value)
+
+    @property
+    def kernel_max_pixels(self) -> int:
+        """Frames with more render pixels than this output the fused blend unfiltered (0: every frame is filtered).
+        The kernel is learned at 128x128, where much texture is finer than a pixel and its averaging is what the
+        reference holds; on frames twice as wide the same textures are resolved and the averaging erases them."""
+        return self._kernel_max_pixels
+
+    def set_kernel_max_pixels(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"kernel_max_pixels must be a whole number of pixels >= 0 (0: no limit), got {value!r}")
+        getattr(self, KERNEL_LIMIT_KEY).fill_(float(value))
+        self._kernel_max_pixels = value
 
     def _network(self, candidates: int) -> FusionNet:
         inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
@@ -196,6 +219,8 @@ class Fused(Method):
         three-candidate network it was trained as (the same outputs and cost as then)."""
         if RECURRENCE_KEY not in state_dict:  # saved before the choice existed: the output was the history
             state_dict = {**state_dict, RECURRENCE_KEY: torch.tensor(0.0)}
+        if KERNEL_LIMIT_KEY not in state_dict:  # saved before the limit existed: every frame filtered
+            state_dict = {**state_dict, KERNEL_LIMIT_KEY: torch.tensor(0.0)}
         candidates = self._candidates_in(state_dict)
         if candidates != self.net.candidates:
             if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
@@ -205,6 +230,7 @@ class Fused(Method):
             self.net = self._network(candidates).to(device)
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._history_before_kernel = bool(getattr(self, RECURRENCE_KEY).item() > 0.5)
+        self.set_kernel_max_pixels(int(round(getattr(self, KERNEL_LIMIT_KEY).item())))
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
@@ -297,7 +323,10 @@ class Fused(Method):
         weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
-        output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
+        if self._kernel_max_pixels and height * width > self._kernel_max_pixels:
+            output = blended
+        else:
+            output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
         history = blended if self.history_before_kernel else output
         new_state = {"history": history, "hidden": new_hidden, "length": length, "depth": frame.depth,
                      "normal": frame.normal, "jitter": frame.jitter}

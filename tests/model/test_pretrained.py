@@ -201,3 +201,24 @@ def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weigh
     assert reshipped.manifest["training"]["stages"][-1]["sha256"] == shipped.sha256
     with pytest.raises(PretrainedError, match="no choice of recurrence"):
         ship_tiny(root, history_before_kernel=True)
+
+
+def test_a_shipped_fused_model_reshipped_with_a_kernel_limit_keeps_its_weights(tmp_path):
+    from model.methods.fused import KERNEL_LIMIT_KEY
+
+    root = tmp_path / "pretrained"
+    torch.manual_seed(6)
+    source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
+                             train_config={"steps": 30})
+    shipped = ship_checkpoint(source, "fused-fast-x1", root=root)
+    assert load_pretrained("fused-fast-x1", root=root).kernel_max_pixels == 0
+    reshipped = ship_checkpoint(shipped.path, "fused-fast-x1", root=root, after_shipped="fused-fast-x1",
+                                kernel_max_pixels=32768)
+    assert load_pretrained("fused-fast-x1", root=root).kernel_max_pixels == 32768
+    before, after = (torch.load(model, weights_only=True)["model"] for model in (source, reshipped.path))
+    assert all(torch.equal(before[key], after[key]) for key in before if key != KERNEL_LIMIT_KEY)
+    with pytest.raises(PretrainedError, match="whole number of pixels"):
+        ship_checkpoint(shipped.path, "fused-fast-x1", root=root, kernel_max_pixels=-1)
+    assert load_pretrained("fused-fast-x1", root=root).kernel_max_pixels == 32768  # a refused ship changes nothing
+    with pytest.raises(PretrainedError, match="no output kernel to limit"):
+        ship_tiny(root, kernel_max_pixels=4096)

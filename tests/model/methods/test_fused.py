@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.fused import KERNEL, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused, unjittered_resample
+from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused,
+                                 unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -272,3 +273,39 @@ def test_init_from_keeps_the_recurrence_of_the_checkpoint_it_starts_from():
     without_entry = {k: v for k, v in source.state_dict().items() if k != RECURRENCE_KEY}
     tuned.load_initial_weights(without_entry)  # a checkpoint from before the choice: the output was its history
     assert not tuned.history_before_kernel
+
+
+def test_frames_above_the_kernel_limit_output_the_blend_unfiltered():
+    frame = frame_with_estimate(checker())  # 16 x 16 = 256 render pixels
+    method = blurring(build_method("fused"))
+    filtered, _ = method.step(frame, None)
+    assert total_variation(reinhard(filtered)) < 0.2 * total_variation(reinhard(checker()))
+    method.set_kernel_max_pixels(255)
+    method.set_history_before_kernel(True)
+    unfiltered, state = method.step(frame, None)
+    # The blend (here the checker itself: every candidate is it), and the history is that same image.
+    torch.testing.assert_close(reinhard(unfiltered), reinhard(checker()), atol=0.02, rtol=0.02)
+    torch.testing.assert_close(state["history"], reinhard(unfiltered))
+    method.set_kernel_max_pixels(256)  # at the limit the kernel still runs
+    torch.testing.assert_close(method.step(frame, None)[0], filtered)
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_a_checkpoint_records_its_kernel_limit_and_older_ones_load_without(scale):
+    assert build_method("fused", scale).kernel_max_pixels == 0  # every frame filtered, as trained
+    saved = build_method("fused:fast", scale)
+    saved.set_kernel_max_pixels(32768)
+    loaded = build_method("fused:fast", scale)
+    loaded.load_state_dict(saved.state_dict())
+    assert loaded.kernel_max_pixels == 32768
+    tuned = build_method("fused:fast", scale)
+    tuned.load_initial_weights(saved.state_dict())  # --init-from keeps it
+    assert tuned.kernel_max_pixels == 32768
+    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != KERNEL_LIMIT_KEY})
+    assert loaded.kernel_max_pixels == 0 and float(loaded.state_dict()[KERNEL_LIMIT_KEY]) == 0.0
+
+
+@pytest.mark.parametrize("value", [-1, 2.5, True])
+def test_a_kernel_limit_that_is_not_a_whole_number_of_pixels_is_refused(value):
+    with pytest.raises(ValueError, match="whole number of pixels"):
+        build_method("fused").set_kernel_max_pixels(value)
