@@ -3,9 +3,9 @@ training run reads them all in the proportions given.
 
     .venv/bin/python scripts/link_datasets.py data/reuse-mixed reuse:1:train,validation blender-train:4:train
 
-Each SOURCE:COPIES:SPLITS names a dataset under data/, how many times each of its sequences is listed (copies
-after the first are named NAME_cK) and which of its splits are taken (each sequence keeps its split). Running it
-again adds what is missing and keeps what is there.
+Each SOURCE:COPIES:SPLITS names a dataset beside OUT, how many times each of its sequences is listed (listed once:
+under its own name; more often: NAME_c0, NAME_c1, ...) and which of its splits are taken (each sequence keeps its
+split). Running it again adds what is missing and keeps what is there.
 """
 
 from __future__ import annotations

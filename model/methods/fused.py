@@ -175,7 +175,6 @@ class Fused(Method):
         self.register_buffer(RECURRENCE_KEY, torch.tensor(float(history_before_kernel)))
         self._history_before_kernel = bool(history_before_kernel)
         self.register_buffer(KERNEL_LIMIT_KEY, torch.tensor(0.0))
-        self._kernel_max_pixels = 0
         self.set_kernel_max_pixels(kernel_max_pixels)
 
     @property
