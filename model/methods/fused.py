@@ -88,8 +88,6 @@ INITIAL_WEIGHTS = (0.2, 0.002, 0.796, 0.002)
 LEGACY_INITIAL_WEIGHTS = (0.2, 0.002, 0.798)
 INITIAL_CENTRE_LOGIT = 7.0  # the 3 x 3 kernel starts as (almost) the identity: 0.993 on the centre tap
 WIDTH = 16
-LEVELS = 3  # U-Net levels of new networks: render resolution, 1/2 and 1/4 (checkpoints with 2 load as 2)
-LEGACY_LEVELS = 2
 RECURRENCE_KEY = "recurrence_before_kernel"  # state-dict entry: 1 = the blend before the kernel is the history
 KERNEL_LIMIT_KEY = "kernel_limit_pixels"  # state-dict entry: frames with more render pixels skip the kernel (0: none do)
 
@@ -119,26 +117,14 @@ def _conv(inputs: int, outputs: int) -> nn.Sequential:
 
 
 class FusionNet(nn.Module):
-    """U-Net at render resolution (two or three levels); the head predicts scale^2 sub-pixels' weights and kernels
-    each. The third level (1/4 resolution) adds its features to the second's through a 1x1 projection that starts at
-    zero, so a two-level network grown by it computes the same function until training moves the projection."""
+    """Two-level U-Net at render resolution; the head predicts scale^2 sub-pixels' weights and kernels each."""
 
-    def __init__(self, inputs: int, scale: int, width: int = WIDTH, candidates: int = CANDIDATES,
-                 levels: int = LEVELS):
+    def __init__(self, inputs: int, scale: int, width: int = WIDTH, candidates: int = CANDIDATES):
         super().__init__()
-        if levels not in (LEGACY_LEVELS, LEVELS):
-            raise ValueError(f"a fusion network has {LEGACY_LEVELS} or {LEVELS} levels, got {levels}")
         self.scale = scale
         self.candidates = candidates
-        self.levels = levels
         self.encoder = nn.Sequential(_conv(inputs, width), _conv(width, width))
         self.bottom = nn.Sequential(_conv(width, 2 * width), _conv(2 * width, 2 * width))
-        if levels == LEVELS:
-            # As wide as the second level: what it adds is reach (a receptive field four times as wide), not width.
-            self.deeper = nn.Sequential(_conv(2 * width, 2 * width), _conv(2 * width, 2 * width))
-            self.deeper_out = nn.Conv2d(2 * width, 2 * width, 1)
-            nn.init.zeros_(self.deeper_out.weight)
-            nn.init.zeros_(self.deeper_out.bias)
         self.decoder = _conv(3 * width, width)
         per_pixel = candidates + KERNEL * KERNEL
         self.head = nn.Conv2d(width, scale * scale * per_pixel + HIDDEN, 1)
@@ -160,9 +146,6 @@ class FusionNet(nn.Module):
         top = self.encoder(features)
         h, w = top.shape[-2:]
         bottom = self.bottom(F.avg_pool2d(top, 2, ceil_mode=True))
-        if self.levels == LEVELS:
-            deeper = self.deeper_out(self.deeper(F.avg_pool2d(bottom, 2, ceil_mode=True)))
-            bottom = bottom + F.interpolate(deeper, size=bottom.shape[-2:], mode="bilinear", align_corners=False)
         up = F.interpolate(bottom, size=(h, w), mode="bilinear", align_corners=False)
         out = self.head(self.decoder(torch.cat([top, up], dim=1)))
         per_pixel = self.scale ** 2 * (self.candidates + KERNEL * KERNEL)
@@ -186,7 +169,7 @@ class Fused(Method):
         self.spatial_prior = preset
         self.depth_rel_tol = depth_rel_tol
         self.normal_cos_tol = normal_cos_tol
-        self.net = self._network(CANDIDATES, LEVELS)
+        self.net = self._network(CANDIDATES)
         # A buffer, so checkpoints record which recurrence their weights run; mirrored in a Python bool so a step
         # never reads a device tensor to branch on it.
         self.register_buffer(RECURRENCE_KEY, torch.tensor(float(history_before_kernel)))
@@ -216,11 +199,11 @@ class Fused(Method):
         getattr(self, KERNEL_LIMIT_KEY).fill_(float(value))
         self._kernel_max_pixels = value
 
-    def _network(self, candidates: int, levels: int) -> FusionNet:
+    def _network(self, candidates: int) -> FusionNet:
         inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
         if candidates == CANDIDATES:
             inputs += MEAN_INPUTS
-        return FusionNet(inputs, self.scale, candidates=candidates, levels=levels)
+        return FusionNet(inputs, self.scale, candidates=candidates)
 
     @property
     def has_mean(self) -> bool:
@@ -230,39 +213,29 @@ class Fused(Method):
         rows = state_dict["net.head.weight"].shape[0]
         return (rows - HIDDEN) // self.scale ** 2 - KERNEL * KERNEL
 
-    @staticmethod
-    def _levels_in(state_dict: dict[str, torch.Tensor]) -> int:
-        return LEVELS if "net.deeper_out.weight" in state_dict else LEGACY_LEVELS
-
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """Load a checkpoint of any of the networks: one from before the running mean or the third level rebuilds
-        this method as the network it was trained as (the same outputs and cost as then)."""
+        """Load a checkpoint of either network: one from before the running mean rebuilds this method as the
+        three-candidate network it was trained as (the same outputs and cost as then)."""
         if RECURRENCE_KEY not in state_dict:  # saved before the choice existed: the output was the history
             state_dict = {**state_dict, RECURRENCE_KEY: torch.tensor(0.0)}
         if KERNEL_LIMIT_KEY not in state_dict:  # saved before the limit existed: every frame filtered
             state_dict = {**state_dict, KERNEL_LIMIT_KEY: torch.tensor(0.0)}
-        candidates, levels = self._candidates_in(state_dict), self._levels_in(state_dict)
-        if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
-            raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
-                             f"({LEGACY_CANDIDATES} or {CANDIDATES})")
-        if (candidates, levels) != (self.net.candidates, self.net.levels):
+        candidates = self._candidates_in(state_dict)
+        if candidates != self.net.candidates:
+            if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
+                raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
+                                 f"({LEGACY_CANDIDATES} or {CANDIDATES})")
             device = self.net.head.weight.device
-            self.net = self._network(candidates, levels).to(device)
+            self.net = self._network(candidates).to(device)
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._history_before_kernel = bool(getattr(self, RECURRENCE_KEY).item() > 0.5)
         self.set_kernel_max_pixels(int(round(getattr(self, KERNEL_LIMIT_KEY).item())))
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
-        """``--init-from``: a smaller checkpoint starts this network as the same function, nearly. From a
-        three-candidate one the new inputs' weights are zero and the clipped running mean starts at
-        ``NEW_CANDIDATE_WEIGHT``; from a two-level one the third level starts as this network's (its projection at
-        zero). The weights come with their recurrence: a fine-tune trains the recurrence the model it starts from
-        runs."""
-        state_dict = dict(state_dict)
-        if self._levels_in(state_dict) < self.net.levels:
-            state_dict.update({f"net.{key}": value.clone() for key, value in self.net.state_dict().items()
-                               if key.startswith(("deeper.", "deeper_out."))})
+        """``--init-from``: a three-candidate checkpoint starts this network as the same function, nearly: the
+        new inputs' weights are zero and the clipped running mean starts at ``NEW_CANDIDATE_WEIGHT``. The weights
+        come with their recurrence: a fine-tune trains the recurrence the model it starts from runs."""
         if self._candidates_in(state_dict) != LEGACY_CANDIDATES or not self.has_mean:
             self.load_state_dict(state_dict)
             return

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.fused import (CANDIDATES, KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, LEGACY_LEVELS, LEVELS,
-                                 RECURRENCE_KEY, Fused, FusionNet, unjittered_resample)
+from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused,
+                                 unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -161,19 +161,15 @@ def test_resampling_next_to_a_bright_emitter_does_not_overshoot():
     assert float(resampled.max()) <= 0.98 + 1e-6 and float(resampled.min()) >= 0.02 - 1e-6
 
 
-def older_state_dict(candidates: int, levels: int, seed: int) -> dict[str, torch.Tensor]:
-    """An older network's weights, off its initial head so every path matters."""
-    torch.manual_seed(seed)
-    older = build_method("fused")
-    older.net = older._network(candidates, levels)
-    for parameter in older.parameters():
-        parameter.data += 0.05 * torch.randn_like(parameter)
-    return older.state_dict()
-
-
 def legacy_state_dict(seed: int = 4) -> dict[str, torch.Tensor]:
-    """A three-candidate network's weights (as checkpoints from before the running mean hold)."""
-    return older_state_dict(LEGACY_CANDIDATES, LEGACY_LEVELS, seed)
+    """A three-candidate network's weights (as checkpoints from before the running mean hold), off its initial
+    head so every path matters."""
+    torch.manual_seed(seed)
+    legacy = build_method("fused")
+    legacy.net = legacy._network(LEGACY_CANDIDATES)
+    for parameter in legacy.parameters():
+        parameter.data += 0.05 * torch.randn_like(parameter)
+    return legacy.state_dict()
 
 
 def test_the_running_mean_is_the_mean_of_the_spatial_estimates_while_history_holds():
@@ -223,53 +219,6 @@ def test_init_from_an_older_checkpoint_starts_as_nearly_the_same_function():
     # A legacy session's state (no running mean) continues on the new network.
     output, state = grown.step(frames[0], {k: v for k, v in state_a.items()})
     assert torch.isfinite(output).all() and float(state["count"].max()) == 1.0
-
-
-def two_level_state_dict(seed: int = 5) -> dict[str, torch.Tensor]:
-    """A four-candidate, two-level network's weights (checkpoints from before the third level)."""
-    return older_state_dict(CANDIDATES, LEGACY_LEVELS, seed)
-
-
-def test_a_two_level_checkpoint_loads_as_the_network_it_was():
-    weights = two_level_state_dict()
-    method = build_method("fused")
-    assert method.net.levels == LEVELS
-    method.load_state_dict(weights)
-    assert method.net.levels == LEGACY_LEVELS and not hasattr(method.net, "deeper")
-    assert set(method.state_dict()) == set(weights)
-
-
-def test_init_from_a_two_level_checkpoint_is_the_same_function_and_the_third_level_learns():
-    weights = two_level_state_dict()
-    old = build_method("fused")
-    old.load_state_dict(weights)
-    grown = build_method("fused")
-    grown.load_initial_weights(weights)
-    assert grown.net.levels == LEVELS and old.net.levels == LEGACY_LEVELS
-    frames = [frame_with_estimate(truth() * (1 + 0.3 * (k % 2))) for k in range(3)]
-    state_a = state_b = None
-    with torch.no_grad():
-        for frame in frames:
-            out_a, state_a = old.eval().step(frame, state_a)
-            out_b, state_b = grown.eval().step(frame, state_b)
-            torch.testing.assert_close(out_b, out_a)  # the projection starts at zero: not nearly, exactly
-    # The projection is what a gradient reaches first; once it moves, the level's convolutions get gradients too.
-    grown.train()
-    output, _ = grown.step(frames[0], None)
-    (output - truth()).abs().mean().backward()
-    assert float(grown.net.deeper_out.weight.grad.abs().max()) > 0
-    assert float(grown.net.deeper[0][0].weight.grad.abs().max()) == 0
-    with torch.no_grad():
-        grown.net.deeper_out.weight.add_(0.01)
-    grown.zero_grad()
-    output, _ = grown.step(frames[0], None)
-    (output - truth()).abs().mean().backward()
-    assert float(grown.net.deeper[0][0].weight.grad.abs().max()) > 0
-
-
-def test_a_fusion_network_has_two_or_three_levels():
-    with pytest.raises(ValueError, match="levels"):
-        FusionNet(10, 1, levels=4)
 
 
 def blurring(method: Fused) -> Fused:
