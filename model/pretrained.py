@@ -223,7 +223,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                     stages: list[str | os.PathLike] | None = None,
                     after_shipped: str | None = None,
                     history_before_kernel: bool | None = None,
-                    kernel_max_pixels: int | None = None) -> PretrainedModel:
+                    kernel_max_pixels: int | None = None,
+                    mean_max_frames: int | None = None) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
     an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
     earlier trainings this one started from (``--init-from``), first to last; their step, best metric and training
@@ -232,7 +233,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     and its own training come first, so a fine-tune of a shipped model keeps the whole recipe where the earlier
     runs are gone (a fresh checkout holds none). ``history_before_kernel`` (the fused family only; None: as the
     checkpoint has it) sets which recurrence the shipped weights run (``model.methods.fused``); ``kernel_max_pixels``
-    (the same) the frame size above which they skip their kernel (0: none)."""
+    (the same) the frame size above which they skip their kernel (0: none); ``mean_max_frames`` (the same) the
+    window of their running mean of OIDN's estimates."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -244,17 +246,18 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     method.load_state_dict(content["model"])
     if not method.learned:
         raise PretrainedError(f"{checkpoint} holds {method.label}, which has no weights to ship")
-    if history_before_kernel is not None:
-        if not hasattr(method, "set_history_before_kernel"):
-            raise PretrainedError(f"{checkpoint} holds {method.label}, which has no choice of recurrence (only the "
-                                  f"fused family has)")
-        method.set_history_before_kernel(history_before_kernel)
-    if kernel_max_pixels is not None:
-        if not hasattr(method, "set_kernel_max_pixels"):
-            raise PretrainedError(f"{checkpoint} holds {method.label}, which has no output kernel to limit (only the "
-                                  f"fused family has)")
+    # The fused family's run-time settings, each shipped with the weights unchanged; None keeps the checkpoint's.
+    settings = [(history_before_kernel, "set_history_before_kernel", "no choice of recurrence"),
+                (kernel_max_pixels, "set_kernel_max_pixels", "no output kernel to limit"),
+                (mean_max_frames, "set_mean_max_frames", "no running mean to set a window for")]
+    for value, setter, missing in settings:
+        if value is None:
+            continue
+        if not hasattr(method, setter) or (setter == "set_mean_max_frames" and not method.has_mean):
+            raise PretrainedError(f"{checkpoint} holds {method.label}, which has {missing} (only the fused family "
+                                  f"has{' since its running mean' if setter == 'set_mean_max_frames' else ''})")
         try:
-            method.set_kernel_max_pixels(kernel_max_pixels)
+            getattr(method, setter)(value)
         except ValueError as error:
             raise PretrainedError(str(error)) from error
     folder = _root(root) / name

@@ -72,14 +72,18 @@ def main() -> int:
                             const=False, help="fused only: the filtered output is the next frame's history")
     parser.add_argument("--kernel-max-pixels", type=int, default=None, metavar="N",
                         help="fused only: frames of more than N render pixels skip the output kernel (0: none do)")
+    parser.add_argument("--mean-max-frames", type=int, default=None, metavar="N",
+                        help="fused only: the running mean of OIDN's estimates averages at most N frames (then an "
+                             "exponential average of that length)")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
     if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data
-                           or args.history_before_kernel is not None or args.kernel_max_pixels is not None):
+                           or args.history_before_kernel is not None or args.kernel_max_pixels is not None
+                           or args.mean_max_frames is not None):
         parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data, "
-                     "--history-*-kernel or --kernel-max-pixels")
+                     "--history-*-kernel, --kernel-max-pixels or --mean-max-frames")
     report = None
     if args.report is not None:
         if not args.report.is_file():
@@ -95,7 +99,8 @@ def main() -> int:
                                 report_path=None if args.report is None else str(args.report), stages=args.stage,
                                 after_shipped=args.after_shipped,
                                 history_before_kernel=args.history_before_kernel,
-                                kernel_max_pixels=args.kernel_max_pixels)
+                                kernel_max_pixels=args.kernel_max_pixels,
+                                mean_max_frames=args.mean_max_frames)
     except (PretrainedError, UnknownPretrained, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

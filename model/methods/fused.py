@@ -35,8 +35,8 @@ to average texture finer than a pixel (the reference's pixel average); on larger
 resolved and the averaging erases them (the shipped 1x models, limit 32768: +0.12-0.18 dB held-out at 256x256,
 +0.26-0.56 at 512x512, unchanged at 128x128; README, "The kernel and resolved texture").
 
-``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to
-``MEAN_FRAMES`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
+``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to the
+model's ``mean_max_frames`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
 ``r``, and the network also reads ``m`` and ``|m - s|``. Its own history ``h`` carries its clips (and, with the
 output as history, its kernels' blur) into every later frame; ``m`` is an unbiased average of OIDN's estimates
 where the scene is static (which the network, reading its own output, had not learned to reproduce: an unclipped
@@ -76,8 +76,9 @@ __all__ = ["Fused", "FusionNet", "unjittered_resample"]
 
 CANDIDATES = 4  # spatial estimate, history, rectified history, clipped running mean
 LEGACY_CANDIDATES = 3  # checkpoints from before the running mean: spatial estimate, history, rectified history
-MEAN_FRAMES = 16.0  # the running mean's 1 / n weights stop falling here (then an exponential average; training
-# samples hold 12 frames, so the count input stays near what training saw)
+MEAN_FRAMES = 16.0  # the running mean's 1 / n weights stop falling here by default (then an exponential average;
+# training samples hold 12 frames, so the count input stays near what training saw); also the count input's scale
+MEAN_WINDOW_KEY = "mean_window_frames"  # state-dict entry: where this model's running mean stops (absent: MEAN_FRAMES)
 MEAN_INPUTS = 3 + 3 + 1  # the running mean, |mean - s| and log(1 + frames in it), at render resolution
 NEW_CANDIDATE_WEIGHT = 0.01  # the clipped mean's share when fine-tuning starts from a legacy checkpoint
 KERNEL = 3
@@ -176,6 +177,8 @@ class Fused(Method):
         self._history_before_kernel = bool(history_before_kernel)
         self.register_buffer(KERNEL_LIMIT_KEY, torch.tensor(0.0))
         self.set_kernel_max_pixels(kernel_max_pixels)
+        self.register_buffer(MEAN_WINDOW_KEY, torch.tensor(MEAN_FRAMES))
+        self.set_mean_max_frames(int(MEAN_FRAMES))
 
     @property
     def history_before_kernel(self) -> bool:
@@ -199,6 +202,20 @@ class Fused(Method):
         getattr(self, KERNEL_LIMIT_KEY).fill_(float(value))
         self._kernel_max_pixels = value
 
+    @property
+    def mean_max_frames(self) -> int:
+        """The running mean's window: 1 / n weights up to this many frames, then an exponential average of that
+        length. Training samples hold 12 frames, so training never tells a window of 8 from one of 16; a long stream
+        does: the mean is resampled with the history every frame, and over a slow camera's 64 frames a 16-frame
+        window blurred a checker floor's edges frame by frame (README, "Long streams")."""
+        return self._mean_max_frames
+
+    def set_mean_max_frames(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"mean_max_frames must be a whole number of frames >= 1, got {value!r}")
+        getattr(self, MEAN_WINDOW_KEY).fill_(float(value))
+        self._mean_max_frames = value
+
     def _network(self, candidates: int) -> FusionNet:
         inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
         if candidates == CANDIDATES:
@@ -220,6 +237,8 @@ class Fused(Method):
             state_dict = {**state_dict, RECURRENCE_KEY: torch.tensor(0.0)}
         if KERNEL_LIMIT_KEY not in state_dict:  # saved before the limit existed: every frame filtered
             state_dict = {**state_dict, KERNEL_LIMIT_KEY: torch.tensor(0.0)}
+        if MEAN_WINDOW_KEY not in state_dict:  # saved before the window was a setting: the default one
+            state_dict = {**state_dict, MEAN_WINDOW_KEY: torch.tensor(MEAN_FRAMES)}
         candidates = self._candidates_in(state_dict)
         if candidates != self.net.candidates:
             if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
@@ -230,6 +249,7 @@ class Fused(Method):
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._history_before_kernel = bool(getattr(self, RECURRENCE_KEY).item() > 0.5)
         self.set_kernel_max_pixels(int(round(getattr(self, KERNEL_LIMIT_KEY).item())))
+        self.set_mean_max_frames(int(round(getattr(self, MEAN_WINDOW_KEY).item())))
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
@@ -356,7 +376,8 @@ class Fused(Method):
         mean = count = None
         if with_mean:
             count, _ = backward_warp(state["count"], frame.motion, mode="nearest")
-            mean, count = images[:, 3:], torch.where(valid, (count + 1).clamp_max(MEAN_FRAMES), torch.ones_like(count))
+            window = float(self._mean_max_frames)
+            mean, count = images[:, 3:], torch.where(valid, (count + 1).clamp_max(window), torch.ones_like(count))
         return history, render[:, :HIDDEN], render[:, HIDDEN:], valid, mean, count
 
 

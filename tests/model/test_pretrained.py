@@ -203,6 +203,27 @@ def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weigh
         ship_tiny(root, history_before_kernel=True)
 
 
+def test_a_shipped_fused_model_reshipped_with_a_mean_window_keeps_its_weights(tmp_path):
+    from model.methods.fused import MEAN_WINDOW_KEY
+
+    root = tmp_path / "pretrained"
+    torch.manual_seed(7)
+    source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
+                             train_config={"steps": 30})
+    shipped = ship_checkpoint(source, "fused-fast-x1", root=root)
+    assert load_pretrained("fused-fast-x1", root=root).mean_max_frames == 16
+    reshipped = ship_checkpoint(shipped.path, "fused-fast-x1", root=root, after_shipped="fused-fast-x1",
+                                mean_max_frames=8)
+    assert load_pretrained("fused-fast-x1", root=root).mean_max_frames == 8
+    before, after = (torch.load(model, weights_only=True)["model"] for model in (source, reshipped.path))
+    assert all(torch.equal(before[key], after[key]) for key in before if key != MEAN_WINDOW_KEY)
+    with pytest.raises(PretrainedError, match="whole number of frames"):
+        ship_checkpoint(shipped.path, "fused-fast-x1", root=root, mean_max_frames=0)
+    assert load_pretrained("fused-fast-x1", root=root).mean_max_frames == 8  # a refused ship changes nothing
+    with pytest.raises(PretrainedError, match="no running mean"):
+        ship_tiny(root, mean_max_frames=8)
+
+
 def test_a_shipped_fused_model_reshipped_with_a_kernel_limit_keeps_its_weights(tmp_path):
     from model.methods.fused import KERNEL_LIMIT_KEY
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, RECURRENCE_KEY, Fused,
-                                 unjittered_resample)
+from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
+                                 RECURRENCE_KEY, Fused, unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -184,6 +184,43 @@ def test_the_running_mean_is_the_mean_of_the_spatial_estimates_while_history_hol
     _, state = method.step(frame_with_estimate(truth(), camera_cut=[True]), state)
     torch.testing.assert_close(state["mean"], reinhard(truth()))
     assert float(state["count"].max()) == 1.0
+
+
+def test_past_its_window_the_running_mean_is_an_exponential_average_of_the_window_s_length():
+    estimates = [truth() * (1 + 0.1 * k) for k in range(6)]
+    method, state = build_method("fused"), None
+    method.set_mean_max_frames(3)
+    for estimate in estimates:
+        _, state = method.step(frame_with_estimate(estimate), state)
+    values = [reinhard(estimate) for estimate in estimates]
+    expected = sum(values[:3]) / 3  # 1 / n weights up to three frames
+    for value in values[3:]:
+        expected = expected + (value - expected) / 3  # then a third for each new frame
+    torch.testing.assert_close(state["mean"], expected, atol=1e-5, rtol=1e-5)
+    assert float(state["count"].max()) == 3.0
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_a_checkpoint_records_its_mean_window_and_older_ones_load_with_the_default(scale):
+    assert build_method("fused", scale).mean_max_frames == int(MEAN_FRAMES)  # as every shipped model was trained
+    saved = build_method("fused:fast", scale)
+    saved.set_mean_max_frames(8)
+    loaded = build_method("fused:fast", scale)
+    loaded.load_state_dict(saved.state_dict())
+    assert loaded.mean_max_frames == 8
+    tuned = build_method("fused:fast", scale)
+    tuned.load_initial_weights(saved.state_dict())  # --init-from keeps it
+    assert tuned.mean_max_frames == 8
+    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != MEAN_WINDOW_KEY})
+    assert loaded.mean_max_frames == int(MEAN_FRAMES)
+
+
+@pytest.mark.parametrize("value", [0, -3, 2.5, True])
+def test_a_mean_window_that_is_not_a_whole_number_of_frames_is_refused(value):
+    method = build_method("fused")
+    with pytest.raises(ValueError, match="whole number of frames"):
+        method.set_mean_max_frames(value)
+    assert method.mean_max_frames == int(MEAN_FRAMES)
 
 
 def test_a_checkpoint_from_before_the_running_mean_loads_as_the_network_it_was():
