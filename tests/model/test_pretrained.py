@@ -203,43 +203,27 @@ def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weigh
         ship_tiny(root, history_before_kernel=True)
 
 
-def test_a_shipped_fused_model_reshipped_with_a_mean_window_keeps_its_weights(tmp_path):
-    from model.methods.fused import MEAN_WINDOW_KEY
-
-    root = tmp_path / "pretrained"
-    torch.manual_seed(7)
-    source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
-                             train_config={"steps": 30})
-    shipped = ship_checkpoint(source, "fused-fast-x1", root=root)
-    assert load_pretrained("fused-fast-x1", root=root).mean_max_frames == 16
-    reshipped = ship_checkpoint(shipped.path, "fused-fast-x1", root=root, after_shipped="fused-fast-x1",
-                                mean_max_frames=8)
-    assert load_pretrained("fused-fast-x1", root=root).mean_max_frames == 8
-    before, after = (torch.load(model, weights_only=True)["model"] for model in (source, reshipped.path))
-    assert all(torch.equal(before[key], after[key]) for key in before if key != MEAN_WINDOW_KEY)
-    with pytest.raises(PretrainedError, match="whole number of frames"):
-        ship_checkpoint(shipped.path, "fused-fast-x1", root=root, mean_max_frames=0)
-    assert load_pretrained("fused-fast-x1", root=root).mean_max_frames == 8  # a refused ship changes nothing
-    with pytest.raises(PretrainedError, match="no running mean"):
-        ship_tiny(root, mean_max_frames=8)
-
-
-def test_a_shipped_fused_model_reshipped_with_a_kernel_limit_keeps_its_weights(tmp_path):
-    from model.methods.fused import KERNEL_LIMIT_KEY
-
+@pytest.mark.parametrize("setting, key, default, value, bad, refusal, missing", [
+    pytest.param("kernel_max_pixels", "kernel_limit_pixels", 0, 32768, -1, "whole number of pixels",
+                 "no output kernel to limit", id="kernel limit"),
+    pytest.param("mean_max_frames", "mean_window_frames", 16, 8, 0, "whole number of frames", "no running mean",
+                 id="mean window"),
+])
+def test_a_shipped_fused_model_reshipped_with_a_run_time_setting_keeps_its_weights(tmp_path, setting, key, default,
+                                                                                   value, bad, refusal, missing):
     root = tmp_path / "pretrained"
     torch.manual_seed(6)
     source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
                              train_config={"steps": 30})
     shipped = ship_checkpoint(source, "fused-fast-x1", root=root)
-    assert load_pretrained("fused-fast-x1", root=root).kernel_max_pixels == 0
+    assert getattr(load_pretrained("fused-fast-x1", root=root), setting) == default
     reshipped = ship_checkpoint(shipped.path, "fused-fast-x1", root=root, after_shipped="fused-fast-x1",
-                                kernel_max_pixels=32768)
-    assert load_pretrained("fused-fast-x1", root=root).kernel_max_pixels == 32768
+                                **{setting: value})
+    assert getattr(load_pretrained("fused-fast-x1", root=root), setting) == value
     before, after = (torch.load(model, weights_only=True)["model"] for model in (source, reshipped.path))
-    assert all(torch.equal(before[key], after[key]) for key in before if key != KERNEL_LIMIT_KEY)
-    with pytest.raises(PretrainedError, match="whole number of pixels"):
-        ship_checkpoint(shipped.path, "fused-fast-x1", root=root, kernel_max_pixels=-1)
-    assert load_pretrained("fused-fast-x1", root=root).kernel_max_pixels == 32768  # a refused ship changes nothing
-    with pytest.raises(PretrainedError, match="no output kernel to limit"):
-        ship_tiny(root, kernel_max_pixels=4096)
+    assert all(torch.equal(before[name], after[name]) for name in before if name != key)
+    with pytest.raises(PretrainedError, match=refusal):
+        ship_checkpoint(shipped.path, "fused-fast-x1", root=root, **{setting: bad})
+    assert getattr(load_pretrained("fused-fast-x1", root=root), setting) == value  # a refused ship changes nothing
+    with pytest.raises(PretrainedError, match=missing):
+        ship_tiny(root, **{setting: value})

@@ -200,21 +200,6 @@ def test_past_its_window_the_running_mean_is_an_exponential_average_of_the_windo
     assert float(state["count"].max()) == 3.0
 
 
-@pytest.mark.parametrize("scale", [1, 2])
-def test_a_checkpoint_records_its_mean_window_and_older_ones_load_with_the_default(scale):
-    assert build_method("fused", scale).mean_max_frames == int(MEAN_FRAMES)  # as every shipped model was trained
-    saved = build_method("fused:fast", scale)
-    saved.set_mean_max_frames(8)
-    loaded = build_method("fused:fast", scale)
-    loaded.load_state_dict(saved.state_dict())
-    assert loaded.mean_max_frames == 8
-    tuned = build_method("fused:fast", scale)
-    tuned.load_initial_weights(saved.state_dict())  # --init-from keeps it
-    assert tuned.mean_max_frames == 8
-    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != MEAN_WINDOW_KEY})
-    assert loaded.mean_max_frames == int(MEAN_FRAMES)
-
-
 @pytest.mark.parametrize("value", [0, -3, 2.5, True])
 def test_a_mean_window_that_is_not_a_whole_number_of_frames_is_refused(value):
     method = build_method("fused")
@@ -328,18 +313,23 @@ def test_frames_above_the_kernel_limit_output_the_blend_unfiltered():
 
 
 @pytest.mark.parametrize("scale", [1, 2])
-def test_a_checkpoint_records_its_kernel_limit_and_older_ones_load_without(scale):
-    assert build_method("fused", scale).kernel_max_pixels == 0  # every frame filtered, as trained
+@pytest.mark.parametrize("setting, key, default, value", [
+    pytest.param("kernel_max_pixels", KERNEL_LIMIT_KEY, 0, 32768, id="kernel limit"),  # default: every frame filtered
+    pytest.param("mean_max_frames", MEAN_WINDOW_KEY, int(MEAN_FRAMES), 8, id="mean window"),
+])
+def test_a_checkpoint_records_its_run_time_setting_and_older_ones_load_with_the_default(scale, setting, key, default,
+                                                                                        value):
+    assert getattr(build_method("fused", scale), setting) == default  # as every shipped model was trained
     saved = build_method("fused:fast", scale)
-    saved.set_kernel_max_pixels(32768)
+    getattr(saved, f"set_{setting}")(value)
     loaded = build_method("fused:fast", scale)
     loaded.load_state_dict(saved.state_dict())
-    assert loaded.kernel_max_pixels == 32768
+    assert getattr(loaded, setting) == value
     tuned = build_method("fused:fast", scale)
     tuned.load_initial_weights(saved.state_dict())  # --init-from keeps it
-    assert tuned.kernel_max_pixels == 32768
-    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != KERNEL_LIMIT_KEY})
-    assert loaded.kernel_max_pixels == 0 and float(loaded.state_dict()[KERNEL_LIMIT_KEY]) == 0.0
+    assert getattr(tuned, setting) == value
+    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != key})
+    assert getattr(loaded, setting) == default and float(loaded.state_dict()[key]) == float(default)
 
 
 @pytest.mark.parametrize("value", [-1, 2.5, True])
