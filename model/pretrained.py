@@ -247,15 +247,17 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     if not method.learned:
         raise PretrainedError(f"{checkpoint} holds {method.label}, which has no weights to ship")
     # The fused family's run-time settings, each shipped with the weights unchanged; None keeps the checkpoint's.
-    settings = [(history_before_kernel, "set_history_before_kernel", "no choice of recurrence"),
-                (kernel_max_pixels, "set_kernel_max_pixels", "no output kernel to limit"),
-                (mean_max_frames, "set_mean_max_frames", "no running mean to set a window for")]
-    for value, setter, missing in settings:
+    fused = hasattr(method, "set_kernel_max_pixels")
+    settings = [(history_before_kernel, "set_history_before_kernel", fused, "no choice of recurrence"),
+                (kernel_max_pixels, "set_kernel_max_pixels", fused, "no output kernel to limit"),
+                (mean_max_frames, "set_mean_max_frames", fused and method.has_mean,
+                 "no running mean to set a window for")]
+    for value, setter, supported, missing in settings:
         if value is None:
             continue
-        if not hasattr(method, setter) or (setter == "set_mean_max_frames" and not method.has_mean):
+        if not supported:
             raise PretrainedError(f"{checkpoint} holds {method.label}, which has {missing} (only the fused family "
-                                  f"has{' since its running mean' if setter == 'set_mean_max_frames' else ''})")
+                                  f"has)")
         try:
             getattr(method, setter)(value)
         except ValueError as error:

@@ -197,10 +197,8 @@ class Fused(Method):
         return self._kernel_max_pixels
 
     def set_kernel_max_pixels(self, value: int) -> None:
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ValueError(f"kernel_max_pixels must be a whole number of pixels >= 0 (0: no limit), got {value!r}")
-        getattr(self, KERNEL_LIMIT_KEY).fill_(float(value))
-        self._kernel_max_pixels = value
+        refusal = "kernel_max_pixels must be a whole number of pixels >= 0 (0: no limit)"
+        self._kernel_max_pixels = self._store_count(KERNEL_LIMIT_KEY, value, 0, refusal)
 
     @property
     def mean_max_frames(self) -> int:
@@ -211,10 +209,15 @@ class Fused(Method):
         return self._mean_max_frames
 
     def set_mean_max_frames(self, value: int) -> None:
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"mean_max_frames must be a whole number of frames >= 1, got {value!r}")
-        getattr(self, MEAN_WINDOW_KEY).fill_(float(value))
-        self._mean_max_frames = value
+        self._mean_max_frames = self._store_count(MEAN_WINDOW_KEY, value, 1,
+                                                  "mean_max_frames must be a whole number of frames >= 1")
+
+    def _store_count(self, key: str, value: int, minimum: int, refusal: str) -> int:
+        """A whole-number setting checked and written to its state-dict buffer, so checkpoints record it."""
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            raise ValueError(f"{refusal}, got {value!r}")
+        getattr(self, key).fill_(float(value))
+        return value
 
     def _network(self, candidates: int) -> FusionNet:
         inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
