@@ -452,7 +452,7 @@ class _Training:
         return {**self.config.to_dict(), "method_name": self.method.name, "preset": self.method.preset,
                 "parameters": self.inference_params, "trainable_parameters": self.method.parameter_count(),
                 "flops_per_pixel": self.flops_per_pixel, "total_steps": self.total_steps,
-                "train_samples": len(self.crops),
+                "train_samples": len(self.crops), "unused_train_sequences": len(self.crops.unused),
                 "validation_sequences": len(self.validation), "device": str(self.device)}
 
     def _finish(self) -> dict[str, Any] | None:
@@ -474,7 +474,8 @@ class _Training:
                 "best_checkpoint": str(best) if best.is_file() else None,
                 "run_id": self.tracker.run_id, "registered_model": registered,
                 "parameters": self.inference_params, "trainable_parameters": self.method.parameter_count(),
-                "flops_per_pixel": self.flops_per_pixel, "seconds": seconds}
+                "flops_per_pixel": self.flops_per_pixel, "seconds": seconds,
+                "unused_sequences": [{"name": name, "longest_run": frames} for name, frames in self.crops.unused]}
 
 
 @torch.no_grad()

@@ -48,6 +48,9 @@ def _run_train(args) -> int:
     # Every input problem surfaces here, before any rank starts: ValueError / KeyError exit with status 2.
     resolve_device(config.device)
     crops, _, method = prepare(config)
+    note = crops.unused_note()
+    if note:
+        print(f"denoiser train: note: {note}", file=sys.stderr)
     checkpoint = resumable_checkpoint(config, method, config.total_steps(len(crops)))
     if checkpoint is not None:
         print(f"resuming from {Path(config.out) / LAST_CHECKPOINT} at step {checkpoint['step']}", file=sys.stderr)

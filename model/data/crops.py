@@ -83,6 +83,12 @@ def sample_windows(cuts: list[int], length: int, frames: int) -> list[int]:
             if not any(start + offset in cut_set for offset in range(1, frames))]
 
 
+def longest_shot(cuts: list[int], length: int) -> int:
+    """Frames in the longest run of a sequence without a cut: the most frames a sample of it can hold."""
+    bounds = sorted({0, length, *(cut for cut in cuts if 0 < cut < length)})
+    return max(end - start for start, end in zip(bounds, bounds[1:], strict=False)) if length else 0
+
+
 class SequenceCrops(torch.utils.data.Dataset):
     """Training samples of one split: ``len(self)`` windows, each a random crop re-drawn every epoch.
 
@@ -118,7 +124,21 @@ class SequenceCrops(torch.utils.data.Dataset):
         if not self.windows:
             raise ValueError(f"no sequence of split '{split}' in {self.dataset.root} has {frames} consecutive "
                              f"frames without a camera cut; use fewer frames per sample")
+        # Sequences too short for a sample are not trained on; said, since a user's data may be shot by shot.
+        sampled = {position for position, _ in self.windows}
+        self.unused = tuple((sequence.name, longest_shot(sequence.cuts, len(sequence)))
+                            for position, sequence in enumerate(sequences) if position not in sampled)
         self.buffers = self._common_buffers()
+
+    def unused_note(self, shown: int = 5) -> str | None:
+        """One line naming the sequences no sample comes from (None when every sequence is sampled)."""
+        if not self.unused:
+            return None
+        named = ", ".join(f"{name} ({frames})" for name, frames in self.unused[:shown])
+        more = f" and {len(self.unused) - shown} more" if len(self.unused) > shown else ""
+        return (f"{len(self.unused)} of {len(self.caches)} sequences of split '{self.split}' hold fewer than "
+                f"{self.frames} consecutive frames without a camera cut and are not trained on (their longest run "
+                f"in brackets): {named}{more}; fewer frames per sample would use them")
 
     def _common_buffers(self) -> tuple[str, ...]:
         # An optional buffer (diffuse, roughness, ...) is kept only when every sequence of the split has it, so

@@ -41,6 +41,23 @@ def test_train_runs_resumes_and_refuses_to_redo_a_finished_run(data, tmp_path, c
     assert not (tmp_path / "mlruns").exists()
 
 
+def test_sequences_too_short_for_a_sample_are_named_and_not_trained_on(data, tmp_path, capsys, monkeypatch):
+    from model.train import train
+    from model.training_settings import TrainConfig
+
+    monkeypatch.chdir(tmp_path)
+    # alpha's longest run without a cut is 3 frames (6 frames, a cut at 3): 4 frames per sample leave it out.
+    assert main(tiny_args(data, tmp_path / "run", "--frames-per-sample", "4", steps=1)) == 0
+    err = capsys.readouterr().err
+    assert "note: 1 of 2 sequences of split 'train' hold fewer than 4 consecutive frames" in err and "alpha (3)" in err
+    result = train(TrainConfig(data=str(data), method=TINY_METHOD, steps=1, crop=8, frames_per_sample=4, batch=2,
+                               warmup_steps=0, out=str(tmp_path / "api-run"), device="cpu"))
+    assert result["unused_sequences"] == [{"name": "alpha", "longest_run": 3}]
+    # With samples every sequence can give, nothing is said.
+    assert main(tiny_args(data, tmp_path / "run3", "--frames-per-sample", "3", steps=1)) == 0
+    assert "note:" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--method", "nope"], "unknown method 'nope'"),
     (["--data", "/nonexistent/data"], "/nonexistent/data"),

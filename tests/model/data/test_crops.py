@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from model.data.crops import BRIGHTNESS_RANGE, SequenceCrops, collate_crops, random_rotation, sample_windows
+from model.data.crops import (BRIGHTNESS_RANGE, SequenceCrops, collate_crops, longest_shot, random_rotation,
+                              sample_windows)
 from model.dataset import Dataset, SequenceWriter
 from model.frames import box_downsample
 from model.ops.warp import backward_warp
@@ -29,6 +30,34 @@ def test_windows_never_span_a_cut():
     assert sample_windows([0, 3], 6, 1) == [0, 1, 2, 3, 4, 5]
     assert sample_windows([1, 2], 4, 2) == [2]
     assert sample_windows([], 2, 3) == []
+
+
+def test_the_longest_shot_is_the_longest_run_between_cuts():
+    assert longest_shot([], 5) == 5
+    assert longest_shot([3], 6) == 3
+    assert longest_shot([0, 2], 9) == 7  # a cut at frame 0 starts the first shot: no shorter run
+    assert longest_shot([1, 2, 8], 10) == 6
+    assert longest_shot([], 0) == 0
+
+
+def test_sequences_without_a_window_are_recorded_with_their_longest_run(dataset_root):
+    crops = SequenceCrops(dataset_root, "train", crop_size=8, frames=4)
+    assert crops.unused == (("alpha", 3),)  # 6 frames cut at 3; beta's 5 frames give windows
+    note = crops.unused_note()
+    assert note.startswith("1 of 2 sequences of split 'train' hold fewer than 4") and "alpha (3)" in note
+    everything = SequenceCrops(dataset_root, "train", crop_size=8, frames=3)
+    assert everything.unused == () and everything.unused_note() is None
+
+
+def test_the_note_names_a_few_short_sequences_and_counts_the_rest(tmp_path):
+    dataset = Dataset.create(tmp_path / "data")
+    for name, frames in (("a", 2), ("b", 3), ("c", 2), ("long", 5)):
+        write_sequence(tmp_path / "data", name, frames=frames, scales=(1,))
+        dataset.add_sequence_dir(name, "train")
+    crops = SequenceCrops(dataset, "train", crop_size=8, frames=4)
+    assert crops.unused == (("a", 2), ("b", 3), ("c", 2))
+    assert crops.unused_note(shown=2).startswith("3 of 4 sequences")
+    assert "a (2), b (3) and 1 more; fewer frames per sample would use them" in crops.unused_note(shown=2)
 
 
 def test_samples_come_from_cut_free_windows(dataset_root):
