@@ -83,7 +83,7 @@ def sample_windows(cuts: list[int], length: int, frames: int) -> list[int]:
             if not any(start + offset in cut_set for offset in range(1, frames))]
 
 
-def longest_shot(cuts: list[int], length: int) -> int:
+def longest_run(cuts: list[int], length: int) -> int:
     """Frames in the longest run of a sequence without a cut: the most frames a sample of it can hold."""
     bounds = sorted({0, length, *(cut for cut in cuts if 0 < cut < length)})
     return max(end - start for start, end in zip(bounds, bounds[1:], strict=False)) if length else 0
@@ -126,7 +126,7 @@ class SequenceCrops(torch.utils.data.Dataset):
                              f"frames without a camera cut; use fewer frames per sample")
         # Sequences too short for a sample are not trained on; said, since a user's data may be shot by shot.
         sampled = {position for position, _ in self.windows}
-        self.unused = tuple((sequence.name, longest_shot(sequence.cuts, len(sequence)))
+        self.unused = tuple((sequence.name, longest_run(sequence.cuts, len(sequence)))
                             for position, sequence in enumerate(sequences) if position not in sampled)
         self.buffers = self._common_buffers()
 

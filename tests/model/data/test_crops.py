@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from model.data.crops import (BRIGHTNESS_RANGE, SequenceCrops, collate_crops, longest_shot, random_rotation,
+from model.data.crops import (BRIGHTNESS_RANGE, SequenceCrops, collate_crops, longest_run, random_rotation,
                               sample_windows)
 from model.dataset import Dataset, SequenceWriter
 from model.frames import box_downsample
@@ -32,12 +32,12 @@ def test_windows_never_span_a_cut():
     assert sample_windows([], 2, 3) == []
 
 
-def test_the_longest_shot_is_the_longest_run_between_cuts():
-    assert longest_shot([], 5) == 5
-    assert longest_shot([3], 6) == 3
-    assert longest_shot([0, 2], 9) == 7  # a cut at frame 0 starts the first shot: no shorter run
-    assert longest_shot([1, 2, 8], 10) == 6
-    assert longest_shot([], 0) == 0
+def test_the_longest_run_is_the_longest_run_between_cuts():
+    assert longest_run([], 5) == 5
+    assert longest_run([3], 6) == 3
+    assert longest_run([0, 2], 9) == 7  # a cut at frame 0 starts the first shot: no shorter run
+    assert longest_run([1, 2, 8], 10) == 6
+    assert longest_run([], 0) == 0
 
 
 def test_sequences_without_a_window_are_recorded_with_their_longest_run(dataset_root):
