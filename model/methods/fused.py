@@ -35,16 +35,16 @@ to average texture finer than a pixel (the reference's pixel average); on larger
 resolved and the averaging erases them (the shipped 1x models, limit 32768: +0.12-0.18 dB held-out at 256x256,
 +0.26-0.56 at 512x512, unchanged at 128x128; README, "The kernel and resolved texture").
 
-``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to the
-model's ``mean_max_frames`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
-``r``, and the network also reads ``m`` and ``|m - s|``. Its own history ``h`` carries its clips (and, with the
-output as history, its kernels' blur) into every later frame; ``m`` is an unbiased average of OIDN's estimates
-where the scene is static (which the network, reading its own output, had not learned to reproduce: an unclipped
-running mean scored 0.4-0.7 dB above it on static held-out recipes). ``m`` itself as a candidate ghosted more (it
-keeps a moving lamp's old positions wherever the depth test passes), so only its clipped form is one. Checkpoints
-from before the running mean load as the three-candidate network they are (``load_state_dict``), with its cost;
-``--init-from`` one of them starts this network with the new inputs' weights at zero and the new candidate's weight
-at ``NEW_CANDIDATE_WEIGHT``.
+``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to the model's
+``mean_max_frames`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
+``r``, and the network also reads ``m`` and ``|m - s|``. Its own history ``h`` carries its clips (and, with the output
+as history, its kernels' blur) into every later frame; ``m`` is an unbiased average of OIDN's estimates where the
+scene is static (which the network, reading its own output, had not learned to reproduce: an unclipped running mean
+scored 0.4-0.7 dB above it on static held-out recipes). ``m`` itself as a candidate ghosted more (it keeps a moving
+lamp's old positions wherever the depth test passes), so only its clipped form is one. Checkpoints from before the
+running mean load as the three-candidate network they are (``load_state_dict``), with its cost; ``--init-from`` one of
+them starts this network with the new inputs' weights at zero and the new candidate's weight at
+``NEW_CANDIDATE_WEIGHT``.
 
 Where there is no history (disocclusion, a cut, the first frame), ``h`` is ``s`` itself and ``r`` is ``s`` clipped to
 its own neighbourhood, so the output is made of OIDN's estimate alone: the method falls back to the spatial
