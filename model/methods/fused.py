@@ -124,6 +124,7 @@ class FusionNet(nn.Module):
         super().__init__()
         self.scale = scale
         self.candidates = candidates
+        self.width = width
         self.encoder = nn.Sequential(_conv(inputs, width), _conv(width, width))
         self.bottom = nn.Sequential(_conv(width, 2 * width), _conv(2 * width, 2 * width))
         self.decoder = _conv(3 * width, width)
@@ -219,11 +220,11 @@ class Fused(Method):
         getattr(self, key).fill_(float(value))
         return value
 
-    def _network(self, candidates: int) -> FusionNet:
+    def _network(self, candidates: int, width: int = WIDTH) -> FusionNet:
         inputs = 3 * 7 + 3 + HIDDEN + (2 if self.scale > 1 else 0)  # 7 images, depth, valid, length, hidden (jitter)
         if candidates == CANDIDATES:
             inputs += MEAN_INPUTS
-        return FusionNet(inputs, self.scale, candidates=candidates)
+        return FusionNet(inputs, self.scale, width=width, candidates=candidates)
 
     @property
     def has_mean(self) -> bool:
@@ -243,12 +244,13 @@ class Fused(Method):
         if MEAN_WINDOW_KEY not in state_dict:  # saved before the window was a setting: the default one
             state_dict = {**state_dict, MEAN_WINDOW_KEY: torch.tensor(MEAN_FRAMES)}
         candidates = self._candidates_in(state_dict)
-        if candidates != self.net.candidates:
-            if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
-                raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
-                                 f"({LEGACY_CANDIDATES} or {CANDIDATES})")
+        if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
+            raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
+                             f"({LEGACY_CANDIDATES} or {CANDIDATES})")
+        width = state_dict["net.head.weight"].shape[1]  # a widened network (fused_growth) loads at its own width
+        if candidates != self.net.candidates or width != self.net.width:
             device = self.net.head.weight.device
-            self.net = self._network(candidates).to(device)
+            self.net = self._network(candidates, width).to(device)
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._history_before_kernel = bool(getattr(self, RECURRENCE_KEY).item() > 0.5)
         self.set_kernel_max_pixels(int(round(getattr(self, KERNEL_LIMIT_KEY).item())))
