@@ -72,7 +72,7 @@ from model.ops.rectify import clip_to_moments, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
 from model.ops.warp import backward_warp, upscale_motion
 
-__all__ = ["Fused", "FusionNet", "unjittered_resample"]
+__all__ = ["Fused", "FusionNet", "head_candidates", "unjittered_resample"]
 
 CANDIDATES = 4  # spatial estimate, history, rectified history, clipped running mean
 LEGACY_CANDIDATES = 3  # checkpoints from before the running mean: spatial estimate, history, rectified history
@@ -111,6 +111,12 @@ def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -
     bounds = torch.cat([F.max_pool2d(padded, 3, stride=1), -F.max_pool2d(-padded, 3, stride=1)], dim=1)
     bounds = F.grid_sample(bounds, grid, mode="nearest", padding_mode="border", align_corners=False)
     return torch.minimum(torch.maximum(resampled, bounds[:, 3:]), bounds[:, :3])
+
+
+def head_candidates(head_rows: int, scale: int) -> int:
+    """How many fusion candidates a network's head of ``head_rows`` outputs predicts weights for at ``scale``
+    (the head: scale^2 sub-pixels x (candidates + 3 x 3 kernel taps), then the hidden features)."""
+    return (head_rows - HIDDEN) // scale ** 2 - KERNEL * KERNEL
 
 
 def _conv(inputs: int, outputs: int) -> nn.Sequential:
@@ -231,8 +237,7 @@ class Fused(Method):
         return self.net.candidates == CANDIDATES
 
     def _candidates_in(self, state_dict: dict[str, torch.Tensor]) -> int:
-        rows = state_dict["net.head.weight"].shape[0]
-        return (rows - HIDDEN) // self.scale ** 2 - KERNEL * KERNEL
+        return head_candidates(state_dict["net.head.weight"].shape[0], self.scale)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Load a checkpoint of either network: one from before the running mean rebuilds this method as the

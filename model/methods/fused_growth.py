@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from model.methods.fused import CANDIDATES, HIDDEN, KERNEL, LEGACY_CANDIDATES, FusionNet
+from model.methods.fused import CANDIDATES, HIDDEN, LEGACY_CANDIDATES, FusionNet, head_candidates
 
 __all__ = ["widened_state_dict"]
 
@@ -57,9 +57,9 @@ def _old_columns(layout: str, old: int, width: int, inputs: int) -> torch.Tensor
 
 
 def _scale_and_candidates(head_rows: int) -> tuple[int, int]:
-    """The head has scale^2 * (candidates + 9) + HIDDEN outputs: 16 or 17 at 1x, 52 or 56 at 2x."""
+    """(scale, candidates) of a fused network's head: 16 or 17 outputs at 1x, 52 or 56 at 2x."""
     for scale in (1, 2):
-        for candidates in (LEGACY_CANDIDATES, CANDIDATES):
-            if head_rows == scale ** 2 * (candidates + KERNEL * KERNEL) + HIDDEN:
-                return scale, candidates
+        candidates = head_candidates(head_rows, scale)
+        if (head_rows - HIDDEN) % scale ** 2 == 0 and candidates in (LEGACY_CANDIDATES, CANDIDATES):
+            return scale, candidates
     raise ValueError(f"not a fused network's state dict (its head has {head_rows} outputs)")
