@@ -224,7 +224,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                     after_shipped: str | None = None,
                     history_before_kernel: bool | None = None,
                     kernel_max_pixels: int | None = None,
-                    mean_max_frames: int | None = None) -> PretrainedModel:
+                    mean_max_frames: int | None = None,
+                    stale_test_sigmas: float | None = None) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
     an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
     earlier trainings this one started from (``--init-from``), first to last; their step, best metric and training
@@ -234,7 +235,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     runs are gone (a fresh checkout holds none). ``history_before_kernel`` (the fused family only; None: as the
     checkpoint has it) sets which recurrence the shipped weights run (``model.methods.fused``); ``kernel_max_pixels``
     (the same) the frame size above which they skip their kernel (0: none); ``mean_max_frames`` (the same) the
-    window of their running mean of OIDN's estimates."""
+    window of their running mean of OIDN's estimates; ``stale_test_sigmas`` (the same) the threshold of their
+    stale-history test (0: none)."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -251,7 +253,9 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     settings = [(history_before_kernel, "set_history_before_kernel", fused, "no choice of recurrence"),
                 (kernel_max_pixels, "set_kernel_max_pixels", fused, "no output kernel to limit"),
                 (mean_max_frames, "set_mean_max_frames", fused and method.has_mean,
-                 "no running mean to set a window for")]
+                 "no running mean to set a window for"),
+                (stale_test_sigmas, "set_stale_test_sigmas", fused and method.has_mean,
+                 "no running mean for the stale-history test")]
     for value, setter, supported, missing in settings:
         if value is None:
             continue

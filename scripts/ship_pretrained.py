@@ -75,15 +75,18 @@ def main() -> int:
     parser.add_argument("--mean-max-frames", type=int, default=None, metavar="N",
                         help="fused only: the running mean of OIDN's estimates averages at most N frames (then an "
                              "exponential average of that length)")
+    parser.add_argument("--stale-test-sigmas", type=float, default=None, metavar="Z",
+                        help="fused only: where the running mean's 9x9 window mean is more than Z standard errors "
+                             "off the 1 spp frame's, the history's weight goes to OIDN's estimate (0: no test)")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
     if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data
                            or args.history_before_kernel is not None or args.kernel_max_pixels is not None
-                           or args.mean_max_frames is not None):
+                           or args.mean_max_frames is not None or args.stale_test_sigmas is not None):
         parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data, "
-                     "--history-*-kernel, --kernel-max-pixels or --mean-max-frames")
+                     "--history-*-kernel, --kernel-max-pixels, --mean-max-frames or --stale-test-sigmas")
     report = None
     if args.report is not None:
         if not args.report.is_file():
@@ -100,7 +103,8 @@ def main() -> int:
                                 after_shipped=args.after_shipped,
                                 history_before_kernel=args.history_before_kernel,
                                 kernel_max_pixels=args.kernel_max_pixels,
-                                mean_max_frames=args.mean_max_frames)
+                                mean_max_frames=args.mean_max_frames,
+                                stale_test_sigmas=args.stale_test_sigmas)
     except (PretrainedError, UnknownPretrained, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

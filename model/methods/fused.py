@@ -46,6 +46,12 @@ running mean load as the three-candidate network they are (``load_state_dict``),
 them starts this network with the new inputs' weights at zero and the new candidate's weight at
 ``NEW_CANDIDATE_WEIGHT``.
 
+A model may also test its history against the 1 spp frame (``stale_test_sigmas``, ``STALE_TEST_KEY`` in the state
+dict; absent or 0: no test): where the running mean's 9 x 9 window mean lies more than that many standard errors
+from the noisy frame's (``model.ops.stale_history``), the weights of ``h`` and ``c`` fall off and go to ``s``. The
+network lags behind a moving light over whole regions, since a region of changed shading and one of OIDN's
+blotches look alike in its inputs; the unbiased samples tell them apart.
+
 Where there is no history (disocclusion, a cut, the first frame), ``h`` is ``s`` itself and ``r`` is ``s`` clipped to
 its own neighbourhood, so the output is made of OIDN's estimate alone: the method falls back to the spatial
 estimate by construction and cannot ghost there. The fusion head starts at
@@ -70,6 +76,7 @@ from model.methods.registry import MethodSpec, register
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.rectify import clip_to_moments, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
+from model.ops.stale_history import history_trust, stale_history_z
 from model.ops.warp import backward_warp, upscale_motion
 
 __all__ = ["Fused", "FusionNet", "head_candidates", "unjittered_resample"]
@@ -91,6 +98,8 @@ INITIAL_CENTRE_LOGIT = 7.0  # the 3 x 3 kernel starts as (almost) the identity: 
 WIDTH = 16
 RECURRENCE_KEY = "recurrence_before_kernel"  # state-dict entry: 1 = the blend before the kernel is the history
 KERNEL_LIMIT_KEY = "kernel_limit_pixels"  # state-dict entry: frames with more render pixels skip the kernel (0: none do)
+STALE_TEST_KEY = "stale_history_sigmas"  # state-dict entry: the stale-history test's threshold (0 or absent: no test)
+STALE_TEST_BLOCK = 9  # the test's window: 81 samples of the 1 spp frame, a standard error of a ninth of their spread
 
 
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
@@ -186,6 +195,8 @@ class Fused(Method):
         self.set_kernel_max_pixels(kernel_max_pixels)
         self.register_buffer(MEAN_WINDOW_KEY, torch.tensor(MEAN_FRAMES))
         self.set_mean_max_frames(int(MEAN_FRAMES))
+        self.register_buffer(STALE_TEST_KEY, torch.tensor(0.0))
+        self._stale_test_sigmas = 0.0
 
     @property
     def history_before_kernel(self) -> bool:
@@ -219,6 +230,22 @@ class Fused(Method):
         self._mean_max_frames = self._store_count(MEAN_WINDOW_KEY, value, 1,
                                                   "mean_max_frames must be a whole number of frames >= 1")
 
+    @property
+    def stale_test_sigmas(self) -> float:
+        """Where the running mean's window mean differs from the 1 spp frame's by more than this many standard
+        errors (``model.ops.stale_history``), the weights of the history and of the clipped mean fall off and go to
+        OIDN's estimate (0: no test). The network weighs its candidates per pixel and lags behind a moving light
+        over whole regions; the test sees such a change in the unbiased samples, which the network's inputs
+        cannot tell from OIDN's blotches (README, "The stale-history test")."""
+        return self._stale_test_sigmas
+
+    def set_stale_test_sigmas(self, value: float) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
+            raise ValueError(f"stale_test_sigmas must be a finite number of standard errors >= 0 (0: no test), "
+                             f"got {value!r}")
+        getattr(self, STALE_TEST_KEY).fill_(float(value))
+        self._stale_test_sigmas = float(value)
+
     def _store_count(self, key: str, value: int, minimum: int, refusal: str) -> int:
         """A whole-number setting checked and written to its state-dict buffer, so checkpoints record it."""
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
@@ -248,6 +275,8 @@ class Fused(Method):
             state_dict = {**state_dict, KERNEL_LIMIT_KEY: torch.tensor(0.0)}
         if MEAN_WINDOW_KEY not in state_dict:  # saved before the window was a setting: the default one
             state_dict = {**state_dict, MEAN_WINDOW_KEY: torch.tensor(MEAN_FRAMES)}
+        if STALE_TEST_KEY not in state_dict:  # saved before the test existed: none
+            state_dict = {**state_dict, STALE_TEST_KEY: torch.tensor(0.0)}
         candidates = self._candidates_in(state_dict)
         if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
             raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
@@ -260,6 +289,7 @@ class Fused(Method):
         self._history_before_kernel = bool(getattr(self, RECURRENCE_KEY).item() > 0.5)
         self.set_kernel_max_pixels(int(round(getattr(self, KERNEL_LIMIT_KEY).item())))
         self.set_mean_max_frames(int(round(getattr(self, MEAN_WINDOW_KEY).item())))
+        self.set_stale_test_sigmas(float(getattr(self, STALE_TEST_KEY).item()))
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
@@ -351,6 +381,8 @@ class Fused(Method):
             features = features.contiguous(memory_format=torch.channels_last)
         weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
+        if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
+            weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r))
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
         if self._kernel_max_pixels and height * width > self._kernel_max_pixels:
             output = blended
@@ -362,6 +394,16 @@ class Fused(Method):
         if self.has_mean:
             new_state.update(mean=mean, count=count)
         return reinhard_inverse(output), new_state
+
+    def _distrust_stale(self, weights: torch.Tensor, noisy: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """Move the history's and the clipped mean's fusion weights to OIDN's estimate where the stale-history test
+        finds the running mean (linear, render resolution) off the 1 spp frame; the rectified history keeps its
+        weight, since its clip to OIDN's neighbourhood already bounds how stale it can be."""
+        trust = history_trust(stale_history_z(noisy, mean, STALE_TEST_BLOCK), self._stale_test_sigmas)
+        trust = _upsample_values(trust, self.scale)
+        history, rectified, clipped_mean = weights[:, 1:2] * trust, weights[:, 2:3], weights[:, 3:4] * trust
+        moved = weights[:, 1:2] + weights[:, 3:4] - history - clipped_mean
+        return torch.cat([weights[:, :1] + moved, history, rectified, clipped_mean], dim=1)
 
     def _reproject(self, frame: FrameBatch, state: State) -> tuple[torch.Tensor, ...]:
         """(history at output resolution, hidden features, history length, valid, running mean at output

@@ -9,7 +9,9 @@ One concern per module:
 - ``kernels``: per-pixel k x k kernel application (KPCN/AFN);
 - ``splat``: WSKPN weight-sharing kernels as box filters, and kernel-size fusion;
 - ``pyramid``: 2x down/upsampling and pyramids;
-- ``tonemap``: mu-law, log, display encoding (forward/inverse pairs) and luminance.
+- ``tonemap``: mu-law, log, display encoding (forward/inverse pairs) and luminance;
+- ``rectify``: history rectification (neighbourhood clamp, variance clip);
+- ``stale_history``: a test of a reprojected history against the 1 spp frame's unbiased samples.
 
 Coordinate and motion conventions are spelled out in ``warp``'s docstring (and DESIGN.md).
 """

@@ -208,6 +208,8 @@ def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weigh
                  "no output kernel to limit", id="kernel limit"),
     pytest.param("mean_max_frames", "mean_window_frames", 16, 8, 0, "whole number of frames", "no running mean",
                  id="mean window"),
+    pytest.param("stale_test_sigmas", "stale_history_sigmas", 0.0, 2.0, -1.0, "finite number of standard errors",
+                 "no running mean", id="stale-history test"),
 ])
 def test_a_shipped_fused_model_reshipped_with_a_run_time_setting_keeps_its_weights(tmp_path, setting, key, default,
                                                                                    value, bad, refusal, missing):

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
-                                 RECURRENCE_KEY, Fused, unjittered_resample)
+                                 RECURRENCE_KEY, STALE_TEST_KEY, Fused, unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -316,6 +316,7 @@ def test_frames_above_the_kernel_limit_output_the_blend_unfiltered():
 @pytest.mark.parametrize("setting, key, default, value", [
     pytest.param("kernel_max_pixels", KERNEL_LIMIT_KEY, 0, 32768, id="kernel limit"),  # default: every frame filtered
     pytest.param("mean_max_frames", MEAN_WINDOW_KEY, int(MEAN_FRAMES), 8, id="mean window"),
+    pytest.param("stale_test_sigmas", STALE_TEST_KEY, 0.0, 2.0, id="stale-history test"),  # default: no test
 ])
 def test_a_checkpoint_records_its_run_time_setting_and_older_ones_load_with_the_default(scale, setting, key, default,
                                                                                         value):
@@ -336,3 +337,39 @@ def test_a_checkpoint_records_its_run_time_setting_and_older_ones_load_with_the_
 def test_a_kernel_limit_that_is_not_a_whole_number_of_pixels_is_refused(value):
     with pytest.raises(ValueError, match="whole number of pixels"):
         build_method("fused").set_kernel_max_pixels(value)
+
+
+def trusting_history(method: Fused) -> Fused:
+    """The method with (almost) all its fusion weight on the raw history, as a network that lags would put it."""
+    sub = method.scale ** 2
+    with torch.no_grad():
+        method.net.head.bias[sub:2 * sub] = 12.0
+    return method
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_the_stale_history_test_hands_a_changed_light_to_oidn_and_leaves_a_still_one_alone(scale):
+    @torch.no_grad()
+    def run(sigmas: float, gain: float) -> torch.Tensor:
+        method, state = trusting_history(build_method("fused", scale)), None
+        method.set_stale_test_sigmas(sigmas)
+        for k in range(4):  # the light holds still, then changes by `gain` on the last frame
+            estimate = truth() * (gain if k == 3 else 1.0)
+            frame = plane_frame(noisy_constant(estimate, torch.Generator().manual_seed(k)))
+            frame.spatial_estimate = estimate
+            output, state = method.step(frame, state)
+        return torch.nn.functional.avg_pool2d(output, scale) if scale > 1 else output
+
+    lagging, tested = run(0.0, 2.0), run(3.0, 2.0)
+    assert float((lagging - truth()).abs().mean()) < 0.05  # without the test the history keeps the old light
+    torch.testing.assert_close(tested, truth() * 2.0, atol=0.05, rtol=0.05)  # with it, OIDN's new estimate
+    # Unbiased noise alone passes the test (nearly everywhere: 3 standard errors is a test, not a bound).
+    torch.testing.assert_close(run(3.0, 1.0), run(0.0, 1.0), atol=1e-3, rtol=1e-3)
+
+
+@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf"), True, "2"])
+def test_a_stale_test_threshold_that_is_not_a_finite_number_of_standard_errors_is_refused(value):
+    method = build_method("fused")
+    with pytest.raises(ValueError, match="finite number of standard errors"):
+        method.set_stale_test_sigmas(value)
+    assert method.stale_test_sigmas == 0.0

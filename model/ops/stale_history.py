@@ -1,0 +1,51 @@
+"""A statistical test of whether a reprojected history is stale, read from the 1 spp frame itself.
+
+Motion vectors describe geometry, so where a light moved the warped history passes the depth test and is still
+wrong: it lags behind the shading. A spatially denoised frame cannot tell such a change from its own blotches,
+since both are errors of the same size and reach. The noisy frame can: its samples are unbiased, so over a
+window of B x B pixels their mean estimates what the history's mean should be, with a standard error that the
+window's own spread measures. Where the two means differ by many standard errors, the light changed (A-SVGF
+finds the same with re-shaded samples, which our frame format does not carry). Fireflies widen the spread, so
+the test grows more lenient exactly where the frame is least trustworthy.
+
+``stale_history_z`` is that distance in standard errors, per pixel (each pixel's window centred on it);
+``history_trust`` turns it into a weight in [0, 1]: 1 up to ``sigmas``, then a Gaussian fall-off.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["stale_history_z", "history_trust", "RELATIVE_FLOOR"]
+
+RELATIVE_FLOOR = 0.02  # a 2% change of the mean is never significant: references and history carry that much
+
+
+def _window_mean(image: torch.Tensor, block: int) -> torch.Tensor:
+    # count_include_pad=False: at the border the window is the part inside the image.
+    return F.avg_pool2d(image, block, stride=1, padding=block // 2, count_include_pad=False)
+
+
+def stale_history_z(noisy: torch.Tensor, history: torch.Tensor, block: int = 9) -> torch.Tensor:
+    """|mean(noisy) - mean(history)| / standard error over each pixel's block x block window, (N, 1, H, W).
+
+    ``noisy`` and ``history`` are linear radiance (N, 3, H, W) at one resolution; both are reduced to the mean of
+    their channels. The standard error is the noisy window's standard deviation / block, with a floor of
+    ``RELATIVE_FLOOR`` of the history's mean (and 1e-3 absolute) so flat, noise-free windows do not divide by 0.
+    """
+    if noisy.dim() != 4 or noisy.shape[1] != 3 or noisy.shape != history.shape:
+        raise ValueError(f"noisy and history must both be (N, 3, H, W) of one shape, got {tuple(noisy.shape)} and "
+                         f"{tuple(history.shape)}")
+    if block < 1 or block % 2 == 0:
+        raise ValueError(f"block must be odd and positive, got {block}")
+    value, past = noisy.mean(dim=1, keepdim=True), history.mean(dim=1, keepdim=True)
+    mean, past_mean = _window_mean(value, block), _window_mean(past, block)
+    variance = (_window_mean(value * value, block) - mean * mean).clamp_min(0.0)
+    error = torch.sqrt(variance / block ** 2 + (RELATIVE_FLOOR * past_mean) ** 2 + 1e-6)
+    return (mean - past_mean).abs() / error
+
+
+def history_trust(z: torch.Tensor, sigmas: float) -> torch.Tensor:
+    """exp(-max(z - sigmas, 0)^2 / 2): full trust up to ``sigmas`` standard errors, falling off beyond."""
+    return torch.exp(-F.relu(z - sigmas) ** 2 / 2)

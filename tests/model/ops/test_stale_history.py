@@ -1,0 +1,70 @@
+"""The stale-history test: how many standard errors a history's window mean lies from the 1 spp frame's."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from model.ops.stale_history import RELATIVE_FLOOR, history_trust, stale_history_z
+from tests.builders import noisy_constant
+
+
+def naive_z(noisy: torch.Tensor, history: torch.Tensor, block: int) -> torch.Tensor:
+    """Each pixel's window (cut at the border), its values and spread, one pixel at a time."""
+    value, past = noisy.mean(dim=1)[0], history.mean(dim=1)[0]
+    h, w = value.shape
+    radius = block // 2
+    out = torch.zeros(1, 1, h, w, dtype=torch.float64)
+    for y in range(h):
+        for x in range(w):
+            window = value[max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1].double()
+            past_mean = past[max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1].double().mean()
+            variance = (window * window).mean() - window.mean() ** 2  # population variance, as the op
+            error = math.sqrt(float(variance) / block ** 2 + float(RELATIVE_FLOOR * past_mean) ** 2 + 1e-6)
+            out[0, 0, y, x] = abs(float(window.mean() - past_mean)) / error
+    return out
+
+
+@pytest.mark.parametrize("block", [1, 3, 5])
+def test_z_matches_a_naive_loop_over_each_window(block):
+    generator = torch.Generator().manual_seed(3)
+    noisy = torch.rand(1, 3, 7, 9, generator=generator) * 2
+    history = torch.rand(1, 3, 7, 9, generator=generator)
+    torch.testing.assert_close(stale_history_z(noisy, history, block).double(), naive_z(noisy, history, block),
+                               atol=1e-4, rtol=1e-4)
+
+
+def test_an_unbiased_frame_passes_and_a_changed_light_fails():
+    truth = torch.full((1, 3, 48, 48), 0.5)
+    noisy = noisy_constant(truth, torch.Generator().manual_seed(0))  # relative standard deviation 0.58
+    still = stale_history_z(noisy, truth, 9)
+    assert float((still > 3).float().mean()) < 0.01  # noise alone: rarely past 3 standard errors
+    brighter = stale_history_z(noisy * 1.5, truth, 9)  # the light got 50% brighter: about 7.7 standard errors
+    assert float(brighter.min()) > 5
+    dimmer = stale_history_z(noisy, truth * 1.5, 9)
+    assert float(dimmer.min()) > 3
+
+
+def test_a_firefly_widens_the_error_so_it_does_not_read_as_a_change():
+    truth = torch.full((1, 3, 27, 27), 0.5)
+    noisy = noisy_constant(truth, torch.Generator().manual_seed(1))
+    noisy[:, :, 13, 13] = 400.0  # one sample with most of the window's energy
+    assert float(stale_history_z(noisy, truth, 9)[0, 0, 13, 13]) < 1.5
+
+
+def test_trust_is_full_up_to_the_threshold_and_falls_off_past_it():
+    z = torch.tensor([0.0, 2.0, 3.0, 4.0])
+    torch.testing.assert_close(history_trust(z, 2.0), torch.tensor([1.0, 1.0, math.exp(-0.5), math.exp(-2.0)]))
+
+
+@pytest.mark.parametrize("shapes, block, message", [
+    (((1, 3, 8, 8), (1, 3, 8, 9)), 3, "one shape"),
+    (((1, 1, 8, 8), (1, 1, 8, 8)), 3, r"\(N, 3, H, W\)"),
+    (((1, 3, 8, 8), (1, 3, 8, 8)), 4, "odd"),
+    (((1, 3, 8, 8), (1, 3, 8, 8)), 0, "odd and positive"),
+])
+def test_bad_shapes_and_blocks_are_refused(shapes, block, message):
+    with pytest.raises(ValueError, match=message):
+        stale_history_z(torch.ones(shapes[0]), torch.ones(shapes[1]), block)
