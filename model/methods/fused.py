@@ -382,7 +382,7 @@ class Fused(Method):
         weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
         if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
-            weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r))
+            weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
         if self._kernel_max_pixels and height * width > self._kernel_max_pixels:
             output = blended
@@ -395,12 +395,15 @@ class Fused(Method):
             new_state.update(mean=mean, count=count)
         return reinhard_inverse(output), new_state
 
-    def _distrust_stale(self, weights: torch.Tensor, noisy: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    def _distrust_stale(self, weights: torch.Tensor, noisy: torch.Tensor, mean: torch.Tensor,
+                        valid: torch.Tensor) -> torch.Tensor:
         """Move the history's and the clipped mean's fusion weights to OIDN's estimate where the stale-history test
         finds the running mean (linear, render resolution) off the 1 spp frame; the rectified history keeps its
-        weight, since its clip to OIDN's neighbourhood already bounds how stale it can be."""
+        weight, since its clip to OIDN's neighbourhood already bounds how stale it can be. Where the history is not
+        valid there is nothing to distrust (the mean is OIDN's estimate itself), so a zeroed state, an engine's first
+        frame, gives what no state gives."""
         trust = history_trust(stale_history_z(noisy, mean, STALE_TEST_BLOCK), self._stale_test_sigmas)
-        trust = _upsample_values(trust, self.scale)
+        trust = _upsample_values(torch.where(valid, trust, torch.ones_like(trust)), self.scale)
         history, rectified, clipped_mean = weights[:, 1:2] * trust, weights[:, 2:3], weights[:, 3:4] * trust
         moved = weights[:, 1:2] + weights[:, 3:4] - history - clipped_mean
         return torch.cat([weights[:, :1] + moved, history, rectified, clipped_mean], dim=1)

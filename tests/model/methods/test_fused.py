@@ -373,3 +373,16 @@ def test_a_stale_test_threshold_that_is_not_a_finite_number_of_standard_errors_i
     with pytest.raises(ValueError, match="finite number of standard errors"):
         method.set_stale_test_sigmas(value)
     assert method.stale_test_sigmas == 0.0
+
+
+def test_with_the_stale_history_test_a_zeroed_state_gives_what_no_state_gives():
+    # An exported step is fed zeros on an engine's first frame: no valid history, so nothing to distrust.
+    method = build_method("fused")
+    with torch.no_grad():  # (almost) all the weight on the clipped mean, which differs from OIDN's estimate at edges
+        method.net.head.bias[3:4] = 12.0
+    method.set_stale_test_sigmas(2.0)
+    frame = frame_with_estimate(checker() * 1.7)  # OIDN's estimate far off the noisy frame's mean
+    with torch.no_grad():
+        fresh, state = method.step(frame, None)
+        zeroed, _ = method.step(frame, {name: torch.zeros_like(value) for name, value in state.items()})
+    torch.testing.assert_close(zeroed, fresh, atol=1e-5, rtol=1e-5)
