@@ -339,11 +339,15 @@ def test_a_kernel_limit_that_is_not_a_whole_number_of_pixels_is_refused(value):
         build_method("fused").set_kernel_max_pixels(value)
 
 
-def trusting_history(method: Fused) -> Fused:
-    """The method with (almost) all its fusion weight on the raw history, as a network that lags would put it."""
+HISTORY, CLIPPED_MEAN = 1, 3  # fusion candidates: OIDN's estimate, history, rectified history, clipped mean
+
+
+def trusting(method: Fused, candidate: int = HISTORY) -> Fused:
+    """The method with (almost) all its fusion weight on one candidate (the raw history: as a network that lags
+    would put it)."""
     sub = method.scale ** 2
     with torch.no_grad():
-        method.net.head.bias[sub:2 * sub] = 12.0
+        method.net.head.bias[candidate * sub:(candidate + 1) * sub] = 12.0
     return method
 
 
@@ -351,7 +355,7 @@ def trusting_history(method: Fused) -> Fused:
 def test_the_stale_history_test_hands_a_changed_light_to_oidn_and_leaves_a_still_one_alone(scale):
     @torch.no_grad()
     def run(sigmas: float, gain: float) -> torch.Tensor:
-        method, state = trusting_history(build_method("fused", scale)), None
+        method, state = trusting(build_method("fused", scale)), None
         method.set_stale_test_sigmas(sigmas)
         for k in range(4):  # the light holds still, then changes by `gain` on the last frame
             estimate = truth() * (gain if k == 3 else 1.0)
@@ -377,9 +381,7 @@ def test_a_stale_test_threshold_that_is_not_a_finite_number_of_standard_errors_i
 
 def test_with_the_stale_history_test_a_zeroed_state_gives_what_no_state_gives():
     # An exported step is fed zeros on an engine's first frame: no valid history, so nothing to distrust.
-    method = build_method("fused")
-    with torch.no_grad():  # (almost) all the weight on the clipped mean, which differs from OIDN's estimate at edges
-        method.net.head.bias[3:4] = 12.0
+    method = trusting(build_method("fused"), CLIPPED_MEAN)  # it differs from OIDN's estimate at edges
     method.set_stale_test_sigmas(2.0)
     frame = frame_with_estimate(checker() * 1.7)  # OIDN's estimate far off the noisy frame's mean
     with torch.no_grad():
