@@ -82,6 +82,10 @@ def check_exportable(method: Method) -> None:
         raise ExportError(f"{label} has no network to export: "
                           + ("it is OIDN's native library (run OIDN in the engine)" if method.name.startswith("oidn")
                              else "it is a filter without weights; only trained models are exported"))
+    if getattr(method, "sample_mean_frames", 0):
+        raise ExportError(f"{label} runs OIDN inside its step, on a running mean of the frames it keeps in its state "
+                          f"(sample_mean_frames {method.sample_mean_frames}), so an engine cannot pass OIDN's output "
+                          f"in; export a checkpoint without the sample mean")
     if method.preset.endswith("-int8"):
         raise ExportError(f"{label} runs eager-mode int8 quantized modules (torch.ao), which neither ONNX nor "
                           f"TorchScript export takes; export the float32 checkpoint it was fine-tuned from")

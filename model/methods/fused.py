@@ -64,6 +64,7 @@ OIDN-high alone at 128x128 on 2 threads), ``high``. The network is the same size
 
 from __future__ import annotations
 
+import dataclasses
 
 import torch
 import torch.nn.functional as F
@@ -76,6 +77,7 @@ from model.methods.registry import MethodSpec, register
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.rectify import clip_to_moments, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
+from model.ops.sample_mean import update_sample_mean
 from model.ops.stale_history import history_trust, stale_history_z
 from model.ops.warp import backward_warp, upscale_motion
 
@@ -100,6 +102,9 @@ RECURRENCE_KEY = "recurrence_before_kernel"  # state-dict entry: 1 = the blend b
 KERNEL_LIMIT_KEY = "kernel_limit_pixels"  # state-dict entry: frames with more render pixels skip the kernel (0: none do)
 STALE_TEST_KEY = "stale_history_sigmas"  # state-dict entry: the stale-history test's threshold (0 or absent: no test)
 STALE_TEST_BLOCK = 9  # the test's window: 81 samples of the 1 spp frame, a standard error of a ninth of their spread
+SAMPLE_MEAN_KEY = "sample_mean_window"  # state-dict entry: OIDN reads a running mean of this many 1 spp frames
+# (0 or absent: the single frame)
+SAMPLE_MEAN_STALE_SIGMAS = 2.0  # the sample mean restarts where the new samples are this many standard errors off it
 
 
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
@@ -197,6 +202,8 @@ class Fused(Method):
         self.set_mean_max_frames(int(MEAN_FRAMES))
         self.register_buffer(STALE_TEST_KEY, torch.tensor(0.0))
         self._stale_test_sigmas = 0.0
+        self.register_buffer(SAMPLE_MEAN_KEY, torch.tensor(0.0))
+        self._sample_mean_frames = 0
 
     @property
     def history_before_kernel(self) -> bool:
@@ -246,6 +253,23 @@ class Fused(Method):
         getattr(self, STALE_TEST_KEY).fill_(float(value))
         self._stale_test_sigmas = float(value)
 
+    @property
+    def sample_mean_frames(self) -> int:
+        """OIDN denoises a reprojected running mean of up to this many 1 spp frames instead of the single frame
+        (0: the single frame; ``model.ops.sample_mean``). The mean keeps the frames' samples only where the network
+        trusted its history in the frame before, and restarts where the stale-history test or the geometry test
+        fails, so OIDN reads more samples where the scene holds still and one where it changed. 1x only: at 2x the
+        estimate is resampled at this frame's jitter, which a mean over many jitters does not have (README,
+        "Accumulating samples before OIDN")."""
+        return self._sample_mean_frames
+
+    def set_sample_mean_frames(self, value: int) -> None:
+        if self.scale != 1 and value != 0:
+            raise ValueError(f"sample_mean_frames is for 1x models only (this one is {self.scale}x)")
+        self._sample_mean_frames = self._store_count(SAMPLE_MEAN_KEY, value, 0,
+                                                     "sample_mean_frames must be a whole number of frames >= 0 "
+                                                     "(0: OIDN reads the single frame)")
+
     def _store_count(self, key: str, value: int, minimum: int, refusal: str) -> int:
         """A whole-number setting checked and written to its state-dict buffer, so checkpoints record it."""
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
@@ -277,6 +301,8 @@ class Fused(Method):
             state_dict = {**state_dict, MEAN_WINDOW_KEY: torch.tensor(MEAN_FRAMES)}
         if STALE_TEST_KEY not in state_dict:  # saved before the test existed: none
             state_dict = {**state_dict, STALE_TEST_KEY: torch.tensor(0.0)}
+        if SAMPLE_MEAN_KEY not in state_dict:  # saved before the sample mean existed: OIDN reads the single frame
+            state_dict = {**state_dict, SAMPLE_MEAN_KEY: torch.tensor(0.0)}
         candidates = self._candidates_in(state_dict)
         if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
             raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
@@ -290,6 +316,7 @@ class Fused(Method):
         self.set_kernel_max_pixels(int(round(getattr(self, KERNEL_LIMIT_KEY).item())))
         self.set_mean_max_frames(int(round(getattr(self, MEAN_WINDOW_KEY).item())))
         self.set_stale_test_sigmas(float(getattr(self, STALE_TEST_KEY).item()))
+        self.set_sample_mean_frames(int(round(getattr(self, SAMPLE_MEAN_KEY).item())))
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
@@ -341,7 +368,12 @@ class Fused(Method):
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         state = drop_history(state, frame)
         n, _, height, width = frame.color.shape
-        s = self.spatial_estimate(frame)
+        samples = samples_count = None
+        if self._sample_mean_frames:
+            samples, samples_count = self._sample_mean(frame, state)
+            s = reinhard(oidn_denoise(dataclasses.replace(frame, color=samples), self.preset).to(frame.color.dtype))
+        else:
+            s = self.spatial_estimate(frame)
         s_out = unjittered_resample(s, frame.jitter, self.scale) if self.scale > 1 else s
         mean = count = None  # the running mean and its frame count, when the network has one
         if state is None:
@@ -381,6 +413,8 @@ class Fused(Method):
             features = features.contiguous(memory_format=torch.channels_last)
         weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
+        if samples is not None:
+            samples_count = samples_count * self._history_share(weights).detach()
         if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
             weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
@@ -393,7 +427,29 @@ class Fused(Method):
                      "normal": frame.normal, "jitter": frame.jitter}
         if self.has_mean:
             new_state.update(mean=mean, count=count)
+        if samples is not None:
+            new_state.update(samples=samples, samples_count=samples_count)
         return reinhard_inverse(output), new_state
+
+    def _sample_mean(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The running mean of the 1 spp frames OIDN reads, and the frames it holds (``model.ops.sample_mean``)."""
+        if state is None or "samples" not in state:  # a new stream, or a session from before the sample mean
+            return frame.color, torch.ones_like(frame.depth)
+        warped, _ = backward_warp(state["samples"], frame.motion, mode="bilinear")
+        count, _ = backward_warp(state["samples_count"], frame.motion, mode="nearest")
+        valid = disocclusion_mask(frame.depth, frame.normal, state["depth"], state["normal"], frame.motion,
+                                  depth_rel_tol=self.depth_rel_tol, normal_cos_tol=self.normal_cos_tol,
+                                  jitter=frame.jitter - state["jitter"])
+        return update_sample_mean(frame.color, warped, count, valid, self._sample_mean_frames,
+                                  SAMPLE_MEAN_STALE_SIGMAS)
+
+    @staticmethod
+    def _history_share(weights: torch.Tensor) -> torch.Tensor:
+        """How much the network trusted its history against OIDN's estimate this frame, squared: the history's and
+        the running mean's weights over theirs plus OIDN's. The sample mean keeps its frames in that proportion, so
+        where the network fell back to OIDN (changed light, a disocclusion it saw) OIDN next reads fresh samples."""
+        trusted = weights[:, 1:2] + weights[:, 3:4] if weights.shape[1] > 3 else weights[:, 1:2]
+        return (trusted / (trusted + weights[:, :1]).clamp_min(1e-6)) ** 2
 
     def _distrust_stale(self, weights: torch.Tensor, noisy: torch.Tensor, mean: torch.Tensor,
                         valid: torch.Tensor) -> torch.Tensor:

@@ -77,6 +77,14 @@ def test_what_cannot_be_exported_says_why(tmp_path, name, scale, words):
     assert not (tmp_path / "x.onnx").exists()
 
 
+def test_a_fused_model_that_runs_oidn_on_its_sample_mean_is_refused_with_the_reason(tmp_path):
+    method = build_method("fused:fast")
+    method.set_sample_mean_frames(8)  # OIDN's input then comes from the state, inside the step
+    with pytest.raises(ExportError, match="runs OIDN inside its step"):
+        export_step(method, tmp_path / "x.onnx")
+    assert not (tmp_path / "x.onnx").exists()
+
+
 def test_torchscript_is_refused_with_the_reason(tmp_path):
     with pytest.raises(ExportError, match="custom autograd functions"):
         export_step(seeded("wskpn:xs", 1), tmp_path / "x.pt", "torchscript")

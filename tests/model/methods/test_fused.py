@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
+from model.methods.base import FrameBatch
 from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
-                                 RECURRENCE_KEY, STALE_TEST_KEY, Fused, unjittered_resample)
+                                 RECURRENCE_KEY, SAMPLE_MEAN_KEY, STALE_TEST_KEY, Fused, unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
 from model.ops.rectify import variance_clip
-from tests.builders import noisy_constant, plane_frame
+from tests.builders import noisy_constant, plane_frame, static_frame
 
 SIZE = 16
 
@@ -388,3 +391,66 @@ def test_with_the_stale_history_test_a_zeroed_state_gives_what_no_state_gives():
         fresh, state = method.step(frame, None)
         zeroed, _ = method.step(frame, {name: torch.zeros_like(value) for name, value in state.items()})
     torch.testing.assert_close(zeroed, fresh, atol=1e-5, rtol=1e-5)
+
+
+def _checker_frame(sign: float) -> FrameBatch:
+    frame = static_frame(size=16)
+    pattern = (torch.arange(16).view(1, 16) + torch.arange(16).view(16, 1)) % 2 * 2.0 - 1.0
+    return dataclasses.replace(frame, color=(0.5 + 0.4 * sign * pattern).expand(1, 3, 16, 16).clone())
+
+
+@pytest.mark.parametrize("candidate, count, samples", [
+    pytest.param(HISTORY, 2.0, "mean", id="history trusted: the frames add up"),
+    pytest.param(0, 0.0, "last", id="OIDN trusted: the mean restarts"),
+])
+def test_oidn_reads_the_mean_of_the_frames_while_the_network_trusts_its_history(monkeypatch, candidate, count,
+                                                                                samples):
+    read = []
+
+    def recording_oidn(frame, quality):
+        read.append(frame.color.clone())
+        return frame.color
+
+    monkeypatch.setattr("model.methods.fused.oidn_denoise", recording_oidn)
+    method = trusting(build_method("fused:fast"), candidate)
+    method.set_sample_mean_frames(4)
+    first, second = _checker_frame(1.0), _checker_frame(-1.0)  # their mean is 0.5 everywhere
+    with torch.no_grad():
+        _, state = method.step(first, None)
+        _, state = method.step(second, state)
+    expected = torch.full_like(first.color, 0.5) if samples == "mean" else second.color
+    torch.testing.assert_close(read[0], first.color)
+    torch.testing.assert_close(read[1], expected)  # both frames' samples, or the new frame's alone
+    torch.testing.assert_close(state["samples"], expected)
+    torch.testing.assert_close(state["samples_count"], torch.full_like(state["samples_count"], count), atol=1e-3,
+                               rtol=0)
+
+
+def test_the_sample_mean_window_is_recorded_and_refused_at_2x_or_when_not_a_whole_number():
+    saved = build_method("fused:fast")
+    saved.set_sample_mean_frames(8)
+    loaded = build_method("fused:fast")
+    loaded.load_state_dict(saved.state_dict())
+    assert loaded.sample_mean_frames == 8
+    tuned = build_method("fused:fast")
+    tuned.load_initial_weights(saved.state_dict())  # --init-from keeps it
+    assert tuned.sample_mean_frames == 8
+    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != SAMPLE_MEAN_KEY})
+    assert loaded.sample_mean_frames == 0  # a checkpoint from before it: OIDN reads the single frame
+    for value in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="whole number of frames >= 0"):
+            build_method("fused").set_sample_mean_frames(value)
+    with pytest.raises(ValueError, match="1x models only"):
+        build_method("fused", 2).set_sample_mean_frames(8)
+
+
+def test_a_state_from_before_the_sample_mean_starts_it_at_this_frame():
+    older = build_method("fused:fast")
+    frame = static_frame(size=16, seed=1)
+    with torch.no_grad():
+        _, state = older.step(frame, None)
+        method = build_method("fused:fast")
+        method.set_sample_mean_frames(8)
+        output, new_state = method.step(static_frame(size=16, seed=2), state)
+    assert torch.isfinite(output).all()
+    torch.testing.assert_close(new_state["samples"], static_frame(size=16, seed=2).color)

@@ -1,0 +1,66 @@
+"""The running mean of the 1 spp frames: a plain mean, then an exponential one, restarted where it is stale."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from model.ops.sample_mean import update_sample_mean
+from tests.builders import noisy_constant
+
+SHAPE = (1, 3, 12, 12)
+
+
+def _run(frames, valid=None, max_frames=4, sigmas=0.0):
+    mean = count = None
+    for frame in frames:
+        if mean is None:
+            mean, count = frame, torch.ones(1, 1, *frame.shape[2:])
+            continue
+        ok = torch.ones_like(count, dtype=torch.bool) if valid is None else valid
+        mean, count = update_sample_mean(frame, mean, count, ok, max_frames, sigmas)
+    return mean, count
+
+
+def test_the_mean_of_the_first_frames_then_a_fixed_share_for_each_new_one():
+    generator = torch.Generator().manual_seed(0)
+    frames = [torch.rand(SHAPE, generator=generator) * 2 for _ in range(6)]
+    mean, count = _run(frames[:3])
+    torch.testing.assert_close(mean, sum(frames[:3]) / 3)
+    expected = sum(frames[:4]) / 4
+    for frame in frames[4:]:  # past 4 frames every new one weighs a quarter
+        expected = frame / 4 + expected * 3 / 4
+    mean, count = _run(frames)
+    torch.testing.assert_close(mean, expected)
+    assert torch.all(count == 4)
+
+
+def test_an_invalid_history_restarts_at_the_new_frame():
+    generator = torch.Generator().manual_seed(1)
+    previous, frame = torch.rand(SHAPE, generator=generator), torch.rand(SHAPE, generator=generator)
+    valid = torch.ones(1, 1, 12, 12, dtype=torch.bool)
+    valid[..., :6] = False
+    mean, count = update_sample_mean(frame, previous, torch.full((1, 1, 12, 12), 3.0), valid, 8)
+    torch.testing.assert_close(mean[..., :6], frame[..., :6])
+    torch.testing.assert_close(mean[..., 6:], (frame[..., 6:] + 3 * previous[..., 6:]) / 4)
+    assert torch.all(count[..., :6] == 1) and torch.all(count[..., 6:] == 4)
+
+
+def test_a_changed_light_restarts_the_mean_and_noise_alone_does_not():
+    truth = torch.full((1, 3, 32, 32), 0.5)
+    generator = torch.Generator().manual_seed(2)
+    history, count = truth.clone(), torch.full((1, 1, 32, 32), 4.0)
+    valid = torch.ones_like(count, dtype=torch.bool)
+    brighter = noisy_constant(truth * 3, generator)
+    mean, new_count = update_sample_mean(brighter, history, count, valid, 8, stale_sigmas=2.0)
+    torch.testing.assert_close(mean, brighter, atol=1e-4, rtol=1e-4)
+    assert float(new_count.max()) < 1.001
+    same = noisy_constant(truth, generator)
+    _, kept = update_sample_mean(same, history, count, valid, 8, stale_sigmas=2.0)
+    assert float(kept.mean()) > 4.9  # 5 frames nearly everywhere
+
+
+def test_a_window_below_one_frame_is_refused():
+    with pytest.raises(ValueError, match="max_frames must be >= 1"):
+        update_sample_mean(torch.ones(SHAPE), torch.ones(SHAPE), torch.ones(1, 1, 12, 12),
+                           torch.ones(1, 1, 12, 12, dtype=torch.bool), 0)
