@@ -31,6 +31,7 @@ Python; ONNX goes through ``torch.export``, which traces into them. ``UNSUPPORTE
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import warnings
@@ -82,13 +83,21 @@ def check_exportable(method: Method) -> None:
         raise ExportError(f"{label} has no network to export: "
                           + ("it is OIDN's native library (run OIDN in the engine)" if method.name.startswith("oidn")
                              else "it is a filter without weights; only trained models are exported"))
-    if getattr(method, "sample_mean_frames", 0):
-        raise ExportError(f"{label} runs OIDN inside its step, on a running mean of the frames it keeps in its state "
-                          f"(sample_mean_frames {method.sample_mean_frames}), so an engine cannot pass OIDN's output "
-                          f"in; export a checkpoint without the sample mean")
     if method.preset.endswith("-int8"):
         raise ExportError(f"{label} runs eager-mode int8 quantized modules (torch.ao), which neither ONNX nor "
                           f"TorchScript export takes; export the float32 checkpoint it was fine-tuned from")
+
+
+def exported_form(method: Method) -> Method:
+    """The method as the export runs it. A fused model with a sample mean (``sample_mean_frames``) runs OIDN on a
+    running mean of the frames held in its state, inside its step; an engine passes OIDN's output in from outside,
+    so the export takes OIDN of the single frame, as every fused model before the sample mean did (a copy with the
+    setting at 0; the interface says so)."""
+    if not getattr(method, "sample_mean_frames", 0):
+        return method
+    single = copy.deepcopy(method)
+    single.set_sample_mean_frames(0)
+    return single
 
 
 def example_inputs(method: Method, height: int, width: int, with_optional: bool = False,
@@ -113,8 +122,14 @@ def _frame(inputs: dict[str, torch.Tensor]) -> FrameBatch:
     return FrameBatch(camera_cut=torch.zeros(1, dtype=torch.bool), **inputs)
 
 
-def interface(method: Method, inputs: dict[str, torch.Tensor], state: dict[str, torch.Tensor]) -> dict[str, Any]:
-    """What an engine needs to call the exported step: names and shapes of inputs, state and outputs."""
+def interface(method: Method, inputs: dict[str, torch.Tensor], state: dict[str, torch.Tensor],
+              sample_mean_frames: int = 0) -> dict[str, Any]:
+    """What an engine needs to call the exported step: names and shapes of inputs, state and outputs
+    (``sample_mean_frames``: the model's sample mean, which the export leaves out; see ``exported_form``)."""
+    sample_mean = None
+    if sample_mean_frames:
+        sample_mean = (f"not exported: in PyTorch this model's OIDN reads a running mean of up to {sample_mean_frames} "
+                       f"frames kept in its state; the exported step takes OIDN of the single frame")
     return {"format": "denoiser-export/1", "method": method.name, "preset": method.preset, "scale": method.scale,
             "inputs": {name: list(tensor.shape) for name, tensor in inputs.items()},
             "state": {name: list(tensor.shape) for name, tensor in sorted(state.items())},
@@ -124,6 +139,7 @@ def interface(method: Method, inputs: dict[str, torch.Tensor], state: dict[str, 
             "first_frame": "state inputs all zeros (also after a camera cut)",
             "spatial_estimate": ("OIDN's output at render resolution (linear radiance, quality "
                                  f"'{method.preset}', albedo + normal, clean aux)") if SPATIAL_INPUT in inputs else None,
+            "sample_mean": sample_mean,
             "tolerance": TOLERANCE}
 
 
@@ -136,14 +152,15 @@ def export_step(method: Method, path: str | os.PathLike, fmt: str = "onnx", heig
     if fmt not in FORMATS:
         raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")
     check_exportable(method)
-    method = method.cpu().for_inference().eval()
+    sample_mean_frames = getattr(method, "sample_mean_frames", 0)
+    method = exported_form(method).cpu().for_inference().eval()
     for parameter in method.parameters():
         parameter.requires_grad_(False)
     inputs, state = example_inputs(method, height, width, with_optional)
     state_names = tuple(sorted(state))
     module = _Step(method, tuple(inputs), state_names).eval()
     arguments = (*inputs.values(), *[state[name] for name in state_names])
-    info = interface(method, inputs, state)
+    info = interface(method, inputs, state, sample_mean_frames)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -199,7 +216,7 @@ def check_export(method: Method, path: str | os.PathLike, info: dict[str, Any], 
     """The largest |exported - PyTorch| over a sequence of ``frames`` random frames (history carried; PyTorch's first
     step without a state, the export's with zeros), in units of the tolerance: <= 1 passes."""
     height, width = info["inputs"]["color"][2:]
-    method = method.cpu().for_inference().eval()
+    method = exported_form(method).cpu().for_inference().eval()
     sequence = []
     for index in range(frames):
         inputs, _ = example_inputs(method, height, width, "diffuse" in info["inputs"], seed=seed + index)

@@ -198,3 +198,26 @@ picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png fused-bal
 .venv/bin/denoiser compare --data "$DATA" --sequence moving_light_s4 --frame -1 --scale 1 --zoom 30,50,56 \
   --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced --method fused-balanced-x1=fused-balanced \
   --method fused-high-x1=fused-high --out docs/reuse_moving_light_x1.png
+# Later stages, each measured on its own in the README, the weights unchanged: the running mean's 8-frame window
+# ("Long streams") at both scales, and the stale-history test ("The stale-history test") at 1x.
+for quality in balanced fast high; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
+    --after-shipped "fused-$quality-x1" --mean-max-frames 8 --stale-test-sigmas 2
+done
+for quality in balanced fast; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
+    --after-shipped "fused-$quality-x2" --mean-max-frames 8
+done
+# The default model trained with its sample mean (README: "Accumulating samples before OIDN"): 400 steps from the
+# shipped weights with sample_mean_frames 8; the best validation checkpoint ships.
+.venv/bin/python -c "from model.pretrained import load_pretrained; from model.checkpoint import save_checkpoint
+m = load_pretrained('fused-balanced-x1'); m.set_sample_mean_frames(8); save_checkpoint('runs/balanced-sm8-init.pt', method=m)"
+.venv/bin/denoiser train --data "$DATA" --method fused:balanced --init-from runs/balanced-sm8-init.pt --batch 4 \
+  --lr 2e-4 --warmup 10 --threads 1 --quiet --display-weight 50 --scale 1 --crop 64 --frames-per-sample 12 --seed 5 \
+  --steps 400 --validate-every 100 --checkpoint-every 100 --no-tracking --out runs/sm8-balanced
+cp runs/sm8-balanced/best.pt runs/sm8-balanced-best.pt
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method runs/sm8-balanced-best.pt \
+  --method fused-fast-x1 --method fused-high-x1 "${peers[@]}" --out docs/results/reuse_x1_sample_mean.json
+.venv/bin/python scripts/ship_pretrained.py runs/sm8-balanced-best.pt --name fused-balanced-x1 \
+  --after-shipped fused-balanced-x1 --data "$DATA" --dataset-script scripts/generate_reuse_data.sh \
+  --report docs/results/reuse_x1_sample_mean.json

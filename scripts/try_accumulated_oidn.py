@@ -1,11 +1,11 @@
-"""Measure what OIDN gains from a running mean of the 1 spp frames instead of the single frame (an experiment,
-not a shipped method; README: "Accumulating samples before OIDN: measured, not shipped").
+"""Measure what OIDN gains from a running mean of the 1 spp frames instead of the single frame, with a model's own
+weights (README: "Accumulating samples before OIDN").
 
     .venv/bin/python scripts/try_accumulated_oidn.py --data data/reuse --split validation --model fused-fast-x1
 
 Evaluates in one run, every method on the same frames (`model.evaluate`, 2 threads):
 - the model as given;
-- `accumulated-oidn`: OIDN on a reprojected running mean of the noisy frames (up to --frames frames), restarted
+- `accumulated-oidn`: OIDN on a reprojected running mean of the noisy frames (up to 4 frames), restarted
   where the depth/normal test fails and faded by the stale-history test (`model.ops.stale_history`) where the mean
   is off the new frame;
 - the same model with ``sample_mean_frames`` set (``model.methods.fused``: OIDN reads a running mean of the frames

@@ -72,8 +72,8 @@ def _run_export(args) -> int:
         raise UsageError(str(error)) from None
     print(f"wrote {args.out} ({args.out.stat().st_size} bytes): {method.label} at scale {method.scale}, "
           f"{width}x{height} in")
-    print(json.dumps({key: info[key] for key in ("inputs", "state", "outputs", "first_frame", "spatial_estimate")},
-                     indent=2))
+    print(json.dumps({key: info[key] for key in ("inputs", "state", "outputs", "first_frame", "spatial_estimate",
+                                                 "sample_mean")}, indent=2))
     if not args.no_check:
         worst = check_export(method, args.out, info)
         verdict = "within" if worst <= 1 else "OUTSIDE"

@@ -33,3 +33,9 @@ def test_export_refusals_exit_2_with_the_reason(tmp_path, capsys, args, words):
     args = [str(checkpoint) if arg == "CKPT" else arg for arg in args]
     assert main(["export", *args, "--out", str(tmp_path / "x.onnx")]) == 2
     assert words in capsys.readouterr().err
+
+
+def test_exporting_the_shipped_default_says_its_sample_mean_is_left_out(tmp_path, capsys):
+    assert main(["export", "fused-balanced-x1", "--out", str(tmp_path / "f.onnx"), "--size", "16x16"]) == 0
+    out = capsys.readouterr().out
+    assert '"sample_mean": "not exported' in out and ": within" in out

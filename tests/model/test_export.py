@@ -77,12 +77,16 @@ def test_what_cannot_be_exported_says_why(tmp_path, name, scale, words):
     assert not (tmp_path / "x.onnx").exists()
 
 
-def test_a_fused_model_that_runs_oidn_on_its_sample_mean_is_refused_with_the_reason(tmp_path):
-    method = build_method("fused:fast")
-    method.set_sample_mean_frames(8)  # OIDN's input then comes from the state, inside the step
-    with pytest.raises(ExportError, match="runs OIDN inside its step"):
-        export_step(method, tmp_path / "x.onnx")
-    assert not (tmp_path / "x.onnx").exists()
+def test_a_fused_model_with_a_sample_mean_exports_its_step_on_the_single_frame_and_says_so(tmp_path):
+    method = seeded("fused:fast", 1)
+    method.set_sample_mean_frames(8)  # in PyTorch OIDN's input comes from the state, inside the step
+    info = export_step(method, tmp_path / "x.onnx", height=16, width=16)
+    assert "not exported" in info["sample_mean"] and "single frame" in info["sample_mean"]
+    assert method.sample_mean_frames == 8  # the export ran a copy
+    assert {"samples", "samples_count"}.isdisjoint(info["state"])
+    assert check_export(method, tmp_path / "x.onnx", info, frames=3) <= 1
+    plain = export_step(seeded("fused:fast", 1), tmp_path / "y.onnx", height=16, width=16)
+    assert plain["sample_mean"] is None
 
 
 def test_torchscript_is_refused_with_the_reason(tmp_path):
