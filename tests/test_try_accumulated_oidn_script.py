@@ -30,10 +30,6 @@ def _script():
 experiment = _script()
 
 
-def _state(frame, samples, count):
-    return {"samples": samples, "count": count, "depth": frame.depth, "normal": frame.normal, "jitter": frame.jitter}
-
-
 def test_oidn_reads_the_mean_of_the_frames_and_a_cut_restarts_it():
     frames = [static_frame(size=8, seed=seed) for seed in range(3)]
     method = experiment.AccumulatedOIDN("fast", max_frames=4, stale_sigmas=0)
