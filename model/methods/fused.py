@@ -368,9 +368,10 @@ class Fused(Method):
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         state = drop_history(state, frame)
         n, _, height, width = frame.color.shape
+        reprojected = None if state is None else self._reproject(frame, state)
         samples = samples_count = None
         if self._sample_mean_frames:
-            samples, samples_count = self._sample_mean(frame, state)
+            samples, samples_count = self._sample_mean(frame, state, None if reprojected is None else reprojected[3])
             s = reinhard(oidn_denoise(dataclasses.replace(frame, color=samples), self.preset).to(frame.color.dtype))
         else:
             s = self.spatial_estimate(frame)
@@ -381,7 +382,7 @@ class Fused(Method):
             history, hidden = s_out, frame.color.new_zeros(n, HIDDEN, height, width)
             length = torch.zeros_like(frame.depth)
         else:
-            history, hidden, length, valid, mean, count = self._reproject(frame, state)
+            history, hidden, length, valid, mean, count = reprojected
             valid_out = _upsample_mask(valid, self.scale)
             history = torch.where(valid_out, history, s_out)
             hidden = hidden * valid
@@ -431,15 +432,14 @@ class Fused(Method):
             new_state.update(samples=samples, samples_count=samples_count)
         return reinhard_inverse(output), new_state
 
-    def _sample_mean(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The running mean of the 1 spp frames OIDN reads, and the frames it holds (``model.ops.sample_mean``)."""
+    def _sample_mean(self, frame: FrameBatch, state: State | None,
+                     valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The running mean of the 1 spp frames OIDN reads, and the frames it holds (``model.ops.sample_mean``);
+        ``valid`` is the history's geometry test from ``_reproject``."""
         if state is None or "samples" not in state:  # a new stream, or a session from before the sample mean
             return frame.color, torch.ones_like(frame.depth)
         warped, _ = backward_warp(state["samples"], frame.motion, mode="bilinear")
         count, _ = backward_warp(state["samples_count"], frame.motion, mode="nearest")
-        valid = disocclusion_mask(frame.depth, frame.normal, state["depth"], state["normal"], frame.motion,
-                                  depth_rel_tol=self.depth_rel_tol, normal_cos_tol=self.normal_cos_tol,
-                                  jitter=frame.jitter - state["jitter"])
         return update_sample_mean(frame.color, warped, count, valid, self._sample_mean_frames,
                                   SAMPLE_MEAN_STALE_SIGMAS)
 
