@@ -5,9 +5,9 @@ weights (README: "Accumulating samples before OIDN").
 
 Evaluates in one run, every method on the same frames (`model.evaluate`, 2 threads):
 - the model as given;
-- `accumulated-oidn`: OIDN on a reprojected running mean of the noisy frames (up to 4 frames), restarted
-  where the depth/normal test fails and faded by the stale-history test (`model.ops.stale_history`) where the mean
-  is off the new frame;
+- `accumulated-oidn`: OIDN on a reprojected running mean of the noisy frames and their guides (up to 4 frames),
+  restarted where the depth/normal test fails and faded by the stale-history test (`model.ops.stale_history`)
+  where the mean is off the new frame;
 - the same model with ``sample_mean_frames`` set (``model.methods.fused``: OIDN reads a running mean of the frames
   that keeps its samples where the network trusted its history in the frame before), saved to a temporary
   checkpoint and evaluated by its path; its weights are the model's own, not retrained for it;
@@ -17,7 +17,6 @@ Evaluates in one run, every method on the same frames (`model.evaluate`, 2 threa
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import tempfile
@@ -30,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from model.checkpoint import save_checkpoint  # noqa: E402
 from model.evaluate import evaluate, format_table, resolve_method  # noqa: E402
 from model.methods.base import FrameBatch, Method, State, drop_history  # noqa: E402
+from model.methods.fused import frame_of_sample_mean, frame_samples  # noqa: E402
 from model.methods.baselines import reproject_state  # noqa: E402
 from model.methods.oidn import oidn_denoise  # noqa: E402
 from model.ops.sample_mean import update_sample_mean  # noqa: E402
@@ -37,12 +37,13 @@ from model.ops.sample_mean import update_sample_mean  # noqa: E402
 
 def accumulate_samples(frame: FrameBatch, state: State | None, max_frames: int,
                        stale_sigmas: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(running mean of the noisy frames, frames it holds), per pixel (``model.ops.sample_mean``), with the
-    history reprojected and geometry-tested as OIDN + TAA's."""
+    """(running mean of the noisy frames and their guides, ``frame_samples``; frames it holds), per pixel
+    (``model.ops.sample_mean``), with the history reprojected and geometry-tested as OIDN + TAA's."""
+    samples = frame_samples(frame)
     if state is None:
-        return frame.color, torch.ones_like(frame.depth)
+        return samples, torch.ones_like(frame.depth)
     warped, count, valid = reproject_state(frame, state, ("samples",), 0.1, 0.9)
-    return update_sample_mean(frame.color, warped["samples"], count, valid, max_frames, stale_sigmas)
+    return update_sample_mean(samples, warped["samples"], count, valid, max_frames, stale_sigmas)
 
 
 class AccumulatedOIDN(Method):
@@ -56,7 +57,7 @@ class AccumulatedOIDN(Method):
 
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         samples, count = accumulate_samples(frame, drop_history(state, frame), self.max_frames, self.stale_sigmas)
-        denoised = oidn_denoise(dataclasses.replace(frame, color=samples), self.preset)
+        denoised = oidn_denoise(frame_of_sample_mean(frame, samples), self.preset)
         return denoised, {"samples": samples, "count": count, "depth": frame.depth, "normal": frame.normal,
                           "jitter": frame.jitter}
 

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from model.checkpoint import load_method, save_checkpoint
+from model.methods.fused import frame_samples
 from model.methods.registry import build_method
 from tests.builders import static_frame, write_tiny_dataset
 
@@ -36,10 +37,10 @@ def test_oidn_reads_the_mean_of_the_frames_and_a_cut_restarts_it():
     state = None
     for frame in frames:
         _, state = method.step(frame, state)
-    torch.testing.assert_close(state["samples"], sum(frame.color for frame in frames) / 3)
+    torch.testing.assert_close(state["samples"], sum(frame_samples(frame) for frame in frames) / 3)
     cut = static_frame(size=8, seed=3, cut=True)
     _, after_cut = method.step(cut, state)
-    assert torch.equal(after_cut["samples"], cut.color) and torch.all(after_cut["count"] == 1)
+    assert torch.equal(after_cut["samples"], frame_samples(cut)) and torch.all(after_cut["count"] == 1)
 
 
 def test_the_variant_checkpoint_is_the_model_with_the_sample_mean_and_other_models_are_refused(tmp_path):

@@ -71,7 +71,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from model.methods.base import FrameBatch, Method, State, drop_history
-from model.methods.oidn import QUALITIES, oidn_denoise
+from model.methods.oidn import QUALITIES, oidn_albedo, oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import MethodSpec, register
 from model.ops.kernels import apply_pixel_kernels
@@ -81,7 +81,7 @@ from model.ops.sample_mean import update_sample_mean
 from model.ops.stale_history import history_trust, stale_history_z
 from model.ops.warp import backward_warp, upscale_motion
 
-__all__ = ["Fused", "FusionNet", "head_candidates", "unjittered_resample"]
+__all__ = ["Fused", "FusionNet", "frame_of_sample_mean", "frame_samples", "head_candidates", "unjittered_resample"]
 
 CANDIDATES = 4  # spatial estimate, history, rectified history, clipped running mean
 LEGACY_CANDIDATES = 3  # checkpoints from before the running mean: spatial estimate, history, rectified history
@@ -105,6 +105,20 @@ STALE_TEST_BLOCK = 9  # the test's window: 81 samples of the 1 spp frame, a stan
 SAMPLE_MEAN_KEY = "sample_mean_window"  # state-dict entry: OIDN reads a running mean of this many 1 spp frames
 # (0 or absent: the single frame)
 SAMPLE_MEAN_STALE_SIGMAS = 2.0  # the sample mean restarts where the new samples are this many standard errors off it
+
+
+def frame_samples(frame: FrameBatch) -> torch.Tensor:
+    """The 1 spp colour with the guides OIDN reads of the same samples (its albedo, the normals), (N, 9, H, W)."""
+    return torch.cat([frame.color, oidn_albedo(frame), frame.normal], dim=1)
+
+
+def frame_of_sample_mean(frame: FrameBatch, samples: torch.Tensor) -> FrameBatch:
+    """The frame OIDN denoises from a running mean of ``frame_samples``: the mean colour with the mean guides. OIDN
+    asks for guides averaged over the same samples as the colour; over jittered frames a texture finer than a pixel
+    averages to its mean in the colour, and one frame's albedo would still show it at a single sample's position
+    (README, "Accumulating samples before OIDN")."""
+    return dataclasses.replace(frame, color=samples[:, :3], albedo=samples[:, 3:6], normal=samples[:, 6:9],
+                               specular_albedo=None)
 
 
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
@@ -372,7 +386,7 @@ class Fused(Method):
         samples = samples_count = None
         if self._sample_mean_frames:
             samples, samples_count = self._sample_mean(frame, state, None if reprojected is None else reprojected[3])
-            s = reinhard(oidn_denoise(dataclasses.replace(frame, color=samples), self.preset).to(frame.color.dtype))
+            s = reinhard(oidn_denoise(frame_of_sample_mean(frame, samples), self.preset).to(frame.color.dtype))
         else:
             s = self.spatial_estimate(frame)
         s_out = unjittered_resample(s, frame.jitter, self.scale) if self.scale > 1 else s
@@ -434,14 +448,16 @@ class Fused(Method):
 
     def _sample_mean(self, frame: FrameBatch, state: State | None,
                      valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The running mean of the 1 spp frames OIDN reads, and the frames it holds (``model.ops.sample_mean``);
-        ``valid`` is the history's geometry test from ``_reproject``."""
-        if state is None or "samples" not in state:  # a new stream, or a session from before the sample mean
-            return frame.color, torch.ones_like(frame.depth)
-        warped, _ = backward_warp(state["samples"], frame.motion, mode="bilinear")
+        """The running mean of the 1 spp frames and their guides that OIDN reads (``frame_samples``), and the frames
+        it holds (``model.ops.sample_mean``); ``valid`` is the history's geometry test from ``_reproject``."""
+        samples = frame_samples(frame)
+        previous = None if state is None else state.get("samples")
+        if previous is None or previous.shape != samples.shape:
+            # a new stream, or a session from before the sample mean or before it averaged the guides
+            return samples, torch.ones_like(frame.depth)
+        warped, _ = backward_warp(previous, frame.motion, mode="bilinear")
         count, _ = backward_warp(state["samples_count"], frame.motion, mode="nearest")
-        return update_sample_mean(frame.color, warped, count, valid, self._sample_mean_frames,
-                                  SAMPLE_MEAN_STALE_SIGMAS)
+        return update_sample_mean(samples, warped, count, valid, self._sample_mean_frames, SAMPLE_MEAN_STALE_SIGMAS)
 
     @staticmethod
     def _history_share(weights: torch.Tensor) -> torch.Tensor:

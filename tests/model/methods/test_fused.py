@@ -9,7 +9,8 @@ import torch
 
 from model.methods.base import FrameBatch
 from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
-                                 RECURRENCE_KEY, SAMPLE_MEAN_KEY, STALE_TEST_KEY, Fused, unjittered_resample)
+                                 RECURRENCE_KEY, SAMPLE_MEAN_KEY, STALE_TEST_KEY, Fused, frame_samples,
+                                 unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -421,7 +422,7 @@ def test_oidn_reads_the_mean_of_the_frames_while_the_network_trusts_its_history(
     expected = torch.full_like(first.color, 0.5) if samples == "mean" else second.color
     torch.testing.assert_close(read[0], first.color)
     torch.testing.assert_close(read[1], expected)  # both frames' samples, or the new frame's alone
-    torch.testing.assert_close(state["samples"], expected)
+    torch.testing.assert_close(state["samples"][:, :3], expected)
     torch.testing.assert_close(state["samples_count"], torch.full_like(state["samples_count"], count), atol=1e-3,
                                rtol=0)
 
@@ -453,4 +454,39 @@ def test_a_state_from_before_the_sample_mean_starts_it_at_this_frame():
         method.set_sample_mean_frames(8)
         output, new_state = method.step(static_frame(size=16, seed=2), state)
     assert torch.isfinite(output).all()
-    torch.testing.assert_close(new_state["samples"], static_frame(size=16, seed=2).color)
+    torch.testing.assert_close(new_state["samples"], frame_samples(static_frame(size=16, seed=2)))
+
+
+def test_a_state_whose_sample_mean_holds_the_colour_alone_restarts_it_with_the_guides():
+    # Sessions stored before the mean averaged the guides hold 3 channels of samples: they start again here.
+    method = build_method("fused:fast")
+    method.set_sample_mean_frames(8)
+    with torch.no_grad():
+        _, state = method.step(static_frame(size=16, seed=1), None)
+        state["samples"] = state["samples"][:, :3]
+        _, new_state = method.step(static_frame(size=16, seed=2), state)
+    torch.testing.assert_close(new_state["samples"], frame_samples(static_frame(size=16, seed=2)))
+    assert torch.all(new_state["samples_count"] <= 1.0)
+
+
+def test_oidn_reads_the_guides_averaged_over_the_same_samples_as_the_colour(monkeypatch):
+    # A texture finer than a pixel: each jittered frame's albedo sample lands on a light or a dark square, and the
+    # colour's mean averages both, so the guide OIDN reads must average them too.
+    read = []
+
+    def recording_oidn(frame, quality):
+        read.append(frame)
+        return frame.color
+
+    monkeypatch.setattr("model.methods.fused.oidn_denoise", recording_oidn)
+    method = trusting(build_method("fused:fast"), HISTORY)
+    method.set_sample_mean_frames(4)
+    first, second = static_frame(size=16, seed=1), static_frame(size=16, seed=1)
+    first = dataclasses.replace(first, albedo=torch.full_like(first.albedo, 0.2), specular_albedo=None)
+    second = dataclasses.replace(second, albedo=torch.full_like(second.albedo, 0.6), specular_albedo=None)
+    with torch.no_grad():
+        _, state = method.step(first, None)
+        method.step(second, state)
+    torch.testing.assert_close(read[1].albedo, torch.full_like(first.albedo, 0.4))
+    torch.testing.assert_close(read[1].normal, first.normal)
+    assert read[1].specular_albedo is None

@@ -64,3 +64,27 @@ def test_a_window_below_one_frame_is_refused():
     with pytest.raises(ValueError, match="max_frames must be >= 1"):
         update_sample_mean(torch.ones(SHAPE), torch.ones(SHAPE), torch.ones(1, 1, 12, 12),
                            torch.ones(1, 1, 12, 12, dtype=torch.bool), 0)
+
+
+def test_guides_after_the_colour_are_averaged_with_its_weights_and_do_not_restart_it():
+    generator = torch.Generator().manual_seed(3)
+    colour = torch.full((1, 3, 16, 16), 0.5)
+    previous = torch.cat([colour, torch.full((1, 6, 16, 16), 0.2)], dim=1)
+    frame = torch.cat([noisy_constant(colour, generator), torch.full((1, 6, 16, 16), 0.8)], dim=1)
+    count = torch.full((1, 1, 16, 16), 3.0)
+    valid = torch.ones_like(count, dtype=torch.bool)
+    mean, new_count = update_sample_mean(frame, previous, count, valid, 8, stale_sigmas=2.0)
+    _, colour_count = update_sample_mean(frame[:, :3], previous[:, :3], count, valid, 8, stale_sigmas=2.0)
+    torch.testing.assert_close(new_count, colour_count)  # the guides quadrupled: the test reads the colour alone
+    assert float(new_count.mean()) > 3.9
+    torch.testing.assert_close(mean, frame / new_count + (1 - 1 / new_count) * previous)
+    kept = (new_count == 4).expand(1, 6, 16, 16)
+    torch.testing.assert_close(mean[:, 3:][kept], torch.full_like(mean[:, 3:][kept], 0.35))
+
+
+def test_samples_of_another_shape_or_without_a_colour_are_refused():
+    ok = torch.ones(1, 1, 12, 12, dtype=torch.bool)
+    with pytest.raises(ValueError, match="one shape"):
+        update_sample_mean(torch.ones(1, 9, 12, 12), torch.ones(1, 3, 12, 12), torch.ones(1, 1, 12, 12), ok, 4)
+    with pytest.raises(ValueError, match="C >= 3"):
+        update_sample_mean(torch.ones(1, 2, 12, 12), torch.ones(1, 2, 12, 12), torch.ones(1, 1, 12, 12), ok, 4)
