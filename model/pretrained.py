@@ -225,7 +225,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                     history_before_kernel: bool | None = None,
                     kernel_max_pixels: int | None = None,
                     mean_max_frames: int | None = None,
-                    stale_test_sigmas: float | None = None) -> PretrainedModel:
+                    stale_test_sigmas: float | None = None,
+                    sample_mean_frames: int | None = None) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
     an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
     earlier trainings this one started from (``--init-from``), first to last; their step, best metric and training
@@ -236,7 +237,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     checkpoint has it) sets which recurrence the shipped weights run (``model.methods.fused``); ``kernel_max_pixels``
     (the same) the frame size above which they skip their kernel (0: none); ``mean_max_frames`` (the same) the
     window of their running mean of OIDN's estimates; ``stale_test_sigmas`` (the same) the threshold of their
-    stale-history test (0: none)."""
+    stale-history test (0: none); ``sample_mean_frames`` (the same, 1x) the window of the running mean of the 1 spp
+    frames OIDN reads (0: the single frame)."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -255,7 +257,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                 (mean_max_frames, "set_mean_max_frames", fused and method.has_mean,
                  "no running mean to set a window for"),
                 (stale_test_sigmas, "set_stale_test_sigmas", fused and method.has_mean,
-                 "no running mean for the stale-history test")]
+                 "no running mean for the stale-history test"),
+                (sample_mean_frames, "set_sample_mean_frames", fused, "no spatial denoiser to feed a sample mean")]
     for value, setter, supported, missing in settings:
         if value is None:
             continue

@@ -27,6 +27,13 @@ pixels (the fused blend is the output there; 0: every frame filtered); the weigh
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
         --after-shipped fused-balanced-x1 --kernel-max-pixels 32768
 
+--mean-max-frames, --stale-test-sigmas and --sample-mean-frames (fused only) set the other run-time settings the
+same way (model/methods/fused.py); the weights are the checkpoint's.
+
+    .venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
+        --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
+        --report-source runs/fast-sm8.pt
+
 --remeasure: the checkpoint is the shipped model NAME itself, evaluated again in the report's run (beside newer
 models); only its held-out section is replaced, its weights and training record stay.
 """
@@ -78,15 +85,20 @@ def main() -> int:
     parser.add_argument("--stale-test-sigmas", type=float, default=None, metavar="Z",
                         help="fused only: where the running mean's 9x9 window mean is more than Z standard errors "
                              "off the 1 spp frame's, the history's weight goes to OIDN's estimate (0: no test)")
+    parser.add_argument("--sample-mean-frames", type=int, default=None, metavar="N",
+                        help="fused only, 1x: OIDN reads a running mean of up to N 1 spp frames and their guides "
+                             "(0: the single frame)")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
     if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data
                            or args.history_before_kernel is not None or args.kernel_max_pixels is not None
-                           or args.mean_max_frames is not None or args.stale_test_sigmas is not None):
+                           or args.mean_max_frames is not None or args.stale_test_sigmas is not None
+                           or args.sample_mean_frames is not None):
         parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data, "
-                     "--history-*-kernel, --kernel-max-pixels, --mean-max-frames or --stale-test-sigmas")
+                     "--history-*-kernel, --kernel-max-pixels, --mean-max-frames, --stale-test-sigmas or "
+                     "--sample-mean-frames")
     report = None
     if args.report is not None:
         if not args.report.is_file():
@@ -104,7 +116,8 @@ def main() -> int:
                                 history_before_kernel=args.history_before_kernel,
                                 kernel_max_pixels=args.kernel_max_pixels,
                                 mean_max_frames=args.mean_max_frames,
-                                stale_test_sigmas=args.stale_test_sigmas)
+                                stale_test_sigmas=args.stale_test_sigmas,
+                                sample_mean_frames=args.sample_mean_frames)
     except (PretrainedError, UnknownPretrained, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
