@@ -221,3 +221,13 @@ cp runs/sm8-balanced/best.pt runs/sm8-balanced-best.pt
 .venv/bin/python scripts/ship_pretrained.py runs/sm8-balanced-best.pt --name fused-balanced-x1 \
   --after-shipped fused-balanced-x1 --data "$DATA" --dataset-script scripts/generate_reuse_data.sh \
   --report docs/results/reuse_x1_sample_mean.json
+# The fast preset with the sample mean, its weights unchanged, once the mean averages OIDN's guides too (README:
+# "The guides averaged with the samples").
+.venv/bin/python -c "from model.pretrained import load_pretrained; from model.checkpoint import save_checkpoint
+m = load_pretrained('fused-fast-x1'); m.set_sample_mean_frames(8); save_checkpoint('runs/fast-sm8.pt', method=m)"
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
+  --method runs/fast-sm8.pt --method fused-fast-x1 --method fused-high-x1 "${peers[@]}" \
+  --out docs/results/reuse_x1_guides_mean.json
+.venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
+  --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
+  --report-source runs/fast-sm8.pt
