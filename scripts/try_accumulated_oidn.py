@@ -6,8 +6,8 @@ weights (README: "Accumulating samples before OIDN").
 Evaluates in one run, every method on the same frames (`model.evaluate`, 2 threads):
 - the model as given;
 - `accumulated-oidn`: OIDN on a reprojected running mean of the noisy frames and their guides (up to 4 frames),
-  restarted where the depth/normal test fails and faded by the stale-history test (`model.ops.stale_history`)
-  where the mean is off the new frame;
+  restarted where the depth/normal test fails, faded by the stale-history test (`model.ops.stale_history`)
+  where the mean is off the new frame and by the warp's blur where the camera moves;
 - the same model with ``sample_mean_frames`` set (``model.methods.fused``: OIDN reads a running mean of the frames
   that keeps its samples where the network trusted its history in the frame before), saved to a temporary
   checkpoint and evaluated by its path; its weights are the model's own, not retrained for it;
@@ -32,7 +32,7 @@ from model.methods.base import FrameBatch, Method, State, drop_history  # noqa: 
 from model.methods.fused import frame_of_sample_mean, frame_samples  # noqa: E402
 from model.methods.baselines import reproject_state  # noqa: E402
 from model.methods.oidn import oidn_denoise  # noqa: E402
-from model.ops.sample_mean import update_sample_mean  # noqa: E402
+from model.ops.sample_mean import sample_mean_spread, update_sample_mean  # noqa: E402
 
 
 def accumulate_samples(frame: FrameBatch, state: State | None, max_frames: int,
@@ -43,7 +43,8 @@ def accumulate_samples(frame: FrameBatch, state: State | None, max_frames: int,
     if state is None:
         return samples, torch.ones_like(frame.depth)
     warped, count, valid = reproject_state(frame, state, ("samples",), 0.1, 0.9)
-    return update_sample_mean(samples, warped["samples"], count, valid, max_frames, stale_sigmas)
+    return update_sample_mean(samples, warped["samples"], count, valid, max_frames, stale_sigmas,
+                              spread=sample_mean_spread(frame.motion, frame.jitter, state["jitter"]))
 
 
 class AccumulatedOIDN(Method):

@@ -77,7 +77,7 @@ from model.methods.registry import MethodSpec, register
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.rectify import clip_to_moments, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
-from model.ops.sample_mean import update_sample_mean
+from model.ops.sample_mean import sample_mean_spread, update_sample_mean
 from model.ops.stale_history import history_trust, stale_history_z
 from model.ops.warp import backward_warp, upscale_motion
 
@@ -457,7 +457,8 @@ class Fused(Method):
             return samples, torch.ones_like(frame.depth)
         warped, _ = backward_warp(previous, frame.motion, mode="bilinear")
         count, _ = backward_warp(state["samples_count"], frame.motion, mode="nearest")
-        return update_sample_mean(samples, warped, count, valid, self._sample_mean_frames, SAMPLE_MEAN_STALE_SIGMAS)
+        return update_sample_mean(samples, warped, count, valid, self._sample_mean_frames, SAMPLE_MEAN_STALE_SIGMAS,
+                                  spread=sample_mean_spread(frame.motion, frame.jitter, state["jitter"]))
 
     @staticmethod
     def _history_share(weights: torch.Tensor) -> torch.Tensor:

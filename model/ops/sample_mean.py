@@ -5,10 +5,13 @@ the scene holds still) it keeps more of it. Unlike a mean of the denoiser's outp
 this one averages the unbiased samples. Per pixel, with ``count`` the frames the reprojected mean already holds:
 
     trust = history_trust(stale_history_z(noisy, mean), sigmas)      (1 where sigmas is 0: no test)
-    n     = min(count * trust + 1, max_frames)   where the history is valid, else 1
+    n     = min(count * trust * (1 - spread) + 1, max_frames)   where the history is valid, else 1
     mean  = noisy / n + (1 - 1 / n) * mean
 
 so a mean that the new samples contradict (a moving light) restarts, as does one the geometry test rejects.
+``spread`` is how much reading the mean into this frame blurred it (``model.ops.warp.bilinear_spread``, 0 where
+nothing moved): a mean resampled at half a pixel every frame piles up that blur, which OIDN cannot undo, so there it
+keeps only as many frames as the blur is worth (README, "The mean where the camera moves").
 
 The frame may carry more channels after its three colour ones: the guides of the same samples (albedo, normals).
 They are averaged with the same weights, since OIDN asks for guides that cover the same samples as the colour;
@@ -20,15 +23,32 @@ from __future__ import annotations
 import torch
 
 from model.ops.stale_history import history_trust, stale_history_z
+from model.ops.warp import bilinear_spread
 
-__all__ = ["update_sample_mean"]
+__all__ = ["JITTERED_SPREAD_SHARE", "sample_mean_spread", "update_sample_mean"]
+
+# Chosen on the validation recipes (jittered) and Blender Cycles' frames (no jitter): README, "The mean where the
+# camera moves".
+JITTERED_SPREAD_SHARE = 0.5
+
+
+def sample_mean_spread(motion: torch.Tensor, jitter: torch.Tensor, previous_jitter: torch.Tensor) -> torch.Tensor:
+    """The ``spread`` of ``update_sample_mean`` for a mean warped bilinearly by ``motion`` (N, 2, H, W): the warp's
+    blur (``bilinear_spread``), counted in full for frames without jitter (this frame and the one before both
+    sampled at the pixel centre, ``jitter`` and ``previous_jitter`` (N, 2) zero) and at ``JITTERED_SPREAD_SHARE``
+    otherwise: a jittered frame pays for part of the blur with samples at new sub-pixel positions."""
+    jittered = (jitter != 0).any(dim=1) | (previous_jitter != 0).any(dim=1)
+    share = torch.where(jittered, JITTERED_SPREAD_SHARE, 1.0).to(motion.dtype).view(-1, 1, 1, 1)
+    return bilinear_spread(motion) * share
 
 
 def update_sample_mean(noisy: torch.Tensor, mean: torch.Tensor, count: torch.Tensor, valid: torch.Tensor,
-                       max_frames: int, stale_sigmas: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+                       max_frames: int, stale_sigmas: float = 0.0,
+                       spread: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(new mean, frames it holds) from this frame's samples ``noisy`` (N, C, H, W), C >= 3 with the colour first,
     and the previous mean and count warped into this frame (``mean`` (N, C, H, W), ``count`` (N, 1, H, W));
-    ``valid`` (N, 1, H, W) bool marks where that history may be used."""
+    ``valid`` (N, 1, H, W) bool marks where that history may be used; ``spread`` (N, 1, H, W) in [0, 1], the blur
+    of that warp (None: none)."""
     if max_frames < 1:
         raise ValueError(f"max_frames must be >= 1, got {max_frames}")
     if noisy.dim() != 4 or noisy.shape[1] < 3 or noisy.shape != mean.shape:
@@ -36,6 +56,10 @@ def update_sample_mean(noisy: torch.Tensor, mean: torch.Tensor, count: torch.Ten
                          f"{tuple(mean.shape)}")
     if stale_sigmas > 0:
         count = count * history_trust(stale_history_z(noisy[:, :3], mean[:, :3]), stale_sigmas)
+    if spread is not None:
+        if spread.shape != count.shape:
+            raise ValueError(f"spread must have the count's shape {tuple(count.shape)}, got {tuple(spread.shape)}")
+        count = count * (1 - spread.clamp(0, 1))
     count = torch.where(valid, count, torch.zeros_like(count))
     count = (count + 1).clamp_max(float(max_frames))
     return noisy / count + (1 - 1 / count) * mean, count

@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-__all__ = ["Jitter", "backward_warp", "sample_positions", "upscale_motion", "dilate_motion_by_depth"]
+__all__ = ["Jitter", "backward_warp", "bilinear_spread", "sample_positions", "upscale_motion", "dilate_motion_by_depth"]
 
 _MODES = ("bilinear", "bicubic", "nearest")
 _PADDINGS = ("border", "zeros")
@@ -113,6 +113,17 @@ def backward_warp(
     grid = ((2.0 * pos.permute(0, 2, 3, 1) - size) / size).contiguous()  # (N, H, W, 2) with [..., 0] = x
     warped = F.grid_sample(prev, grid, mode=mode, padding_mode=padding, align_corners=False)
     return warped, inside
+
+
+def bilinear_spread(motion: torch.Tensor) -> torch.Tensor:
+    """How much a bilinear read at ``centre + motion`` blurs, per pixel (N, 1, H, W), in [0, 1]: the variance of
+    its taps' positions, f (1 - f) on each axis for the fractional part f of the motion, summed and doubled. 0 at a
+    whole-pixel motion (the read is one pixel), 1 at half a pixel on both axes (four pixels, a quarter each).
+    A buffer read this way every frame and kept blurs by this much more each frame."""
+    if motion.dim() != 4 or motion.shape[1] != 2:
+        raise ValueError(f"motion must be (N, 2, H, W), got shape {tuple(motion.shape)}")
+    f = motion - torch.floor(motion)
+    return 2 * (f * (1 - f)).sum(dim=1, keepdim=True)
 
 
 def upscale_motion(motion: torch.Tensor, scale: float, mode: str = "nearest") -> torch.Tensor:

@@ -394,6 +394,18 @@ def test_with_the_stale_history_test_a_zeroed_state_gives_what_no_state_gives():
     torch.testing.assert_close(zeroed, fresh, atol=1e-5, rtol=1e-5)
 
 
+def _record_oidn_colours(monkeypatch) -> list[torch.Tensor]:
+    """OIDN replaced by the identity: the list fills with the colour it was given, frame by frame."""
+    read = []
+
+    def recording_oidn(frame, quality):
+        read.append(frame.color.clone())
+        return frame.color
+
+    monkeypatch.setattr("model.methods.fused.oidn_denoise", recording_oidn)
+    return read
+
+
 def _checker_frame(sign: float) -> FrameBatch:
     frame = static_frame(size=16)
     pattern = (torch.arange(16).view(1, 16) + torch.arange(16).view(16, 1)) % 2 * 2.0 - 1.0
@@ -406,13 +418,7 @@ def _checker_frame(sign: float) -> FrameBatch:
 ])
 def test_oidn_reads_the_mean_of_the_frames_while_the_network_trusts_its_history(monkeypatch, candidate, count,
                                                                                 samples):
-    read = []
-
-    def recording_oidn(frame, quality):
-        read.append(frame.color.clone())
-        return frame.color
-
-    monkeypatch.setattr("model.methods.fused.oidn_denoise", recording_oidn)
+    read = _record_oidn_colours(monkeypatch)
     method = trusting(build_method("fused:fast"), candidate)
     method.set_sample_mean_frames(4)
     first, second = _checker_frame(1.0), _checker_frame(-1.0)  # their mean is 0.5 everywhere
@@ -490,3 +496,26 @@ def test_oidn_reads_the_guides_averaged_over_the_same_samples_as_the_colour(monk
     torch.testing.assert_close(read[1].albedo, torch.full_like(first.albedo, 0.4))
     torch.testing.assert_close(read[1].normal, first.normal)
     assert read[1].specular_albedo is None
+
+
+@pytest.mark.parametrize("motion, jitter, samples", [
+    pytest.param((2.0, 0.0), (0.0, 0.0), "mean", id="whole pixels: the frames add up"),
+    pytest.param((0.5, 0.5), (0.0, 0.0), "last", id="half a pixel on both axes, no jitter: the mean restarts"),
+    pytest.param((0.5, 0.5), (0.25, -0.25), "third", id="half a pixel, jittered: the mean keeps half a frame"),
+])
+def test_oidn_reads_the_mean_only_as_far_as_its_warp_keeps_it_sharp(monkeypatch, motion, jitter, samples):
+    read = _record_oidn_colours(monkeypatch)
+    method = trusting(build_method("fused:fast"), HISTORY)
+    method.set_sample_mean_frames(4)
+    first, second = _checker_frame(1.0), _checker_frame(-1.0)  # a shift of 2 keeps the checker where it was
+    first = dataclasses.replace(first, jitter=torch.tensor([jitter]))
+    second = dataclasses.replace(second, motion=torch.tensor(motion).view(1, 2, 1, 1).expand(1, 2, 16, 16).clone(),
+                                 jitter=torch.tensor([jitter]))
+    with torch.no_grad():
+        _, state = method.step(first, None)
+        method.step(second, state)
+    # at half a pixel both ways the warped checker reads 0.5; jittered, it keeps 1 - 0.5 of its one frame
+    expected = {"mean": torch.full_like(first.color, 0.5), "last": second.color,
+                "third": second.color * 2 / 3 + 0.5 / 3}[samples]
+    inner = (..., slice(1, -3), slice(1, -3))  # the frame's edge reads outside the previous one
+    torch.testing.assert_close(read[1][inner], expected[inner])

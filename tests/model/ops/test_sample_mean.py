@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.ops.sample_mean import update_sample_mean
+from model.ops.sample_mean import JITTERED_SPREAD_SHARE, sample_mean_spread, update_sample_mean
+from model.ops.warp import bilinear_spread
 from tests.builders import noisy_constant
 
 SHAPE = (1, 3, 12, 12)
@@ -88,3 +89,27 @@ def test_samples_of_another_shape_or_without_a_colour_are_refused():
         update_sample_mean(torch.ones(1, 9, 12, 12), torch.ones(1, 3, 12, 12), torch.ones(1, 1, 12, 12), ok, 4)
     with pytest.raises(ValueError, match="C >= 3"):
         update_sample_mean(torch.ones(1, 2, 12, 12), torch.ones(1, 2, 12, 12), torch.ones(1, 1, 12, 12), ok, 4)
+
+
+def test_a_blurring_read_keeps_the_frames_its_spread_leaves():
+    generator = torch.Generator().manual_seed(4)
+    previous, frame = torch.rand(SHAPE, generator=generator), torch.rand(SHAPE, generator=generator)
+    valid = torch.ones(1, 1, 12, 12, dtype=torch.bool)
+    spread = torch.zeros(1, 1, 12, 12)
+    spread[..., :4], spread[..., 4:8] = 1.0, 0.5  # half a pixel on both axes; on one
+    mean, count = update_sample_mean(frame, previous, torch.full((1, 1, 12, 12), 4.0), valid, 8, spread=spread)
+    assert count[..., :4].eq(1).all() and count[..., 4:8].eq(3).all() and count[..., 8:].eq(5).all()
+    torch.testing.assert_close(mean[..., :4], frame[..., :4])  # restarted
+    torch.testing.assert_close(mean[..., 4:8], (frame[..., 4:8] + 2 * previous[..., 4:8]) / 3)
+    torch.testing.assert_close(mean[..., 8:], (frame[..., 8:] + 4 * previous[..., 8:]) / 5)
+    with pytest.raises(ValueError, match="spread must have the count's shape"):
+        update_sample_mean(frame, previous, torch.ones(1, 1, 12, 12), valid, 8, spread=torch.zeros(1, 1, 6, 6))
+
+
+def test_the_warp_s_blur_counts_in_full_without_jitter_and_in_part_with_it():
+    motion = torch.full((3, 2, 4, 4), 0.5)
+    jitter = torch.tensor([[0.0, 0.0], [0.25, 0.0], [0.0, 0.0]])
+    previous = torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.0, -0.1]])  # the third was jittered a frame ago
+    spread = sample_mean_spread(motion, jitter, previous)
+    torch.testing.assert_close(spread[0], bilinear_spread(motion)[0])
+    torch.testing.assert_close(spread[1:], JITTERED_SPREAD_SHARE * bilinear_spread(motion)[1:])

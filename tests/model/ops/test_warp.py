@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from model.ops.warp import backward_warp, dilate_motion_by_depth, upscale_motion
+from model.ops.warp import backward_warp, bilinear_spread, dilate_motion_by_depth, upscale_motion
 from tests.builders import rand
 
 A = -0.75  # torch's bicubic coefficient
@@ -227,3 +227,25 @@ def test_jitter_adds_to_the_read_position():
         torch.testing.assert_close(got[n : n + 1], ref)
     with pytest.raises(ValueError, match="jitter"):
         backward_warp(prev, motion, jitter=(0.1, 0.2, 0.3))
+
+
+def test_bilinear_spread_is_the_variance_of_the_bilinear_reads_taps():
+    # Read images of the pixels' coordinates and their squares: the bilinear read returns E[x] and E[x^2] over
+    # its taps, so their variance is what the closed form claims (away from the border, where taps are clamped).
+    torch.manual_seed(0)
+    h = w = 12
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64),
+                            indexing="ij")
+    coords = torch.stack([xs, ys, xs**2, ys**2]).unsqueeze(0)
+    motion = (torch.rand(1, 2, h, w, dtype=torch.float64) - 0.5) * 6
+    read, _ = backward_warp(coords, motion, mode="bilinear")
+    variance = (read[:, 2:4] - read[:, 0:2] ** 2).sum(dim=1, keepdim=True)
+    inner = (slice(None), slice(None), slice(4, -4), slice(4, -4))
+    torch.testing.assert_close(bilinear_spread(motion)[inner], 2 * variance[inner], atol=1e-9, rtol=0)
+
+
+def test_bilinear_spread_is_zero_at_whole_pixels_and_one_at_half_pixels():
+    motion = torch.tensor([[0.0, 0.5, -3.0, 0.5], [2.0, 0.5, 0.5, 0.0]]).reshape(1, 2, 1, 4)
+    assert bilinear_spread(motion).flatten().tolist() == [0.0, 1.0, 0.5, 0.5]
+    with pytest.raises(ValueError, match="motion must be"):
+        bilinear_spread(torch.zeros(1, 3, 2, 2))
