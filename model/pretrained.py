@@ -216,29 +216,33 @@ def held_out_from_report(report: dict[str, Any], row_source: str, method: str, p
             "peers": [brief(entry) for entry in rows if entry.get("method") in PEER_METHODS]}
 
 
+# The fused family's run-time settings (``model.methods.fused``), each shipped with the weights unchanged: name ->
+# (whether it needs the network's running mean, what a model without it lacks).
+RUN_TIME_SETTINGS: dict[str, tuple[bool, str]] = {
+    "history_before_kernel": (False, "no choice of recurrence"),
+    "kernel_max_pixels": (False, "no output kernel to limit"),
+    "mean_max_frames": (True, "no running mean to set a window for"),
+    "stale_test_sigmas": (True, "no running mean for the stale-history test"),
+    "sample_mean_frames": (False, "no spatial denoiser to feed a sample mean"),
+    "sample_mean_trust_power": (False, "no spatial denoiser to feed a sample mean"),
+}
+
+
 def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.PathLike | None = None,
                     dataset_dir: str | os.PathLike | None = None, dataset_script: str | None = None,
                     training_script: str | None = None, report: dict[str, Any] | None = None,
                     report_source: str | None = None, report_path: str | None = None,
                     stages: list[str | os.PathLike] | None = None,
                     after_shipped: str | None = None,
-                    history_before_kernel: bool | None = None,
-                    kernel_max_pixels: int | None = None,
-                    mean_max_frames: int | None = None,
-                    stale_test_sigmas: float | None = None,
-                    sample_mean_frames: int | None = None) -> PretrainedModel:
+                    **settings: Any) -> PretrainedModel:
     """Write ``root/name/model.pt`` (the checkpoint without optimizer, scheduler and RNG state) and its manifest;
     an existing model of that name is replaced (both files are renamed into place). ``stages``: checkpoints of the
     earlier trainings this one started from (``--init-from``), first to last; their step, best metric and training
     settings are recorded as ``training.stages``. ``after_shipped``: the name of a shipped model (in ``root``) the
     first of them, or this checkpoint, started from (``--init-from pretrained/NAME/model.pt``): its recorded stages
     and its own training come first, so a fine-tune of a shipped model keeps the whole recipe where the earlier
-    runs are gone (a fresh checkout holds none). ``history_before_kernel`` (the fused family only; None: as the
-    checkpoint has it) sets which recurrence the shipped weights run (``model.methods.fused``); ``kernel_max_pixels``
-    (the same) the frame size above which they skip their kernel (0: none); ``mean_max_frames`` (the same) the
-    window of their running mean of OIDN's estimates; ``stale_test_sigmas`` (the same) the threshold of their
-    stale-history test (0: none); ``sample_mean_frames`` (the same, 1x) the window of the running mean of the 1 spp
-    frames OIDN reads (0: the single frame)."""
+    runs are gone (a fresh checkout holds none). ``settings``: the fused family's run-time settings
+    (``RUN_TIME_SETTINGS``; None or absent: as the checkpoint has them), shipped with the weights unchanged."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -250,23 +254,19 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     method.load_state_dict(content["model"])
     if not method.learned:
         raise PretrainedError(f"{checkpoint} holds {method.label}, which has no weights to ship")
-    # The fused family's run-time settings, each shipped with the weights unchanged; None keeps the checkpoint's.
+    unknown = sorted(set(settings) - set(RUN_TIME_SETTINGS))
+    if unknown:
+        raise PretrainedError(f"no run-time setting {', '.join(unknown)}; settings: {', '.join(RUN_TIME_SETTINGS)}")
     fused = hasattr(method, "set_kernel_max_pixels")
-    settings = [(history_before_kernel, "set_history_before_kernel", fused, "no choice of recurrence"),
-                (kernel_max_pixels, "set_kernel_max_pixels", fused, "no output kernel to limit"),
-                (mean_max_frames, "set_mean_max_frames", fused and method.has_mean,
-                 "no running mean to set a window for"),
-                (stale_test_sigmas, "set_stale_test_sigmas", fused and method.has_mean,
-                 "no running mean for the stale-history test"),
-                (sample_mean_frames, "set_sample_mean_frames", fused, "no spatial denoiser to feed a sample mean")]
-    for value, setter, supported, missing in settings:
+    for setting, value in settings.items():
         if value is None:
             continue
-        if not supported:
+        needs_mean, missing = RUN_TIME_SETTINGS[setting]
+        if not fused or (needs_mean and not method.has_mean):
             raise PretrainedError(f"{checkpoint} holds {method.label}, which has {missing} (only the fused family "
                                   f"has)")
         try:
-            getattr(method, setter)(value)
+            getattr(method, f"set_{setting}")(value)
         except ValueError as error:
             raise PretrainedError(str(error)) from error
     folder = _root(root) / name

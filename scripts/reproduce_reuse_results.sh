@@ -231,3 +231,17 @@ m = load_pretrained('fused-fast-x1'); m.set_sample_mean_frames(8); save_checkpoi
 .venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
   --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
   --report-source runs/fast-sm8.pt
+# The high preset with the sample mean, its weights unchanged, keeping the mean's frames in the network's history
+# share cubed (README: "How long the sample mean trusts"); one quiet run of the shipped 1x models and the peers.
+.venv/bin/python -c "from model.pretrained import load_pretrained; from model.checkpoint import save_checkpoint
+m = load_pretrained('fused-high-x1'); m.set_sample_mean_frames(8); m.set_sample_mean_trust_power(3.0)
+save_checkpoint('runs/high-sm8-p3.pt', method=m)"
+.venv/bin/python scripts/ship_pretrained.py pretrained/fused-high-x1/model.pt --name fused-high-x1 \
+  --after-shipped fused-high-x1 --sample-mean-frames 8 --sample-mean-trust-power 3
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
+  --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out docs/results/reuse_x1_mean_trust.json \
+  | tee docs/results/reuse_x1_mean_trust.md
+for quality in balanced fast high; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
+    --remeasure --report docs/results/reuse_x1_mean_trust.json --report-source "pretrained:fused-$quality-x1"
+done

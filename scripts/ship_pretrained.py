@@ -27,8 +27,8 @@ pixels (the fused blend is the output there; 0: every frame filtered); the weigh
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
         --after-shipped fused-balanced-x1 --kernel-max-pixels 32768
 
---mean-max-frames, --stale-test-sigmas and --sample-mean-frames (fused only) set the other run-time settings the
-same way (model/methods/fused.py); the weights are the checkpoint's.
+--mean-max-frames, --stale-test-sigmas, --sample-mean-frames and --sample-mean-trust-power (fused only) set the other
+run-time settings the same way (model/methods/fused.py); the weights are the checkpoint's.
 
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
         --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
@@ -49,6 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model.pretrained import (  # noqa: E402
     PRETRAINED_DIR,
+    RUN_TIME_SETTINGS,
     PretrainedError,
     UnknownPretrained,
     get_pretrained,
@@ -88,17 +89,17 @@ def main() -> int:
     parser.add_argument("--sample-mean-frames", type=int, default=None, metavar="N",
                         help="fused only, 1x: OIDN reads a running mean of up to N 1 spp frames and their guides "
                              "(0: the single frame)")
+    parser.add_argument("--sample-mean-trust-power", type=float, default=None, metavar="P",
+                        help="fused only: the sample mean keeps the network's history share to the power P of its "
+                             "frames (default 2)")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
-    if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data
-                           or args.history_before_kernel is not None or args.kernel_max_pixels is not None
-                           or args.mean_max_frames is not None or args.stale_test_sigmas is not None
-                           or args.sample_mean_frames is not None):
+    settings = {name: getattr(args, name) for name in RUN_TIME_SETTINGS if getattr(args, name) is not None}
+    if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data or settings):
         parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data, "
-                     "--history-*-kernel, --kernel-max-pixels, --mean-max-frames, --stale-test-sigmas or "
-                     "--sample-mean-frames")
+                     "--history-*-kernel or other run-time setting")
     report = None
     if args.report is not None:
         if not args.report.is_file():
@@ -112,12 +113,7 @@ def main() -> int:
                                 dataset_script=args.dataset_script, training_script=args.training_script,
                                 report=report, report_source=args.report_source,
                                 report_path=None if args.report is None else str(args.report), stages=args.stage,
-                                after_shipped=args.after_shipped,
-                                history_before_kernel=args.history_before_kernel,
-                                kernel_max_pixels=args.kernel_max_pixels,
-                                mean_max_frames=args.mean_max_frames,
-                                stale_test_sigmas=args.stale_test_sigmas,
-                                sample_mean_frames=args.sample_mean_frames)
+                                after_shipped=args.after_shipped, **settings)
     except (PretrainedError, UnknownPretrained, FileNotFoundError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -105,6 +105,9 @@ STALE_TEST_BLOCK = 9  # the test's window: 81 samples of the 1 spp frame, a stan
 SAMPLE_MEAN_KEY = "sample_mean_window"  # state-dict entry: OIDN reads a running mean of this many 1 spp frames
 # (0 or absent: the single frame)
 SAMPLE_MEAN_STALE_SIGMAS = 2.0  # the sample mean restarts where the new samples are this many standard errors off it
+SAMPLE_MEAN_TRUST_KEY = "sample_mean_share_power"  # state-dict entry: the sample mean keeps the network's history
+# share to this power of its frames (absent: SAMPLE_MEAN_TRUST_POWER)
+SAMPLE_MEAN_TRUST_POWER = 2.0
 
 
 def frame_samples(frame: FrameBatch) -> torch.Tensor:
@@ -218,6 +221,8 @@ class Fused(Method):
         self._stale_test_sigmas = 0.0
         self.register_buffer(SAMPLE_MEAN_KEY, torch.tensor(0.0))
         self._sample_mean_frames = 0
+        self.register_buffer(SAMPLE_MEAN_TRUST_KEY, torch.tensor(SAMPLE_MEAN_TRUST_POWER))
+        self._sample_mean_trust_power = SAMPLE_MEAN_TRUST_POWER
 
     @property
     def history_before_kernel(self) -> bool:
@@ -284,6 +289,20 @@ class Fused(Method):
                                                      "sample_mean_frames must be a whole number of frames >= 0 "
                                                      "(0: OIDN reads the single frame)")
 
+    @property
+    def sample_mean_trust_power(self) -> float:
+        """The sample mean keeps its frames in the proportion the network trusted its history in the frame before,
+        raised to this power (``_history_share``): a higher one restarts it sooner where the network begins to doubt
+        its history, as around a moving light. A model not trained with its sample mean leans on the mean where it
+        lags, and a higher power keeps it nearer the fresh samples (README, "How long the sample mean trusts")."""
+        return self._sample_mean_trust_power
+
+    def set_sample_mean_trust_power(self, value: float) -> None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
+            raise ValueError(f"sample_mean_trust_power must be a finite number > 0, got {value!r}")
+        getattr(self, SAMPLE_MEAN_TRUST_KEY).fill_(float(value))
+        self._sample_mean_trust_power = float(value)
+
     def _store_count(self, key: str, value: int, minimum: int, refusal: str) -> int:
         """A whole-number setting checked and written to its state-dict buffer, so checkpoints record it."""
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
@@ -317,6 +336,8 @@ class Fused(Method):
             state_dict = {**state_dict, STALE_TEST_KEY: torch.tensor(0.0)}
         if SAMPLE_MEAN_KEY not in state_dict:  # saved before the sample mean existed: OIDN reads the single frame
             state_dict = {**state_dict, SAMPLE_MEAN_KEY: torch.tensor(0.0)}
+        if SAMPLE_MEAN_TRUST_KEY not in state_dict:  # saved before the power was a setting: the one they ran
+            state_dict = {**state_dict, SAMPLE_MEAN_TRUST_KEY: torch.tensor(SAMPLE_MEAN_TRUST_POWER)}
         candidates = self._candidates_in(state_dict)
         if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
             raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
@@ -331,6 +352,7 @@ class Fused(Method):
         self.set_mean_max_frames(int(round(getattr(self, MEAN_WINDOW_KEY).item())))
         self.set_stale_test_sigmas(float(getattr(self, STALE_TEST_KEY).item()))
         self.set_sample_mean_frames(int(round(getattr(self, SAMPLE_MEAN_KEY).item())))
+        self.set_sample_mean_trust_power(float(getattr(self, SAMPLE_MEAN_TRUST_KEY).item()))
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
@@ -429,7 +451,7 @@ class Fused(Method):
         weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
         if samples is not None:
-            samples_count = samples_count * self._history_share(weights).detach()
+            samples_count = samples_count * self._history_share(weights, self._sample_mean_trust_power).detach()
         if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
             weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
@@ -461,12 +483,12 @@ class Fused(Method):
                                   spread=sample_mean_spread(frame.motion, frame.jitter, state["jitter"]))
 
     @staticmethod
-    def _history_share(weights: torch.Tensor) -> torch.Tensor:
-        """How much the network trusted its history against OIDN's estimate this frame, squared: the history's and
-        the running mean's weights over theirs plus OIDN's. The sample mean keeps its frames in that proportion, so
-        where the network fell back to OIDN (changed light, a disocclusion it saw) OIDN next reads fresh samples."""
+    def _history_share(weights: torch.Tensor, power: float) -> torch.Tensor:
+        """How much the network trusted its history against OIDN's estimate this frame, to ``power``: the history's
+        and the running mean's weights over theirs plus OIDN's. The sample mean keeps its frames in that proportion,
+        so where the network fell back to OIDN (changed light, a disocclusion it saw) OIDN next reads fresh samples."""
         trusted = weights[:, 1:2] + weights[:, 3:4] if weights.shape[1] > 3 else weights[:, 1:2]
-        return (trusted / (trusted + weights[:, :1]).clamp_min(1e-6)) ** 2
+        return (trusted / (trusted + weights[:, :1]).clamp_min(1e-6)) ** power
 
     def _distrust_stale(self, weights: torch.Tensor, noisy: torch.Tensor, mean: torch.Tensor,
                         valid: torch.Tensor) -> torch.Tensor:

@@ -212,6 +212,8 @@ def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weigh
                  "no running mean", id="stale-history test"),
     pytest.param("sample_mean_frames", "sample_mean_window", 0, 8, -1, "whole number of frames >= 0",
                  "no spatial denoiser to feed a sample mean", id="sample mean"),
+    pytest.param("sample_mean_trust_power", "sample_mean_share_power", 2.0, 3.0, 0.0, "finite number > 0",
+                 "no spatial denoiser to feed a sample mean", id="sample mean trust"),
 ])
 def test_a_shipped_fused_model_reshipped_with_a_run_time_setting_keeps_its_weights(tmp_path, setting, key, default,
                                                                                    value, bad, refusal, missing):
@@ -231,3 +233,12 @@ def test_a_shipped_fused_model_reshipped_with_a_run_time_setting_keeps_its_weigh
     assert getattr(load_pretrained("fused-fast-x1", root=root), setting) == value  # a refused ship changes nothing
     with pytest.raises(PretrainedError, match=missing):
         ship_tiny(root, **{setting: value})
+
+
+def test_shipping_with_a_setting_no_model_has_is_refused_by_name(tmp_path):
+    root = tmp_path / "pretrained"
+    source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
+                             train_config={"steps": 30})
+    with pytest.raises(PretrainedError, match="no run-time setting sample_mean_power; settings: "):
+        ship_checkpoint(source, "fused-fast-x1", root=root, sample_mean_power=3.0)
+    assert not (root / "fused-fast-x1").exists()

@@ -9,8 +9,8 @@ import torch
 
 from model.methods.base import FrameBatch
 from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
-                                 RECURRENCE_KEY, SAMPLE_MEAN_KEY, STALE_TEST_KEY, Fused, frame_samples,
-                                 unjittered_resample)
+                                 RECURRENCE_KEY, SAMPLE_MEAN_KEY, SAMPLE_MEAN_TRUST_KEY, STALE_TEST_KEY, Fused,
+                                 frame_samples, unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -431,6 +431,36 @@ def test_oidn_reads_the_mean_of_the_frames_while_the_network_trusts_its_history(
     torch.testing.assert_close(state["samples"][:, :3], expected)
     torch.testing.assert_close(state["samples_count"], torch.full_like(state["samples_count"], count), atol=1e-3,
                                rtol=0)
+
+
+@pytest.mark.parametrize("power", [2.0, 3.0])
+def test_the_sample_mean_keeps_its_frames_in_the_history_share_to_its_trust_power(monkeypatch, power):
+    read = _record_oidn_colours(monkeypatch)
+    method = build_method("fused:fast")
+    with torch.no_grad():  # OIDN's estimate and the history weighed alike: a history share of 1/2
+        method.net.head.bias[0] = method.net.head.bias[HISTORY] = 12.0
+    method.set_sample_mean_frames(4)
+    method.set_sample_mean_trust_power(power)
+    first, second = _checker_frame(1.0), _checker_frame(-1.0)
+    with torch.no_grad():
+        _, state = method.step(first, None)
+        method.step(second, state)
+    frames = 1 + 0.5 ** power  # the first frame kept in that share, the second added whole
+    torch.testing.assert_close(read[1], second.color + (1 - 1 / frames) * (first.color - second.color))
+
+
+def test_the_sample_mean_trust_power_is_recorded_and_refused_unless_positive():
+    saved = build_method("fused:fast")
+    assert saved.sample_mean_trust_power == 2.0  # what every model before the setting ran
+    saved.set_sample_mean_trust_power(3.0)
+    loaded = build_method("fused:fast")
+    loaded.load_state_dict(saved.state_dict())
+    assert loaded.sample_mean_trust_power == 3.0
+    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != SAMPLE_MEAN_TRUST_KEY})
+    assert loaded.sample_mean_trust_power == 2.0
+    for value in (0.0, -1.0, float("inf"), float("nan"), True, "3"):
+        with pytest.raises(ValueError, match="finite number > 0"):
+            build_method("fused").set_sample_mean_trust_power(value)
 
 
 def test_the_sample_mean_window_is_recorded_and_refused_at_2x_or_when_not_a_whole_number():
