@@ -456,6 +456,9 @@ def test_the_sample_mean_trust_power_is_recorded_and_refused_unless_positive():
     loaded = build_method("fused:fast")
     loaded.load_state_dict(saved.state_dict())
     assert loaded.sample_mean_trust_power == 3.0
+    tuned = build_method("fused:fast")
+    tuned.load_initial_weights(saved.state_dict())  # a fine-tune (--init-from) runs the power it starts from
+    assert tuned.sample_mean_trust_power == 3.0
     loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != SAMPLE_MEAN_TRUST_KEY})
     assert loaded.sample_mean_trust_power == 2.0
     for value in (0.0, -1.0, float("inf"), float("nan"), True, "3"):
