@@ -245,3 +245,15 @@ for quality in balanced fast high; do
   .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
     --remeasure --report docs/results/reuse_x1_mean_trust.json --report-source "pretrained:fused-$quality-x1"
 done
+# The 2x models with the sample mean, their weights unchanged (README: "The sample mean at 2x"); one run with the peers.
+for quality in balanced fast; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
+    --after-shipped "fused-$quality-x2" --sample-mean-frames 8
+done
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
+  --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_sample_mean.json \
+  | tee docs/results/reuse_x2_sample_mean.md
+for quality in balanced fast; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
+    --remeasure --report docs/results/reuse_x2_sample_mean.json --report-source "pretrained:fused-$quality-x2"
+done

@@ -87,7 +87,7 @@ def main() -> int:
                         help="fused only: where the running mean's 9x9 window mean is more than Z standard errors "
                              "off the 1 spp frame's, the history's weight goes to OIDN's estimate (0: no test)")
     parser.add_argument("--sample-mean-frames", type=int, default=None, metavar="N",
-                        help="fused only, 1x: OIDN reads a running mean of up to N 1 spp frames and their guides "
+                        help="fused only: OIDN reads a running mean of up to N 1 spp frames and their guides "
                              "(0: the single frame)")
     parser.add_argument("--sample-mean-trust-power", type=float, default=None, metavar="P",
                         help="fused only: the sample mean keeps the network's history share to the power P of its "

@@ -81,7 +81,8 @@ from model.ops.sample_mean import sample_mean_spread, update_sample_mean
 from model.ops.stale_history import history_trust, stale_history_z
 from model.ops.warp import backward_warp, upscale_motion
 
-__all__ = ["Fused", "FusionNet", "frame_of_sample_mean", "frame_samples", "head_candidates", "unjittered_resample"]
+__all__ = ["Fused", "FusionNet", "frame_of_sample_mean", "frame_samples", "head_candidates", "sample_mean_resample",
+           "unjittered_resample"]
 
 CANDIDATES = 4  # spatial estimate, history, rectified history, clipped running mean
 LEGACY_CANDIDATES = 3  # checkpoints from before the running mean: spatial estimate, history, rectified history
@@ -142,6 +143,15 @@ def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -
     bounds = torch.cat([F.max_pool2d(padded, 3, stride=1), -F.max_pool2d(-padded, 3, stride=1)], dim=1)
     bounds = F.grid_sample(bounds, grid, mode="nearest", padding_mode="border", align_corners=False)
     return torch.minimum(torch.maximum(resampled, bounds[:, 3:]), bounds[:, :3])
+
+
+def sample_mean_resample(image: torch.Tensor, jitter: torch.Tensor, count: torch.Tensor, scale: int) -> torch.Tensor:
+    """``unjittered_resample`` for an estimate made from a sample mean of ``count`` (N, 1, H, W) frames: this frame's
+    samples weigh 1 / count and sit at its jitter, the older frames' jitters average to the pixel centre. So each
+    target pixel blends the image read at this jitter and at none in those proportions (1 frame: the plain resample)."""
+    current = F.interpolate(1.0 / count.clamp_min(1.0), scale_factor=scale, mode="nearest")
+    centred = unjittered_resample(image, torch.zeros_like(jitter), scale)
+    return centred + current * (unjittered_resample(image, jitter, scale) - centred)
 
 
 def head_candidates(head_rows: int, scale: int) -> int:
@@ -277,14 +287,12 @@ class Fused(Method):
         """OIDN denoises a reprojected running mean of up to this many 1 spp frames instead of the single frame
         (0: the single frame; ``model.ops.sample_mean``). The mean keeps the frames' samples only where the network
         trusted its history in the frame before, and restarts where the stale-history test or the geometry test
-        fails, so OIDN reads more samples where the scene holds still and one where it changed. 1x only: at 2x the
-        estimate is resampled at this frame's jitter, which a mean over many jitters does not have (README,
-        "Accumulating samples before OIDN")."""
+        fails, so OIDN reads more samples where the scene holds still and one where it changed. At 2x the estimate
+        is resampled where its samples lie on average (``sample_mean_resample``; README, "Accumulating samples
+        before OIDN", "The sample mean at 2x")."""
         return self._sample_mean_frames
 
     def set_sample_mean_frames(self, value: int) -> None:
-        if self.scale != 1 and value != 0:
-            raise ValueError(f"sample_mean_frames is for 1x models only (this one is {self.scale}x)")
         self._sample_mean_frames = self._store_count(SAMPLE_MEAN_KEY, value, 0,
                                                      "sample_mean_frames must be a whole number of frames >= 0 "
                                                      "(0: OIDN reads the single frame)")
@@ -411,7 +419,12 @@ class Fused(Method):
             s = reinhard(oidn_denoise(frame_of_sample_mean(frame, samples), self.preset).to(frame.color.dtype))
         else:
             s = self.spatial_estimate(frame)
-        s_out = unjittered_resample(s, frame.jitter, self.scale) if self.scale > 1 else s
+        if self.scale == 1:
+            s_out = s
+        elif samples_count is not None:
+            s_out = sample_mean_resample(s, frame.jitter, samples_count, self.scale)
+        else:
+            s_out = unjittered_resample(s, frame.jitter, self.scale)
         mean = count = None  # the running mean and its frame count, when the network has one
         if state is None:
             valid = torch.zeros_like(frame.depth, dtype=torch.bool)
@@ -451,7 +464,8 @@ class Fused(Method):
         weights, kernels, new_hidden = self.net(features)
         weights = torch.softmax(weights, dim=1)
         if samples is not None:
-            samples_count = samples_count * self._history_share(weights, self._sample_mean_trust_power).detach()
+            share = self._history_share(weights, self._sample_mean_trust_power).detach()
+            samples_count = samples_count * (F.avg_pool2d(share, self.scale) if self.scale > 1 else share)
         if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
             weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
         blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))

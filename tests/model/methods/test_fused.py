@@ -10,7 +10,7 @@ import torch
 from model.methods.base import FrameBatch
 from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
                                  RECURRENCE_KEY, SAMPLE_MEAN_KEY, SAMPLE_MEAN_TRUST_KEY, STALE_TEST_KEY, Fused,
-                                 frame_samples, unjittered_resample)
+                                 frame_samples, sample_mean_resample, unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -92,6 +92,19 @@ def test_unjittered_resample_puts_a_jittered_sample_back_at_its_position():
     assert float(error_px.max()) < 0.03
     ignored = unjittered_resample(image, torch.zeros(1, 2, dtype=torch.float64), 2)
     assert float((ignored[0, 0, 4, 4:-4] / 0.05 - centres[4:-4]).abs().min()) > 0.25
+
+
+def test_a_sample_mean_estimate_is_read_at_its_frames_mean_jitter():
+    # One frame: at its own jitter, as unjittered_resample. Two: halfway between that read and the centred one.
+    jitter = torch.tensor([[0.3, -0.2]], dtype=torch.float64)
+    xs = torch.arange(8, dtype=torch.float64) + 0.5
+    image = (0.05 * xs).view(1, 1, 1, 8).expand(1, 3, 8, 8).contiguous()
+    at_jitter = unjittered_resample(image, jitter, 2)
+    centred = unjittered_resample(image, torch.zeros_like(jitter), 2)
+    one, two = (torch.full((1, 1, 8, 8), n, dtype=torch.float64) for n in (1.0, 2.0))
+    torch.testing.assert_close(sample_mean_resample(image, jitter, one, 2), at_jitter)
+    torch.testing.assert_close(sample_mean_resample(image, jitter, two, 2), (at_jitter + centred) / 2)
+    assert float((at_jitter - centred).abs().max()) > 0.01  # the two reads differ: the test can tell them apart
 
 
 def test_training_teaches_it_to_trust_a_static_history():
@@ -466,7 +479,7 @@ def test_the_sample_mean_trust_power_is_recorded_and_refused_unless_positive():
             build_method("fused").set_sample_mean_trust_power(value)
 
 
-def test_the_sample_mean_window_is_recorded_and_refused_at_2x_or_when_not_a_whole_number():
+def test_the_sample_mean_window_is_recorded_and_refused_when_not_a_whole_number():
     saved = build_method("fused:fast")
     saved.set_sample_mean_frames(8)
     loaded = build_method("fused:fast")
@@ -480,8 +493,17 @@ def test_the_sample_mean_window_is_recorded_and_refused_at_2x_or_when_not_a_whol
     for value in (-1, 2.5, True):
         with pytest.raises(ValueError, match="whole number of frames >= 0"):
             build_method("fused").set_sample_mean_frames(value)
-    with pytest.raises(ValueError, match="1x models only"):
-        build_method("fused", 2).set_sample_mean_frames(8)
+
+
+def test_a_2x_model_steps_with_its_sample_mean_and_keeps_it_at_render_resolution():
+    method = trusting(build_method("fused:fast", 2), HISTORY)
+    method.set_sample_mean_frames(8)
+    with torch.no_grad():
+        output, state = method.step(static_frame(size=16, seed=1), None)
+        output, state = method.step(static_frame(size=16, seed=1), state)
+    assert output.shape[-2:] == (32, 32) and torch.isfinite(output).all()
+    assert state["samples"].shape[-2:] == (16, 16) and state["samples_count"].shape == (1, 1, 16, 16)
+    assert float(state["samples_count"].median()) > 1.9  # the trusted history's share, pooled to render pixels
 
 
 def test_a_state_from_before_the_sample_mean_starts_it_at_this_frame():
