@@ -188,10 +188,15 @@ done
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method fused-fast-x1 --method fused-high-x1 --method "$x1" --method runs/fused-fast-x1-cmean/best.pt \
   --method runs/fused-high-x1-cmean/best.pt "${peers[@]}" --out docs/results/reuse_x1.json | tee docs/results/reuse_x1.md
-for quality in balanced fast high; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
-    --remeasure --report docs/results/reuse_x1.json --report-source "pretrained:fused-$quality-x1"
-done
+remeasure() {  # REPORT NAME...: each shipped model takes its held-out rows from REPORT, weights unchanged
+  local report=$1 name
+  shift
+  for name in "$@"; do
+    .venv/bin/python scripts/ship_pretrained.py "pretrained/$name/model.pt" --name "$name" --remeasure \
+      --report "$report" --report-source "pretrained:$name"
+  done
+}
+remeasure docs/results/reuse_x1.json fused-balanced-x1 fused-fast-x1 fused-high-x1
 picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png fused-balanced-x1
 picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png fused-balanced-x1
 # The moving light with the high preset too (the one at or above OIDN-high on every sequence).
@@ -241,10 +246,7 @@ save_checkpoint('runs/high-sm8-p3.pt', method=m)"
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out docs/results/reuse_x1_mean_trust.json \
   | tee docs/results/reuse_x1_mean_trust.md
-for quality in balanced fast high; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
-    --remeasure --report docs/results/reuse_x1_mean_trust.json --report-source "pretrained:fused-$quality-x1"
-done
+remeasure docs/results/reuse_x1_mean_trust.json fused-balanced-x1 fused-fast-x1 fused-high-x1
 # The 2x models with the sample mean, their weights unchanged (README: "The sample mean at 2x"); one run with the peers.
 for quality in balanced fast; do
   .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
@@ -253,7 +255,4 @@ done
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
   --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_sample_mean.json \
   | tee docs/results/reuse_x2_sample_mean.md
-for quality in balanced fast; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
-    --remeasure --report docs/results/reuse_x2_sample_mean.json --report-source "pretrained:fused-$quality-x2"
-done
+remeasure docs/results/reuse_x2_sample_mean.json fused-balanced-x2 fused-fast-x2
