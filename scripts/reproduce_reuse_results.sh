@@ -256,3 +256,21 @@ done
   --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_sample_mean.json \
   | tee docs/results/reuse_x2_sample_mean.md
 remeasure docs/results/reuse_x2_sample_mean.json fused-balanced-x2 fused-fast-x2
+# Every fused model with a looser stale-history test, weights unchanged (README: "The stale-history test at half a
+# standard error"): 0.5 standard errors at 1x, and the test switched on at 2x at 1; one run each with the peers.
+for quality in balanced fast high; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
+    --after-shipped "fused-$quality-x1" --stale-test-sigmas 0.5
+done
+for quality in balanced fast; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
+    --after-shipped "fused-$quality-x2" --stale-test-sigmas 1
+done
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
+  --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out docs/results/reuse_x1_stale_low.json \
+  | tee docs/results/reuse_x1_stale_low.md
+remeasure docs/results/reuse_x1_stale_low.json fused-balanced-x1 fused-fast-x1 fused-high-x1
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
+  --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_stale_low.json \
+  | tee docs/results/reuse_x2_stale_low.md
+remeasure docs/results/reuse_x2_stale_low.json fused-balanced-x2 fused-fast-x2
