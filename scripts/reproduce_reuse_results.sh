@@ -181,10 +181,16 @@ done
 # filtered output as history), and their manifests' held-out rows taken from that run; the 1x pictures with them.
 # They also skip their output kernel on frames of more than 32768 render pixels (twice the 128x128 they were trained
 # on; README: "The kernel and resolved texture"): the same outputs at 128x128, the fused blend above.
-for quality in balanced fast high; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
-    --after-shipped "fused-$quality-x1" --history-before-kernel --kernel-max-pixels 32768
-done
+reship() {  # "SETTING FLAGS" NAME...: each shipped model shipped again with those run-time settings, weights unchanged
+  local settings=$1 name
+  shift
+  for name in "$@"; do
+    # shellcheck disable=SC2086  # the settings are flags to split
+    .venv/bin/python scripts/ship_pretrained.py "pretrained/$name/model.pt" --name "$name" --after-shipped "$name" \
+      $settings
+  done
+}
+reship "--history-before-kernel --kernel-max-pixels 32768" fused-balanced-x1 fused-fast-x1 fused-high-x1
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method fused-fast-x1 --method fused-high-x1 --method "$x1" --method runs/fused-fast-x1-cmean/best.pt \
   --method runs/fused-high-x1-cmean/best.pt "${peers[@]}" --out docs/results/reuse_x1.json | tee docs/results/reuse_x1.md
@@ -205,14 +211,8 @@ picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png fused-bal
   --method fused-high-x1=fused-high --out docs/reuse_moving_light_x1.png
 # Later stages, each measured on its own in the README, the weights unchanged: the running mean's 8-frame window
 # ("Long streams") at both scales, and the stale-history test ("The stale-history test") at 1x.
-for quality in balanced fast high; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
-    --after-shipped "fused-$quality-x1" --mean-max-frames 8 --stale-test-sigmas 2
-done
-for quality in balanced fast; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
-    --after-shipped "fused-$quality-x2" --mean-max-frames 8
-done
+reship "--mean-max-frames 8 --stale-test-sigmas 2" fused-balanced-x1 fused-fast-x1 fused-high-x1
+reship "--mean-max-frames 8" fused-balanced-x2 fused-fast-x2
 # The default model trained with its sample mean (README: "Accumulating samples before OIDN"): 400 steps from the
 # shipped weights with sample_mean_frames 8; the best validation checkpoint ships.
 .venv/bin/python -c "from model.pretrained import load_pretrained; from model.checkpoint import save_checkpoint
@@ -241,31 +241,21 @@ m = load_pretrained('fused-fast-x1'); m.set_sample_mean_frames(8); save_checkpoi
 .venv/bin/python -c "from model.pretrained import load_pretrained; from model.checkpoint import save_checkpoint
 m = load_pretrained('fused-high-x1'); m.set_sample_mean_frames(8); m.set_sample_mean_trust_power(3.0)
 save_checkpoint('runs/high-sm8-p3.pt', method=m)"
-.venv/bin/python scripts/ship_pretrained.py pretrained/fused-high-x1/model.pt --name fused-high-x1 \
-  --after-shipped fused-high-x1 --sample-mean-frames 8 --sample-mean-trust-power 3
+reship "--sample-mean-frames 8 --sample-mean-trust-power 3" fused-high-x1
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out docs/results/reuse_x1_mean_trust.json \
   | tee docs/results/reuse_x1_mean_trust.md
 remeasure docs/results/reuse_x1_mean_trust.json fused-balanced-x1 fused-fast-x1 fused-high-x1
 # The 2x models with the sample mean, their weights unchanged (README: "The sample mean at 2x"); one run with the peers.
-for quality in balanced fast; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
-    --after-shipped "fused-$quality-x2" --sample-mean-frames 8
-done
+reship "--sample-mean-frames 8" fused-balanced-x2 fused-fast-x2
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
   --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_sample_mean.json \
   | tee docs/results/reuse_x2_sample_mean.md
 remeasure docs/results/reuse_x2_sample_mean.json fused-balanced-x2 fused-fast-x2
 # Every fused model with a looser stale-history test, weights unchanged (README: "The stale-history test at half a
 # standard error"): 0.5 standard errors at 1x, and the test switched on at 2x at 1; one run each with the peers.
-for quality in balanced fast high; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x1/model.pt" --name "fused-$quality-x1" \
-    --after-shipped "fused-$quality-x1" --stale-test-sigmas 0.5
-done
-for quality in balanced fast; do
-  .venv/bin/python scripts/ship_pretrained.py "pretrained/fused-$quality-x2/model.pt" --name "fused-$quality-x2" \
-    --after-shipped "fused-$quality-x2" --stale-test-sigmas 1
-done
+reship "--stale-test-sigmas 0.5" fused-balanced-x1 fused-fast-x1 fused-high-x1
+reship "--stale-test-sigmas 1" fused-balanced-x2 fused-fast-x2
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out docs/results/reuse_x1_stale_low.json \
   | tee docs/results/reuse_x1_stale_low.md
