@@ -223,6 +223,7 @@ RUN_TIME_SETTINGS: dict[str, tuple[bool, str]] = {
     "kernel_max_pixels": (False, "no output kernel to limit"),
     "mean_max_frames": (True, "no running mean to set a window for"),
     "stale_test_sigmas": (True, "no running mean for the stale-history test"),
+    "stale_region_pixels": (True, "no running mean for the stale-history test"),
     "sample_mean_frames": (False, "no spatial denoiser to feed a sample mean"),
     "sample_mean_trust_power": (False, "no spatial denoiser to feed a sample mean"),
 }

@@ -27,8 +27,8 @@ pixels (the fused blend is the output there; 0: every frame filtered); the weigh
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
         --after-shipped fused-balanced-x1 --kernel-max-pixels 32768
 
---mean-max-frames, --stale-test-sigmas, --sample-mean-frames and --sample-mean-trust-power (fused only) set the other
-run-time settings the same way (model/methods/fused.py); the weights are the checkpoint's.
+--mean-max-frames, --stale-test-sigmas, --stale-region-pixels, --sample-mean-frames and --sample-mean-trust-power
+(fused only) set the other run-time settings the same way (model/methods/fused.py); the weights are the checkpoint's.
 
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
         --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
@@ -86,6 +86,9 @@ def main() -> int:
     parser.add_argument("--stale-test-sigmas", type=float, default=None, metavar="Z",
                         help="fused only: where the running mean's 9x9 window mean is more than Z standard errors "
                              "off the 1 spp frame's, the history's weight goes to OIDN's estimate (0: no test)")
+    parser.add_argument("--stale-region-pixels", type=int, default=None, metavar="N",
+                        help="fused only: the stale-history test also reads the root mean square of its z's over "
+                             "N x N render pixels (odd; 0: no regional test), and the sample mean restarts on it")
     parser.add_argument("--sample-mean-frames", type=int, default=None, metavar="N",
                         help="fused only: OIDN reads a running mean of up to N 1 spp frames and their guides "
                              "(0: the single frame)")

@@ -50,7 +50,10 @@ A model may also test its history against the 1 spp frame (``stale_test_sigmas``
 dict; absent or 0: no test): where the running mean's 9 x 9 window mean lies more than that many standard errors
 from the noisy frame's (``model.ops.stale_history``), the weights of ``h`` and ``c`` fall off and go to ``s``. The
 network lags behind a moving light over whole regions, since a region of changed shading and one of OIDN's
-blotches look alike in its inputs; the unbiased samples tell them apart.
+blotches look alike in its inputs; the unbiased samples tell them apart. With ``stale_region_pixels``
+(``STALE_REGION_KEY``; absent or 0: none) the test also reads the root mean square of its z's over a wider region,
+where a light that moved a little every frame shows as a whole though no single window is sure; the sample mean
+restarts on it too.
 
 Where there is no history (disocclusion, a cut, the first frame), ``h`` is ``s`` itself and ``r`` is ``s`` clipped to
 its own neighbourhood, so the output is made of OIDN's estimate alone: the method falls back to the spatial
@@ -78,7 +81,7 @@ from model.ops.kernels import apply_pixel_kernels
 from model.ops.rectify import clip_to_moments, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
 from model.ops.sample_mean import sample_mean_spread, update_sample_mean
-from model.ops.stale_history import history_trust, stale_history_z
+from model.ops.stale_history import stale_history_trust
 from model.ops.warp import backward_warp, upscale_motion
 
 __all__ = ["Fused", "FusionNet", "frame_of_sample_mean", "frame_samples", "head_candidates", "sample_mean_resample",
@@ -102,6 +105,8 @@ WIDTH = 16
 RECURRENCE_KEY = "recurrence_before_kernel"  # state-dict entry: 1 = the blend before the kernel is the history
 KERNEL_LIMIT_KEY = "kernel_limit_pixels"  # state-dict entry: frames with more render pixels skip the kernel (0: none do)
 STALE_TEST_KEY = "stale_history_sigmas"  # state-dict entry: the stale-history test's threshold (0 or absent: no test)
+STALE_REGION_KEY = "stale_region_window"  # state-dict entry: the regional stale-history test's window (0 or absent:
+# none)
 STALE_TEST_BLOCK = 9  # the test's window: 81 samples of the 1 spp frame, a standard error of a ninth of their spread
 SAMPLE_MEAN_KEY = "sample_mean_window"  # state-dict entry: OIDN reads a running mean of this many 1 spp frames
 # (0 or absent: the single frame)
@@ -229,6 +234,8 @@ class Fused(Method):
         self.set_mean_max_frames(int(MEAN_FRAMES))
         self.register_buffer(STALE_TEST_KEY, torch.tensor(0.0))
         self._stale_test_sigmas = 0.0
+        self.register_buffer(STALE_REGION_KEY, torch.tensor(0.0))
+        self._stale_region_pixels = 0
         self.register_buffer(SAMPLE_MEAN_KEY, torch.tensor(0.0))
         self._sample_mean_frames = 0
         self.register_buffer(SAMPLE_MEAN_TRUST_KEY, torch.tensor(SAMPLE_MEAN_TRUST_POWER))
@@ -281,6 +288,21 @@ class Fused(Method):
                              f"got {value!r}")
         getattr(self, STALE_TEST_KEY).fill_(float(value))
         self._stale_test_sigmas = float(value)
+
+    @property
+    def stale_region_pixels(self) -> int:
+        """The regional stale-history test's window, odd, in render pixels (0: none; ``model.ops.stale_history``):
+        where the root mean square of the test's z's over it is past ``REGION_SIGMAS``, the history's weights fall
+        off too (``stale_test_sigmas`` > 0) and the sample mean restarts (``sample_mean_frames`` > 0). A light that
+        moves a little every frame is seen by few single windows and by most regions (README, "The regional
+        stale-history test")."""
+        return self._stale_region_pixels
+
+    def set_stale_region_pixels(self, value: int) -> None:
+        refusal = "stale_region_pixels must be an odd whole number of pixels, or 0 (no regional test)"
+        if not isinstance(value, bool) and isinstance(value, int) and value > 0 and value % 2 == 0:
+            raise ValueError(f"{refusal}, got {value!r}")
+        self._stale_region_pixels = self._store_count(STALE_REGION_KEY, value, 0, refusal)
 
     @property
     def sample_mean_frames(self) -> int:
@@ -342,6 +364,8 @@ class Fused(Method):
             state_dict = {**state_dict, MEAN_WINDOW_KEY: torch.tensor(MEAN_FRAMES)}
         if STALE_TEST_KEY not in state_dict:  # saved before the test existed: none
             state_dict = {**state_dict, STALE_TEST_KEY: torch.tensor(0.0)}
+        if STALE_REGION_KEY not in state_dict:  # saved before the regional test existed: none
+            state_dict = {**state_dict, STALE_REGION_KEY: torch.tensor(0.0)}
         if SAMPLE_MEAN_KEY not in state_dict:  # saved before the sample mean existed: OIDN reads the single frame
             state_dict = {**state_dict, SAMPLE_MEAN_KEY: torch.tensor(0.0)}
         if SAMPLE_MEAN_TRUST_KEY not in state_dict:  # saved before the power was a setting: the one they ran
@@ -359,6 +383,7 @@ class Fused(Method):
         self.set_kernel_max_pixels(int(round(getattr(self, KERNEL_LIMIT_KEY).item())))
         self.set_mean_max_frames(int(round(getattr(self, MEAN_WINDOW_KEY).item())))
         self.set_stale_test_sigmas(float(getattr(self, STALE_TEST_KEY).item()))
+        self.set_stale_region_pixels(int(round(getattr(self, STALE_REGION_KEY).item())))
         self.set_sample_mean_frames(int(round(getattr(self, SAMPLE_MEAN_KEY).item())))
         self.set_sample_mean_trust_power(float(getattr(self, SAMPLE_MEAN_TRUST_KEY).item()))
         return result
@@ -494,7 +519,8 @@ class Fused(Method):
         warped, _ = backward_warp(previous, frame.motion, mode="bilinear")
         count, _ = backward_warp(state["samples_count"], frame.motion, mode="nearest")
         return update_sample_mean(samples, warped, count, valid, self._sample_mean_frames, SAMPLE_MEAN_STALE_SIGMAS,
-                                  spread=sample_mean_spread(frame.motion, frame.jitter, state["jitter"]))
+                                  spread=sample_mean_spread(frame.motion, frame.jitter, state["jitter"]),
+                                  stale_region=self._stale_region_pixels)
 
     @staticmethod
     def _history_share(weights: torch.Tensor, power: float) -> torch.Tensor:
@@ -511,7 +537,7 @@ class Fused(Method):
         weight, since its clip to OIDN's neighbourhood already bounds how stale it can be. Where the history is not
         valid there is nothing to distrust (the mean is OIDN's estimate itself), so a zeroed state, an engine's first
         frame, gives what no state gives."""
-        trust = history_trust(stale_history_z(noisy, mean, STALE_TEST_BLOCK), self._stale_test_sigmas)
+        trust = stale_history_trust(noisy, mean, self._stale_test_sigmas, self._stale_region_pixels, STALE_TEST_BLOCK)
         trust = _upsample_values(torch.where(valid, trust, torch.ones_like(trust)), self.scale)
         history, rectified, clipped_mean = weights[:, 1:2] * trust, weights[:, 2:3], weights[:, 3:4] * trust
         moved = weights[:, 1:2] + weights[:, 3:4] - history - clipped_mean

@@ -4,7 +4,7 @@ OIDN on one sample per pixel loses texture it cannot tell from noise; on the mea
 the scene holds still) it keeps more of it. Unlike a mean of the denoiser's outputs, whose blur does not average out,
 this one averages the unbiased samples. Per pixel, with ``count`` the frames the reprojected mean already holds:
 
-    trust = history_trust(stale_history_z(noisy, mean), sigmas)      (1 where sigmas is 0: no test)
+    trust = stale_history_trust(noisy, mean, sigmas, region)         (1 where sigmas is 0: no test)
     n     = min(count * trust * (1 - spread) + 1, max_frames)   where the history is valid, else 1
     mean  = noisy / n + (1 - 1 / n) * mean
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-from model.ops.stale_history import history_trust, stale_history_z
+from model.ops.stale_history import stale_history_trust
 from model.ops.warp import bilinear_spread
 
 __all__ = ["JITTERED_SPREAD_SHARE", "sample_mean_spread", "update_sample_mean"]
@@ -44,18 +44,18 @@ def sample_mean_spread(motion: torch.Tensor, jitter: torch.Tensor, previous_jitt
 
 def update_sample_mean(noisy: torch.Tensor, mean: torch.Tensor, count: torch.Tensor, valid: torch.Tensor,
                        max_frames: int, stale_sigmas: float = 0.0,
-                       spread: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                       spread: torch.Tensor | None = None, stale_region: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """(new mean, frames it holds) from this frame's samples ``noisy`` (N, C, H, W), C >= 3 with the colour first,
     and the previous mean and count warped into this frame (``mean`` (N, C, H, W), ``count`` (N, 1, H, W));
     ``valid`` (N, 1, H, W) bool marks where that history may be used; ``spread`` (N, 1, H, W) in [0, 1], the blur
-    of that warp (None: none)."""
+    of that warp (None: none); ``stale_region``: the regional test's window (``stale_history_trust``; 0: none)."""
     if max_frames < 1:
         raise ValueError(f"max_frames must be >= 1, got {max_frames}")
     if noisy.dim() != 4 or noisy.shape[1] < 3 or noisy.shape != mean.shape:
         raise ValueError(f"noisy and mean must both be (N, C >= 3, H, W) of one shape, got {tuple(noisy.shape)} and "
                          f"{tuple(mean.shape)}")
     if stale_sigmas > 0:
-        count = count * history_trust(stale_history_z(noisy[:, :3], mean[:, :3]), stale_sigmas)
+        count = count * stale_history_trust(noisy[:, :3], mean[:, :3], stale_sigmas, stale_region)
     if spread is not None:
         if spread.shape != count.shape:
             raise ValueError(f"spread must have the count's shape {tuple(count.shape)}, got {tuple(spread.shape)}")

@@ -9,7 +9,14 @@ finds the same with re-shaded samples, which our frame format does not carry). F
 the test grows more lenient exactly where the frame is least trustworthy.
 
 ``stale_history_z`` is that distance in standard errors, per pixel (each pixel's window centred on it);
-``history_trust`` turns it into a weight in [0, 1]: 1 up to ``sigmas``, then a Gaussian fall-off.
+``history_trust`` turns it into a weight in [0, 1]: 1 up to ``sigmas``, then a Gaussian fall-off;
+``stale_history_trust`` is the two together, the weight its callers use.
+
+One window's 81 samples see a light that moves a little every frame only where the change is large. Over a
+region the evidence adds up: where nothing changed each z is about as likely small as large and their root mean
+square stays near 1, while a light that moved lifts the z of most windows in reach, whatever the sign of each
+change. ``regional_z`` is that root mean square over a wider window; a region whose z's are too large as a
+whole distrusts its history even where no single window is sure (README, "The regional stale-history test").
 """
 
 from __future__ import annotations
@@ -17,9 +24,14 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["stale_history_z", "history_trust", "RELATIVE_FLOOR"]
+__all__ = ["stale_history_z", "history_trust", "regional_z", "stale_history_trust", "RELATIVE_FLOOR",
+           "REGION_SIGMAS"]
 
 RELATIVE_FLOOR = 0.02  # a 2% change of the mean is never significant: references and history carry that much
+# A region's root mean square z past this is a change. Where nothing changed it sits near 1, a little under (the
+# floor above shrinks small z's); chosen with a 33-pixel region on the validation split and the seed-8 moving-light
+# renders (README, "The regional stale-history test").
+REGION_SIGMAS = 1.2
 
 
 def _window_mean(image: torch.Tensor, block: int) -> torch.Tensor:
@@ -52,3 +64,24 @@ def stale_history_z(noisy: torch.Tensor, history: torch.Tensor, block: int = 9) 
 def history_trust(z: torch.Tensor, sigmas: float) -> torch.Tensor:
     """exp(-max(z - sigmas, 0)^2 / 2): full trust up to ``sigmas`` standard errors, falling off beyond."""
     return torch.exp(-F.relu(z - sigmas) ** 2 / 2)
+
+
+def regional_z(z: torch.Tensor, window: int) -> torch.Tensor:
+    """sqrt(mean of z^2) over each pixel's window x window neighbourhood (cut at the border), (N, 1, H, W)."""
+    if z.dim() != 4 or z.shape[1] != 1:
+        raise ValueError(f"z must be (N, 1, H, W), got {tuple(z.shape)}")
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be odd and positive, got {window}")
+    return torch.sqrt(_window_mean(z * z, window))
+
+
+def stale_history_trust(noisy: torch.Tensor, history: torch.Tensor, sigmas: float, region: int = 0,
+                        block: int = 9) -> torch.Tensor:
+    """How far to trust ``history`` against the 1 spp frame ``noisy``, (N, 1, H, W) in [0, 1]: ``history_trust`` of
+    ``stale_history_z`` at ``sigmas``, and with a ``region`` (odd window side, 0: none) the lesser of that and the
+    region's trust, ``history_trust(regional_z(z, region), REGION_SIGMAS)``."""
+    z = stale_history_z(noisy, history, block)
+    trust = history_trust(z, sigmas)
+    if region:
+        trust = torch.minimum(trust, history_trust(regional_z(z, region), REGION_SIGMAS))
+    return trust

@@ -210,6 +210,8 @@ def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weigh
                  id="mean window"),
     pytest.param("stale_test_sigmas", "stale_history_sigmas", 0.0, 2.0, -1.0, "finite number of standard errors",
                  "no running mean", id="stale-history test"),
+    pytest.param("stale_region_pixels", "stale_region_window", 0, 33, 4, "odd whole number of pixels",
+                 "no running mean", id="regional stale-history test"),
     pytest.param("sample_mean_frames", "sample_mean_window", 0, 8, -1, "whole number of frames >= 0",
                  "no spatial denoiser to feed a sample mean", id="sample mean"),
     pytest.param("sample_mean_trust_power", "sample_mean_share_power", 2.0, 3.0, 0.0, "finite number > 0",

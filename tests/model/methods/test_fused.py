@@ -9,8 +9,8 @@ import torch
 
 from model.methods.base import FrameBatch
 from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
-                                 RECURRENCE_KEY, SAMPLE_MEAN_KEY, SAMPLE_MEAN_TRUST_KEY, STALE_TEST_KEY, Fused,
-                                 frame_samples, sample_mean_resample, unjittered_resample)
+                                 RECURRENCE_KEY, SAMPLE_MEAN_KEY, SAMPLE_MEAN_TRUST_KEY, STALE_REGION_KEY,
+                                 STALE_TEST_KEY, Fused, frame_samples, sample_mean_resample, unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -334,6 +334,7 @@ def test_frames_above_the_kernel_limit_output_the_blend_unfiltered():
     pytest.param("kernel_max_pixels", KERNEL_LIMIT_KEY, 0, 32768, id="kernel limit"),  # default: every frame filtered
     pytest.param("mean_max_frames", MEAN_WINDOW_KEY, int(MEAN_FRAMES), 8, id="mean window"),
     pytest.param("stale_test_sigmas", STALE_TEST_KEY, 0.0, 2.0, id="stale-history test"),  # default: no test
+    pytest.param("stale_region_pixels", STALE_REGION_KEY, 0, 33, id="regional stale-history test"),  # default: none
 ])
 def test_a_checkpoint_records_its_run_time_setting_and_older_ones_load_with_the_default(scale, setting, key, default,
                                                                                         value):
@@ -368,24 +369,29 @@ def trusting(method: Fused, candidate: int = HISTORY) -> Fused:
     return method
 
 
+@torch.no_grad()
+def after_a_light_change(scale: int, gain: float, sigmas: float, region: int = 0) -> torch.Tensor:
+    """A history-trusting model's last output (at render resolution) when the light holds still for three frames,
+    then changes by ``gain``, with the stale-history test at ``sigmas`` and its ``region``."""
+    method, state = trusting(build_method("fused", scale)), None
+    method.set_stale_test_sigmas(sigmas)
+    method.set_stale_region_pixels(region)
+    for k in range(4):
+        estimate = truth() * (gain if k == 3 else 1.0)
+        frame = plane_frame(noisy_constant(estimate, torch.Generator().manual_seed(k)))
+        frame.spatial_estimate = estimate
+        output, state = method.step(frame, state)
+    return torch.nn.functional.avg_pool2d(output, scale) if scale > 1 else output
+
+
 @pytest.mark.parametrize("scale", [1, 2])
 def test_the_stale_history_test_hands_a_changed_light_to_oidn_and_leaves_a_still_one_alone(scale):
-    @torch.no_grad()
-    def run(sigmas: float, gain: float) -> torch.Tensor:
-        method, state = trusting(build_method("fused", scale)), None
-        method.set_stale_test_sigmas(sigmas)
-        for k in range(4):  # the light holds still, then changes by `gain` on the last frame
-            estimate = truth() * (gain if k == 3 else 1.0)
-            frame = plane_frame(noisy_constant(estimate, torch.Generator().manual_seed(k)))
-            frame.spatial_estimate = estimate
-            output, state = method.step(frame, state)
-        return torch.nn.functional.avg_pool2d(output, scale) if scale > 1 else output
-
-    lagging, tested = run(0.0, 2.0), run(3.0, 2.0)
+    lagging, tested = after_a_light_change(scale, 2.0, 0.0), after_a_light_change(scale, 2.0, 3.0)
     assert float((lagging - truth()).abs().mean()) < 0.05  # without the test the history keeps the old light
     torch.testing.assert_close(tested, truth() * 2.0, atol=0.05, rtol=0.05)  # with it, OIDN's new estimate
     # Unbiased noise alone passes the test (nearly everywhere: 3 standard errors is a test, not a bound).
-    torch.testing.assert_close(run(3.0, 1.0), run(0.0, 1.0), atol=1e-3, rtol=1e-3)
+    torch.testing.assert_close(after_a_light_change(scale, 1.0, 3.0), after_a_light_change(scale, 1.0, 0.0),
+                               atol=1e-3, rtol=1e-3)
 
 
 @pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf"), True, "2"])
@@ -394,6 +400,26 @@ def test_a_stale_test_threshold_that_is_not_a_finite_number_of_standard_errors_i
     with pytest.raises(ValueError, match="finite number of standard errors"):
         method.set_stale_test_sigmas(value)
     assert method.stale_test_sigmas == 0.0
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_the_regional_test_hands_a_small_change_everywhere_to_oidn_where_single_windows_miss_it(scale):
+    def error(output: torch.Tensor) -> float:
+        return float((output - truth() * 1.25).abs().mean())
+
+    alone, regional = after_a_light_change(scale, 1.25, 3.0), after_a_light_change(scale, 1.25, 3.0, region=15)
+    assert error(alone) > 0.8 * error(truth())  # at 3 standard errors the single windows keep most of the old light
+    assert error(regional) < 0.4 * error(alone)  # the region sees what few of them do
+    torch.testing.assert_close(after_a_light_change(scale, 1.0, 3.0, region=15), after_a_light_change(scale, 1.0, 3.0),
+                               atol=2e-3, rtol=2e-3)  # noise alone passes it
+
+
+@pytest.mark.parametrize("value", [-1, 4, 2.5, True])
+def test_a_region_that_is_not_an_odd_whole_number_of_pixels_is_refused(value):
+    method = build_method("fused")
+    with pytest.raises(ValueError, match="odd whole number of pixels"):
+        method.set_stale_region_pixels(value)
+    assert method.stale_region_pixels == 0
 
 
 def test_with_the_stale_history_test_a_zeroed_state_gives_what_no_state_gives():

@@ -61,6 +61,20 @@ def test_a_changed_light_restarts_the_mean_and_noise_alone_does_not():
     assert float(kept.mean()) > 4.9  # 5 frames nearly everywhere
 
 
+def test_with_a_region_a_small_change_everywhere_restarts_the_mean_too():
+    truth = torch.full((1, 3, 48, 48), 0.5)
+    generator = torch.Generator().manual_seed(3)
+    history, count = truth.clone(), torch.full((1, 1, 48, 48), 4.0)
+    valid = torch.ones_like(count, dtype=torch.bool)
+    brighter = noisy_constant(truth * 1.1, generator)  # under 2 standard errors in most single windows
+    _, alone = update_sample_mean(brighter, history, count, valid, 8, stale_sigmas=2.0)
+    _, regional = update_sample_mean(brighter, history, count, valid, 8, stale_sigmas=2.0, stale_region=33)
+    assert float(alone.mean()) > 4.4 and float(regional.mean()) < 0.8 * float(alone.mean())
+    _, kept = update_sample_mean(noisy_constant(truth, generator), history, count, valid, 8, stale_sigmas=2.0,
+                                 stale_region=33)
+    assert float(kept.mean()) > 4.9  # noise alone keeps nearly every frame
+
+
 def test_a_window_below_one_frame_is_refused():
     with pytest.raises(ValueError, match="max_frames must be >= 1"):
         update_sample_mean(torch.ones(SHAPE), torch.ones(SHAPE), torch.ones(1, 1, 12, 12),

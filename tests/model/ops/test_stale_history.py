@@ -1,4 +1,5 @@
-"""The stale-history test: how many standard errors a history's window mean lies from the 1 spp frame's."""
+"""The stale-history test: how many standard errors a history's window mean lies from the 1 spp frame's, and the
+root mean square of those distances over a region."""
 
 from __future__ import annotations
 
@@ -7,7 +8,14 @@ import math
 import pytest
 import torch
 
-from model.ops.stale_history import RELATIVE_FLOOR, history_trust, stale_history_z
+from model.ops.stale_history import (
+    REGION_SIGMAS,
+    RELATIVE_FLOOR,
+    history_trust,
+    regional_z,
+    stale_history_trust,
+    stale_history_z,
+)
 from tests.builders import noisy_constant
 
 
@@ -68,3 +76,41 @@ def test_trust_is_full_up_to_the_threshold_and_falls_off_past_it():
 def test_bad_shapes_and_blocks_are_refused(shapes, block, message):
     with pytest.raises(ValueError, match=message):
         stale_history_z(torch.ones(shapes[0]), torch.ones(shapes[1]), block)
+
+
+@pytest.mark.parametrize("window", [1, 3, 7])
+def test_the_regional_z_is_the_root_mean_square_of_each_window_cut_at_the_border(window):
+    z = torch.rand(1, 1, 6, 8, generator=torch.Generator().manual_seed(4)) * 3
+    radius = window // 2
+    expected = torch.zeros_like(z)
+    for y in range(6):
+        for x in range(8):
+            part = z[0, 0, max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1]
+            expected[0, 0, y, x] = part.square().mean().sqrt()
+    torch.testing.assert_close(regional_z(z, window), expected)
+    torch.testing.assert_close(regional_z(torch.full((1, 1, 5, 5), 2.5), 33), torch.full((1, 1, 5, 5), 2.5))
+
+
+def test_a_small_change_everywhere_fails_the_regional_test_where_single_windows_pass():
+    truth = torch.full((1, 3, 48, 48), 0.5)
+    generator = torch.Generator().manual_seed(5)
+    brighter = noisy_constant(truth * 1.1, generator)  # about 1.9 standard errors a window: under a 3-sigma test
+    same = noisy_constant(truth, generator)
+    alone = stale_history_trust(brighter, truth, 3.0)
+    torch.testing.assert_close(alone, history_trust(stale_history_z(brighter, truth), 3.0))
+    assert float(alone.mean()) > 0.9  # few single windows are sure
+    regional = stale_history_trust(brighter, truth, 3.0, region=33)
+    assert float(regional.mean()) < 0.75  # the regions are
+    assert torch.all(regional <= alone)  # the lesser of the two trusts
+    assert float(stale_history_trust(same, truth, 3.0, region=33).mean()) > 0.97  # noise alone passes both
+    assert 1.0 < REGION_SIGMAS < 2.0  # past the root mean square of z's under no change (about 1)
+
+
+@pytest.mark.parametrize("shape, window, message", [
+    ((1, 3, 8, 8), 3, r"\(N, 1, H, W\)"),
+    ((1, 1, 8, 8), 4, "odd and positive"),
+    ((1, 1, 8, 8), 0, "odd and positive"),
+])
+def test_a_regional_z_of_another_shape_or_an_even_window_is_refused(shape, window, message):
+    with pytest.raises(ValueError, match=message):
+        regional_z(torch.ones(shape), window)
