@@ -15,8 +15,10 @@ the test grows more lenient exactly where the frame is least trustworthy.
 One window's 81 samples see a light that moves a little every frame only where the change is large. Over a
 region the evidence adds up: where nothing changed each z is about as likely small as large and their root mean
 square stays near 1, while a light that moved lifts the z of most windows in reach, whatever the sign of each
-change. ``regional_z`` is that root mean square over a wider window; a region whose z's are too large as a
-whole distrusts its history even where no single window is sure (README, "The regional stale-history test").
+change. ``regional_z`` is that root mean square over a wider window, each z capped at ``REGION_Z_CAP`` first so that
+a few windows far off (a visible lamp that moved: z in the tens) cannot speak for the whole region; a region whose
+z's are too large as a whole distrusts its history even where no single window is sure (README, "The regional
+stale-history test").
 """
 
 from __future__ import annotations
@@ -25,13 +27,14 @@ import torch
 import torch.nn.functional as F
 
 __all__ = ["stale_history_z", "history_trust", "regional_z", "stale_history_trust", "RELATIVE_FLOOR",
-           "REGION_SIGMAS"]
+           "REGION_SIGMAS", "REGION_Z_CAP"]
 
 RELATIVE_FLOOR = 0.02  # a 2% change of the mean is never significant: references and history carry that much
 # A region's root mean square z past this is a change. Where nothing changed it sits near 1, a little under (the
 # floor above shrinks small z's); chosen with a 33-pixel region on the validation split and the seed-8 moving-light
 # renders (README, "The regional stale-history test").
 REGION_SIGMAS = 1.2
+REGION_Z_CAP = 4.0  # no window counts for more than this in its region's root mean square (chosen with it)
 
 
 def _window_mean(image: torch.Tensor, block: int) -> torch.Tensor:
@@ -66,13 +69,14 @@ def history_trust(z: torch.Tensor, sigmas: float) -> torch.Tensor:
     return torch.exp(-F.relu(z - sigmas) ** 2 / 2)
 
 
-def regional_z(z: torch.Tensor, window: int) -> torch.Tensor:
-    """sqrt(mean of z^2) over each pixel's window x window neighbourhood (cut at the border), (N, 1, H, W)."""
+def regional_z(z: torch.Tensor, window: int, cap: float = REGION_Z_CAP) -> torch.Tensor:
+    """sqrt(mean of min(z, cap)^2) over each pixel's window x window neighbourhood (cut at the border), (N, 1, H, W)."""
     if z.dim() != 4 or z.shape[1] != 1:
         raise ValueError(f"z must be (N, 1, H, W), got {tuple(z.shape)}")
     if window < 1 or window % 2 == 0:
         raise ValueError(f"window must be odd and positive, got {window}")
-    return torch.sqrt(_window_mean(z * z, window))
+    capped = z.clamp_max(cap)
+    return torch.sqrt(_window_mean(capped * capped, window))
 
 
 def stale_history_trust(noisy: torch.Tensor, history: torch.Tensor, sigmas: float, region: int = 0,

@@ -10,6 +10,7 @@ import torch
 
 from model.ops.stale_history import (
     REGION_SIGMAS,
+    REGION_Z_CAP,
     RELATIVE_FLOOR,
     history_trust,
     regional_z,
@@ -87,8 +88,18 @@ def test_the_regional_z_is_the_root_mean_square_of_each_window_cut_at_the_border
         for x in range(8):
             part = z[0, 0, max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1]
             expected[0, 0, y, x] = part.square().mean().sqrt()
-    torch.testing.assert_close(regional_z(z, window), expected)
+    torch.testing.assert_close(regional_z(z, window, cap=3.0), expected)  # z stays under 3 here
     torch.testing.assert_close(regional_z(torch.full((1, 1, 5, 5), 2.5), 33), torch.full((1, 1, 5, 5), 2.5))
+
+
+def test_a_few_windows_far_off_do_not_speak_for_their_region():
+    z = torch.full((1, 1, 33, 33), 0.8)  # no change: z's about as small as large
+    z[..., 12:21, 12:21] = 40.0  # a visible lamp moved: 81 of the region's 1089 windows are sure
+    capped = float(regional_z(z, 33)[0, 0, 16, 16])
+    assert capped == pytest.approx(math.sqrt((81 * REGION_Z_CAP ** 2 + 1008 * 0.64) / 1089), rel=1e-4)
+    uncapped = regional_z(z, 33, cap=float("inf"))[0, 0, 16, 16]
+    assert float(history_trust(torch.tensor(capped), REGION_SIGMAS)) > 0.98  # the region keeps its history
+    assert float(history_trust(uncapped, REGION_SIGMAS)) < 0.01  # uncapped, the lamp alone would throw it away
 
 
 def test_a_small_change_everywhere_fails_the_regional_test_where_single_windows_pass():
