@@ -264,3 +264,19 @@ remeasure docs/results/reuse_x1_stale_low.json fused-balanced-x1 fused-fast-x1 f
   --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_stale_low.json \
   | tee docs/results/reuse_x2_stale_low.md
 remeasure docs/results/reuse_x2_stale_low.json fused-balanced-x2 fused-fast-x2
+# Every fused model with the regional stale-history test over 33 x 33 render pixels, weights unchanged (README: "The
+# regional stale-history test"); one run each with the models before it (copied first) and the peers.
+mkdir -p runs/old
+for name in fused-balanced-x1 fused-fast-x1 fused-high-x1 fused-balanced-x2 fused-fast-x2; do
+  cp "pretrained/$name/model.pt" "runs/old/$name.pt"
+done
+reship "--stale-region-pixels 33" fused-balanced-x1 fused-fast-x1 fused-high-x1 fused-balanced-x2 fused-fast-x2
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
+  --method fused-fast-x1 --method fused-high-x1 --method runs/old/fused-balanced-x1.pt \
+  --method runs/old/fused-fast-x1.pt --method runs/old/fused-high-x1.pt "${peers[@]:0:12}" \
+  --out docs/results/reuse_x1_stale_region.json | tee docs/results/reuse_x1_stale_region.md
+remeasure docs/results/reuse_x1_stale_region.json fused-balanced-x1 fused-fast-x1 fused-high-x1
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
+  --method fused-fast-x2 --method runs/old/fused-balanced-x2.pt --method runs/old/fused-fast-x2.pt \
+  "${peers[@]:0:12}" --out docs/results/reuse_x2_stale_region.json | tee docs/results/reuse_x2_stale_region.md
+remeasure docs/results/reuse_x2_stale_region.json fused-balanced-x2 fused-fast-x2
