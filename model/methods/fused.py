@@ -300,7 +300,7 @@ class Fused(Method):
 
     def set_stale_region_pixels(self, value: int) -> None:
         refusal = "stale_region_pixels must be an odd whole number of pixels, or 0 (no regional test)"
-        if not isinstance(value, bool) and isinstance(value, int) and value > 0 and value % 2 == 0:
+        if isinstance(value, int) and value > 0 and value % 2 == 0:  # _store_count refuses the rest
             raise ValueError(f"{refusal}, got {value!r}")
         self._stale_region_pixels = self._store_count(STALE_REGION_KEY, value, 0, refusal)
 

@@ -37,6 +37,11 @@ REGION_SIGMAS = 1.2
 REGION_Z_CAP = 4.0  # no window counts for more than this in its region's root mean square (chosen with it)
 
 
+def _check_odd(name: str, value: int) -> None:
+    if value < 1 or value % 2 == 0:  # a window centred on its pixel
+        raise ValueError(f"{name} must be odd and positive, got {value}")
+
+
 def _window_mean(image: torch.Tensor, block: int) -> torch.Tensor:
     # count_include_pad=False: at the border the window is the part inside the image. A column pass, then a row
     # pass: the same means (the window's count is a product too) at 2 x 9 reads a pixel instead of 81.
@@ -55,8 +60,7 @@ def stale_history_z(noisy: torch.Tensor, history: torch.Tensor, block: int = 9) 
     if noisy.dim() != 4 or noisy.shape[1] != 3 or noisy.shape != history.shape:
         raise ValueError(f"noisy and history must both be (N, 3, H, W) of one shape, got {tuple(noisy.shape)} and "
                          f"{tuple(history.shape)}")
-    if block < 1 or block % 2 == 0:
-        raise ValueError(f"block must be odd and positive, got {block}")
+    _check_odd("block", block)
     value, past = noisy.mean(dim=1, keepdim=True), history.mean(dim=1, keepdim=True)
     mean, past_mean, square = _window_mean(torch.cat([value, past, value * value], dim=1), block).split(1, dim=1)
     variance = (square - mean * mean).clamp_min(0.0)
@@ -73,8 +77,7 @@ def regional_z(z: torch.Tensor, window: int, cap: float = REGION_Z_CAP) -> torch
     """sqrt(mean of min(z, cap)^2) over each pixel's window x window neighbourhood (cut at the border), (N, 1, H, W)."""
     if z.dim() != 4 or z.shape[1] != 1:
         raise ValueError(f"z must be (N, 1, H, W), got {tuple(z.shape)}")
-    if window < 1 or window % 2 == 0:
-        raise ValueError(f"window must be odd and positive, got {window}")
+    _check_odd("window", window)
     capped = z.clamp_max(cap)
     return torch.sqrt(_window_mean(capped * capped, window))
 
