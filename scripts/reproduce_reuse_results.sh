@@ -280,3 +280,15 @@ remeasure docs/results/reuse_x1_stale_region.json fused-balanced-x1 fused-fast-x
   --method fused-fast-x2 --method runs/old/fused-balanced-x2.pt --method runs/old/fused-fast-x2.pt \
   "${peers[@]:0:12}" --out docs/results/reuse_x2_stale_region.json | tee docs/results/reuse_x2_stale_region.md
 remeasure docs/results/reuse_x2_stale_region.json fused-balanced-x2 fused-fast-x2
+# The same weights and settings after the box means and the jitter resample got faster (README: "Where the 2x
+# step's time goes"): one run per scale with the peers, every shipped fused model remeasured from it.
+measure() {  # NAME SCALE MODEL...: one held-out run of the models and the peers, the models remeasured from it
+  local report=docs/results/$1.json scale=$2 name models=()
+  shift 2
+  for name in "$@"; do models+=(--method "$name"); done
+  .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 "${models[@]}" \
+    "${peers[@]:0:12}" --out "$report" | tee "${report%.json}.md"
+  remeasure "$report" "$@"
+}
+measure reuse_x1_fast_ops 1 fused-balanced-x1 fused-fast-x1 fused-high-x1
+measure reuse_x2_fast_ops 2 fused-balanced-x2 fused-fast-x2

@@ -21,6 +21,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from model.ops.box_filter import replicated_box_mean
+
 __all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip",
            "clip_to_moments", "variance_clip_hdr"]
 
@@ -56,12 +58,10 @@ def _windows(image: torch.Tensor, size: int) -> torch.Tensor:
 def neighbourhood_moments(guide: torch.Tensor, size: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean and standard deviation of the guide's YCoCg over each pixel's size x size window, (N, 3, H, W) each.
 
-    Box sums via average pooling of the values and their squares (no k*k tensor): this runs on every frame.
+    Box means of the values and their squares (no k*k tensor, ``model.ops.box_filter``): this runs on every frame.
     """
     ycocg = rgb_to_ycocg(guide)
-    radius = size // 2
-    stacked = F.pad(torch.cat([ycocg, ycocg.square()], dim=1), (radius,) * 4, mode="replicate")
-    moments = F.avg_pool2d(stacked, size, stride=1)
+    moments = replicated_box_mean(torch.cat([ycocg, ycocg.square()], dim=1), size)
     mean, mean_sq = moments[:, :3], moments[:, 3:]
     return mean, (mean_sq - mean.square()).clamp_min(0.0).sqrt()
 

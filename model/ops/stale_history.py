@@ -26,6 +26,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from model.ops.box_filter import box_mean
+
 __all__ = ["stale_history_z", "history_trust", "regional_z", "stale_history_trust", "RELATIVE_FLOOR",
            "REGION_SIGMAS", "REGION_Z_CAP"]
 
@@ -43,11 +45,8 @@ def _check_odd(name: str, value: int) -> None:
 
 
 def _window_mean(image: torch.Tensor, block: int) -> torch.Tensor:
-    # count_include_pad=False: at the border the window is the part inside the image. A column pass, then a row
-    # pass: the same means (the window's count is a product too) at 2 x 9 reads a pixel instead of 81.
-    radius = block // 2
-    image = F.avg_pool2d(image, (block, 1), stride=1, padding=(radius, 0), count_include_pad=False)
-    return F.avg_pool2d(image, (1, block), stride=1, padding=(0, radius), count_include_pad=False)
+    # Cut at the border: the window is the part inside the image.
+    return box_mean(image, block, block)
 
 
 def stale_history_z(noisy: torch.Tensor, history: torch.Tensor, block: int = 9) -> torch.Tensor:

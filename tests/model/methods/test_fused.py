@@ -6,6 +6,7 @@ import dataclasses
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from model.methods.base import FrameBatch
 from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
@@ -176,6 +177,32 @@ def test_resampling_next_to_a_bright_emitter_does_not_overshoot():
     image[..., 3:5, 3:5] = 0.98  # x / (1 + x) of radiance 49: a visible light
     resampled = unjittered_resample(image, torch.tensor([[0.37, -0.41]]), 2)
     assert float(resampled.max()) <= 0.98 + 1e-6 and float(resampled.min()) >= 0.02 - 1e-6
+
+
+def _resample_by_grid_sample(image, jitter, scale):
+    # The resample as one full-grid grid_sample with 3x3 bounds from max_pool2d: what the separable form must equal.
+    n, c, h, w = image.shape
+    xs = (torch.arange(w * scale, dtype=image.dtype) + 0.5) / scale
+    ys = (torch.arange(h * scale, dtype=image.dtype) + 0.5) / scale
+    grid_x = xs.view(1, 1, -1) - jitter[:, 0].view(-1, 1, 1)
+    grid_y = ys.view(1, -1, 1) - jitter[:, 1].view(-1, 1, 1)
+    grid = torch.stack([(2 * grid_x / w - 1).expand(n, h * scale, w * scale),
+                        (2 * grid_y / h - 1).expand(n, h * scale, w * scale)], dim=-1)
+    resampled = F.grid_sample(image, grid, mode="bicubic", padding_mode="border", align_corners=False)
+    padded = F.pad(image, (1, 1, 1, 1), mode="replicate")
+    bounds = torch.cat([F.max_pool2d(padded, 3, stride=1), -F.max_pool2d(-padded, 3, stride=1)], dim=1)
+    bounds = F.grid_sample(bounds, grid, mode="nearest", padding_mode="border", align_corners=False)
+    return torch.minimum(torch.maximum(resampled, bounds[:, c:]), bounds[:, :c])
+
+
+@pytest.mark.parametrize("scale", [1, 2, 3])
+def test_the_jitter_resample_is_the_full_grid_one(scale):
+    generator = torch.Generator().manual_seed(scale)
+    image = torch.rand(3, 3, 12, 10, generator=generator)
+    image[0, :, 4:6, 4:6] = 0.98  # a visible light: the bounds clamp the overshoot around it
+    # Halton jitters land on quarters, where the nearest bounds pixel is a tie the two must break alike
+    jitter = torch.tensor([[0.25, -0.25], [0.0, 0.5], [0.37, -0.41]])
+    torch.testing.assert_close(unjittered_resample(image, jitter, scale), _resample_by_grid_sample(image, jitter, scale))
 
 
 def legacy_state_dict(seed: int = 4) -> dict[str, torch.Tensor]:

@@ -1,0 +1,53 @@
+"""box_mean / replicated_box_mean against a per-pixel loop and against the average pooling they replace."""
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from model.ops.box_filter import box_mean, replicated_box_mean
+
+
+def naive_box_mean(image, height, width, replicate):
+    n, c, h, w = image.shape
+    out = torch.zeros_like(image)
+    for y in range(h):
+        for x in range(w):
+            rows = range(y - height // 2, y + height // 2 + 1)
+            cols = range(x - width // 2, x + width // 2 + 1)
+            if replicate:
+                taps = [image[:, :, min(max(r, 0), h - 1), min(max(q, 0), w - 1)] for r in rows for q in cols]
+            else:
+                taps = [image[:, :, r, q] for r in rows for q in cols if 0 <= r < h and 0 <= q < w]
+            out[:, :, y, x] = torch.stack(taps).mean(dim=0)
+    return out
+
+
+@pytest.mark.parametrize("height,width", [(1, 1), (3, 3), (9, 1), (1, 9), (5, 7), (13, 13)])
+def test_box_mean_is_the_mean_of_the_window_inside_the_image(height, width):
+    image = torch.rand(2, 3, 7, 9, generator=torch.Generator().manual_seed(height * 31 + width), dtype=torch.float64)
+    torch.testing.assert_close(box_mean(image, height, width), naive_box_mean(image, height, width, False))
+
+
+@pytest.mark.parametrize("size", [1, 3, 5])
+def test_replicated_box_mean_repeats_the_edge(size):
+    image = torch.rand(1, 2, 6, 5, generator=torch.Generator().manual_seed(size), dtype=torch.float64)
+    torch.testing.assert_close(replicated_box_mean(image, size), naive_box_mean(image, size, size, True))
+
+
+@pytest.mark.parametrize("size", [9, 33])
+def test_they_equal_the_average_pooling_they_replace(size):
+    image = torch.rand(1, 3, 40, 36, generator=torch.Generator().manual_seed(size))
+    radius = size // 2
+    pooled = F.avg_pool2d(image, size, stride=1, padding=radius, count_include_pad=False)
+    torch.testing.assert_close(box_mean(image, size, size), pooled)
+    replicated = F.avg_pool2d(F.pad(image, (radius,) * 4, mode="replicate"), size, stride=1)
+    torch.testing.assert_close(replicated_box_mean(image, size), replicated)
+
+
+def test_an_even_or_empty_window_is_refused_by_name():
+    with pytest.raises(ValueError, match="window width must be odd and positive, got 4"):
+        box_mean(torch.zeros(1, 1, 4, 4), 3, 4)
+    with pytest.raises(ValueError, match="window height must be odd and positive, got 0"):
+        replicated_box_mean(torch.zeros(1, 1, 4, 4), 0)
+    with pytest.raises(ValueError, match=r"\(N, C, H, W\)"):
+        box_mean(torch.zeros(4, 4), 3, 3)
