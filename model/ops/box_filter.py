@@ -1,14 +1,15 @@
-"""Box means over each pixel's window, from shifted sums: what stride-1 ``avg_pool2d`` computes, 5-20x faster.
+"""Box filters over each pixel's k x k window, from sums of shifted slices: the one place for them.
 
 CPU torch does not optimise stride-1 average pooling: a 9 x 1 window over a 128 x 128 frame of 3 channels takes
-0.8 ms on this machine, while adding two such frames takes 0.004 ms. The fused models take a dozen such means a frame
-(the stale-history tests, the rectification's moments), so here each pass is a sum of shifted views. Windows of
-more than a few pixels are built by doubling (sums of 1, 2, 4, ... pixels, then the binary digits of the size), so a
-33-pixel pass costs 6 additions, not 32. The sums run in another order than pooling's, so the means agree with it
-to float rounding.
+0.8 ms on this machine, while adding two such frames takes 0.004 ms. So every box filter here is a separable sum of
+shifted slices, 3-6x faster than pooling (README, "Where the 2x step's time goes"), without a summed-area table's
+float32 cancellation (a running sum across a 1920-wide HDR row loses ~1e-7 of its total).
 
-``box_mean`` cuts a window at the border (the mean of the part inside, as avg_pool2d with
-count_include_pad=False); ``replicated_box_mean`` extends the image by its edge pixels first.
+- ``box_sum``: the window's sum, zeros outside the image (WSKPN's weight-sharing filter; its backward is itself);
+- ``box_mean``: the mean of the part of the window inside the image (avg_pool2d with count_include_pad=False; the
+  stale-history tests);
+- ``replicated_box_mean``: the mean with the image's edge pixels repeated past the border (the rectification's
+  moments).
 """
 
 from __future__ import annotations
@@ -16,19 +17,13 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["box_mean", "replicated_box_mean"]
-
-
-def _check(image: torch.Tensor, height: int, width: int) -> None:
-    if image.dim() != 4:
-        raise ValueError(f"image must be (N, C, H, W), got {tuple(image.shape)}")
-    for name, size in (("height", height), ("width", width)):
-        if size < 1 or size % 2 == 0:  # a window centred on its pixel
-            raise ValueError(f"window {name} must be odd and positive, got {size}")
+__all__ = ["box_mean", "box_sum", "replicated_box_mean"]
 
 
 def _window_sums(values: torch.Tensor, size: int, dim: int) -> torch.Tensor:
-    """Sums of ``size`` consecutive entries along ``dim``: length L - size + 1."""
+    """Sums of ``size`` consecutive entries along ``dim`` (length L - size + 1), by doubling: sums of 1, 2, 4, ...
+    entries, then one of each binary digit of ``size``, so a 33-entry window takes 6 additions instead of 32 (a
+    linear loop of them cost `fused-high-x1` 5-7 ms a frame with its two 33-pixel regional tests)."""
     out_length = values.shape[dim] - size + 1
     total, offset, span, sums = None, 0, 1, values
     remaining = size
@@ -39,10 +34,41 @@ def _window_sums(values: torch.Tensor, size: int, dim: int) -> torch.Tensor:
             offset += span
         remaining >>= 1
         if not remaining:
-            return total
+            return total if total.data_ptr() != values.data_ptr() else total.clone()
         length = sums.shape[dim] - span  # sums of 2 * span entries from those of span
         sums = sums.narrow(dim, 0, length) + sums.narrow(dim, span, length)
         span *= 2
+
+
+def _box_sum_forward(x: torch.Tensor, k: int) -> torch.Tensor:
+    r = k // 2
+    padded = F.pad(x, (r, r, r, r))
+    return _window_sums(_window_sums(padded, k, 3), k, 2)
+
+
+class _BoxSum(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, k: int) -> torch.Tensor:
+        ctx.k = k
+        return _box_sum_forward(x, k)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        # A centred, zero-padded box sum is a symmetric linear map: it is its own adjoint.
+        return _BoxSum.apply(grad.contiguous(), ctx.k), None
+
+
+def _check(x: torch.Tensor, k: int) -> None:
+    if k < 1 or k % 2 == 0:  # a window centred on its pixel
+        raise ValueError(f"k must be a positive odd integer, got {k}")
+    if x.dim() != 4:
+        raise ValueError(f"expected (N, C, H, W), got {tuple(x.shape)}")
+
+
+def box_sum(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Sum of each pixel's k x k window (k odd), zeros outside the image; (N, C, H, W) -> same shape."""
+    _check(x, k)
+    return _BoxSum.apply(x, k)
 
 
 def _border_counts(length: int, size: int, like: torch.Tensor) -> torch.Tensor:
@@ -52,22 +78,18 @@ def _border_counts(length: int, size: int, like: torch.Tensor) -> torch.Tensor:
     return ((index + radius).clamp_max(length - 1) - (index - radius).clamp_min(0) + 1).to(like.dtype)
 
 
-def box_mean(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Mean over each pixel's ``height`` x ``width`` window (odd sizes) of the part inside the image, (N, C, H, W):
-    ``avg_pool2d(image, (height, width), stride=1, padding=(height // 2, width // 2), count_include_pad=False)``."""
-    _check(image, height, width)
+def box_mean(image: torch.Tensor, size: int) -> torch.Tensor:
+    """Mean over each pixel's ``size`` x ``size`` window (odd) of the part inside the image, (N, C, H, W):
+    ``avg_pool2d(image, size, stride=1, padding=size // 2, count_include_pad=False)``."""
     h, w = image.shape[-2:]
-    ry, rx = height // 2, width // 2
-    padded = F.pad(image, (rx, rx, ry, ry))  # zeros add nothing; the counts below leave them out of the mean
-    sums = _window_sums(_window_sums(padded, height, 2), width, 3)
-    counts = _border_counts(h, height, image).view(-1, 1) * _border_counts(w, width, image).view(1, -1)
-    return sums / counts
+    sums = box_sum(image, size)
+    return sums / (_border_counts(h, size, image).view(-1, 1) * _border_counts(w, size, image).view(1, -1))
 
 
 def replicated_box_mean(image: torch.Tensor, size: int) -> torch.Tensor:
     """Mean over each pixel's ``size`` x ``size`` window with the image's edge pixels repeated past the border,
     (N, C, H, W): ``avg_pool2d(F.pad(image, (size // 2,) * 4, mode="replicate"), size, stride=1)``."""
-    _check(image, size, size)
-    radius = size // 2
-    padded = F.pad(image, (radius,) * 4, mode="replicate")
-    return _window_sums(_window_sums(padded, size, 2), size, 3) / (size * size)
+    _check(image, size)
+    r = size // 2
+    padded = F.pad(image, (r, r, r, r), mode="replicate")  # the edge repeated: every window is whole
+    return _window_sums(_window_sums(padded, size, 3), size, 2) / (size * size)

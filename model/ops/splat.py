@@ -25,7 +25,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
+
+from model.ops.box_filter import box_sum
 
 __all__ = ["box_sum", "weight_sharing_filter", "fuse_kernel_sizes", "weight_sharing_fused", "WSKPN_SIZES"]
 
@@ -35,44 +36,6 @@ WSKPN_SIZES = (3, 5, 7, 9, 11, 13)
 # Logits more than this far below the sample's maximum are clamped, so exp() stays a normal float32
 # (exp(-60) ~ 9e-27) and every window keeps a positive weight sum.
 _LOGIT_RANGE = 60.0
-
-
-def _box_sum_forward(x: torch.Tensor, k: int) -> torch.Tensor:
-    # Separable sums of k shifted slices: measured as fast as a cumulative-sum (summed-area) version on this CPU,
-    # without its float32 cancellation error (a running sum across a 1920-wide HDR row loses ~1e-7 * total),
-    # and 5-10x faster than stride-1 avg_pool2d, which CPU torch does not optimize.
-    r = k // 2
-    h, w = x.shape[-2:]
-    p = F.pad(x, (r, r, 0, 0))
-    rows = p[..., :, 0:w].clone()
-    for i in range(1, k):
-        rows += p[..., :, i : i + w]
-    p = F.pad(rows, (0, 0, r, r))
-    out = p[..., 0:h, :].clone()
-    for i in range(1, k):
-        out += p[..., i : i + h, :]
-    return out
-
-
-class _BoxSum(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, k: int) -> torch.Tensor:
-        ctx.k = k
-        return _box_sum_forward(x, k)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        # A centred, zero-padded box sum is a symmetric linear map: it is its own adjoint.
-        return _BoxSum.apply(grad.contiguous(), ctx.k), None
-
-
-def box_sum(x: torch.Tensor, k: int) -> torch.Tensor:
-    """Sum of each pixel's k x k window (k odd), zeros outside the image; (N, C, H, W) -> same shape."""
-    if k < 1 or k % 2 == 0:
-        raise ValueError(f"k must be a positive odd integer, got {k}")
-    if x.dim() != 4:
-        raise ValueError(f"expected (N, C, H, W), got {tuple(x.shape)}")
-    return _BoxSum.apply(x, k)
 
 
 def _importance_from_logits(logits: torch.Tensor) -> torch.Tensor:

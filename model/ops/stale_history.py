@@ -44,11 +44,6 @@ def _check_odd(name: str, value: int) -> None:
         raise ValueError(f"{name} must be odd and positive, got {value}")
 
 
-def _window_mean(image: torch.Tensor, block: int) -> torch.Tensor:
-    # Cut at the border: the window is the part inside the image.
-    return box_mean(image, block, block)
-
-
 def stale_history_z(noisy: torch.Tensor, history: torch.Tensor, block: int = 9) -> torch.Tensor:
     """|mean(noisy) - mean(history)| / standard error over each pixel's block x block window, (N, 1, H, W).
 
@@ -61,7 +56,7 @@ def stale_history_z(noisy: torch.Tensor, history: torch.Tensor, block: int = 9) 
                          f"{tuple(history.shape)}")
     _check_odd("block", block)
     value, past = noisy.mean(dim=1, keepdim=True), history.mean(dim=1, keepdim=True)
-    mean, past_mean, square = _window_mean(torch.cat([value, past, value * value], dim=1), block).split(1, dim=1)
+    mean, past_mean, square = box_mean(torch.cat([value, past, value * value], dim=1), block).split(1, dim=1)
     variance = (square - mean * mean).clamp_min(0.0)
     error = torch.sqrt(variance / block ** 2 + (RELATIVE_FLOOR * past_mean) ** 2 + 1e-6)
     return (mean - past_mean).abs() / error
@@ -78,7 +73,7 @@ def regional_z(z: torch.Tensor, window: int, cap: float = REGION_Z_CAP) -> torch
         raise ValueError(f"z must be (N, 1, H, W), got {tuple(z.shape)}")
     _check_odd("window", window)
     capped = z.clamp_max(cap)
-    return torch.sqrt(_window_mean(capped * capped, window))
+    return torch.sqrt(box_mean(capped * capped, window))
 
 
 def stale_history_trust(noisy: torch.Tensor, history: torch.Tensor, sigmas: float, region: int = 0,
