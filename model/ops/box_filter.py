@@ -24,6 +24,8 @@ def _window_sums(values: torch.Tensor, size: int, dim: int) -> torch.Tensor:
     """Sums of ``size`` consecutive entries along ``dim`` (length L - size + 1), by doubling: sums of 1, 2, 4, ...
     entries, then one of each binary digit of ``size``, so a 33-entry window takes 6 additions instead of 32 (a
     linear loop of them cost `fused-high-x1` 5-7 ms a frame with its two 33-pixel regional tests)."""
+    if size == 1:
+        return values.clone()  # a new tensor, as for every other size (never a view of the input)
     out_length = values.shape[dim] - size + 1
     total, offset, span, sums = None, 0, 1, values
     remaining = size
@@ -34,7 +36,7 @@ def _window_sums(values: torch.Tensor, size: int, dim: int) -> torch.Tensor:
             offset += span
         remaining >>= 1
         if not remaining:
-            return total if total.data_ptr() != values.data_ptr() else total.clone()
+            return total
         length = sums.shape[dim] - span  # sums of 2 * span entries from those of span
         sums = sums.narrow(dim, 0, length) + sums.narrow(dim, span, length)
         span *= 2
