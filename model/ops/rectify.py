@@ -19,9 +19,8 @@ The guide should be low-noise (a spatially denoised frame, or the tone-mapped in
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
-from model.ops.box_filter import replicated_box_mean
+from model.ops.box_filter import replicated_box_extremes, replicated_box_mean
 
 __all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip",
            "clip_to_moments", "variance_clip_hdr"]
@@ -47,14 +46,6 @@ def _check(history: torch.Tensor, guide: torch.Tensor, size: int) -> None:
         raise ValueError(f"window size must be odd and positive, got {size}")
 
 
-def _windows(image: torch.Tensor, size: int) -> torch.Tensor:
-    """(N, C, size*size, H, W): every pixel's size x size neighbourhood, border replicated."""
-    n, c, h, w = image.shape
-    radius = size // 2
-    padded = F.pad(image, (radius, radius, radius, radius), mode="replicate")
-    return F.unfold(padded, size).view(n, c, size * size, h, w)
-
-
 def neighbourhood_moments(guide: torch.Tensor, size: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean and standard deviation of the guide's YCoCg over each pixel's size x size window, (N, 3, H, W) each.
 
@@ -69,8 +60,7 @@ def neighbourhood_moments(guide: torch.Tensor, size: int = 3) -> tuple[torch.Ten
 def neighbourhood_clamp(history: torch.Tensor, guide: torch.Tensor, size: int = 3) -> torch.Tensor:
     """Clamp the history, per YCoCg channel, to the min/max of the guide's size x size window; RGB out."""
     _check(history, guide, size)
-    windows = _windows(rgb_to_ycocg(guide), size)
-    low, high = windows.amin(dim=2), windows.amax(dim=2)
+    high, low = replicated_box_extremes(rgb_to_ycocg(guide), size)
     return ycocg_to_rgb(torch.maximum(torch.minimum(rgb_to_ycocg(history), high), low))
 
 

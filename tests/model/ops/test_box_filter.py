@@ -5,7 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from model.ops.box_filter import box_mean, replicated_box_mean
+from model.ops.box_filter import box_mean, replicated_box_extremes, replicated_box_mean
 
 
 def naive_box_mean(image, size, replicate):
@@ -45,11 +45,26 @@ def test_they_equal_the_average_pooling_they_replace(size):
     torch.testing.assert_close(replicated_box_mean(image, size), replicated)
 
 
+@pytest.mark.parametrize("size", [1, 3, 5])
+def test_replicated_box_extremes_are_the_window_max_and_min(size):
+    image = torch.rand(2, 2, 6, 5, generator=torch.Generator().manual_seed(size + 7), dtype=torch.float64)
+    high, low = replicated_box_extremes(image, size)
+    h, w = image.shape[-2:]
+    r = size // 2
+    for y in range(h):
+        for x in range(w):
+            taps = torch.stack([image[:, :, min(max(q, 0), h - 1), min(max(p, 0), w - 1)]
+                                for q in range(y - r, y + r + 1) for p in range(x - r, x + r + 1)])
+            assert torch.equal(high[:, :, y, x], taps.amax(dim=0)) and torch.equal(low[:, :, y, x], taps.amin(dim=0))
+
+
 def test_an_even_or_empty_window_is_refused_with_its_size():
     with pytest.raises(ValueError, match="k must be a positive odd integer, got 4"):
         box_mean(torch.zeros(1, 1, 4, 4), 4)
     with pytest.raises(ValueError, match="k must be a positive odd integer, got 0"):
         replicated_box_mean(torch.zeros(1, 1, 4, 4), 0)
+    with pytest.raises(ValueError, match="k must be a positive odd integer, got 2"):
+        replicated_box_extremes(torch.zeros(1, 1, 4, 4), 2)
     with pytest.raises(ValueError, match=r"\(N, C, H, W\)"):
         box_mean(torch.zeros(4, 4), 3)
 
