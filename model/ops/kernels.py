@@ -115,7 +115,9 @@ def apply_pixel_kernels(
     n, _, h, w = image.shape
     if kernels.shape != (n, k * k, h, w):
         raise ValueError(f"kernels must have shape {(n, k * k, h, w)} for k={k}, got {tuple(kernels.shape)}")
-    kernels = kernels.to(image.dtype)
+    # Contiguous: a network in channels_last hands over a k*k-channel slice whose taps are strided by the channel
+    # count, and every per-tap read below slows with it (3x3 softmax kernels at 256x256: 1.5-1.9 ms against 2.9-3.7).
+    kernels = kernels.to(image.dtype).contiguous()
     if normalize == "none":
         return _apply(image, kernels, k, dilation)
 

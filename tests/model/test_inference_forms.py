@@ -12,7 +12,7 @@ from torch import nn
 
 from model.inference_forms import (
     FORMS, MIN_PSNR_DB, SHIPPED_TABLE, FormTable, bf16_available, form_psnr, load_form_table, method_key, networks_of,
-    run_networks_as, with_inference_forms)
+    _to_float32, run_networks_as, with_inference_forms)
 from model.methods.base import FrameBatch
 from model.methods.registry import build_method, method_spec
 from model.synthetic import moving_pattern_frames
@@ -159,3 +159,14 @@ def test_the_shipped_table_names_registered_methods_and_known_forms_within_toler
             assert measured["chosen"] in FORMS, (key, size)
             assert measured["psnr_db"][measured["chosen"]] >= MIN_PSNR_DB, (key, size)
             assert not FORMS[measured["chosen"]].compiled or shipped.allow_compile
+
+
+def test_bf16_outputs_come_back_as_contiguous_float32_with_their_values():
+    # a channels_last network's outputs are strided slices; later per-channel reads are faster on contiguous ones
+    head = torch.rand(1, 13, 8, 8).to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+    weights, kernels = _to_float32((head[:, :4], head[:, 4:]))
+    for value, part in ((weights, head[:, :4]), (kernels, head[:, 4:])):
+        assert value.dtype == torch.float32 and value.is_contiguous()
+        assert torch.equal(value, part.float())
+    kept = torch.zeros(2, 3)
+    assert _to_float32({"a": [kept]})["a"][0] is kept  # float32 values pass through as they are

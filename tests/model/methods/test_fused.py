@@ -151,6 +151,21 @@ def test_the_inference_form_gives_the_training_forms_output():
     torch.testing.assert_close(out_b, out_a, atol=1e-5, rtol=1e-4)
 
 
+def test_the_inference_form_steps_alike_with_gradients_on():
+    # without gradients its input is written straight into channels_last memory, with them concatenated and copied
+    torch.manual_seed(4)
+    fast = build_method("fused", 2).for_inference()
+    frames = [frame_with_estimate(truth() * (1 + 0.1 * k)) for k in range(2)]
+    outputs = []
+    for grad in (False, True):
+        state = None
+        with torch.set_grad_enabled(grad):
+            for frame in frames:
+                output, state = fast.step(frame, state)
+        outputs.append(output.detach())
+    assert torch.equal(outputs[0], outputs[1])
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 @pytest.mark.parametrize("scale", [1, 2])
 def test_a_gpu_stream_gives_the_cpu_streams_output(scale):

@@ -106,3 +106,12 @@ def test_rejects_wrong_kernel_shape():
         apply_pixel_kernels(torch.zeros(1, 3, 4, 4), torch.zeros(1, 9, 4, 4), 5)
     with pytest.raises(ValueError, match="normalize"):
         apply_pixel_kernels(torch.zeros(1, 3, 4, 4), torch.zeros(1, 9, 4, 4), 3, normalize="l1")
+
+
+def test_kernels_in_channels_last_give_the_same_output():
+    # a channels_last network hands over strided kernels; they are read as a contiguous copy
+    image, logits = rand(1, 3, 9, 7, seed=3), rand(1, 9, 9, 7, seed=4) * 3
+    strided = logits.contiguous(memory_format=torch.channels_last)
+    assert not strided.is_contiguous()
+    torch.testing.assert_close(apply_pixel_kernels(image, strided, 3, normalize="softmax"),
+                               apply_pixel_kernels(image, logits, 3, normalize="softmax"))

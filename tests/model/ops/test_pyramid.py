@@ -1,11 +1,14 @@
-"""downsample2x / upsample2x / build_pyramid against per-pixel loops and identities."""
+"""block_mean / downsample2x / upsample2x / build_pyramid against per-pixel loops, the pooling they replace and
+identities."""
 
 import math
 
 import pytest
 import torch
 
-from model.ops.pyramid import build_pyramid, downsample2x, upsample2x
+import torch.nn.functional as F
+
+from model.ops.pyramid import block_mean, build_pyramid, downsample2x, upsample2x
 from tests.builders import rand
 
 
@@ -89,3 +92,24 @@ def test_build_pyramid_levels():
     torch.testing.assert_close(pyr[2], x.view(1, 3, 3, 4, 2, 4).mean(dim=(3, 5)))
     with pytest.raises(ValueError):
         build_pyramid(x, 0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("factor", [1, 2, 3])
+def test_block_mean_is_the_pooling_to_the_bit(factor, dtype):
+    x = torch.rand(2, 5, 6 * factor, 4 * factor, generator=torch.Generator().manual_seed(factor), dtype=dtype) * 100
+    assert torch.equal(block_mean(x, factor), F.avg_pool2d(x, factor))
+
+
+def test_block_mean_of_a_known_block_and_other_dtypes():
+    x = torch.tensor([[[[1.0, 2.0, 5.0, 9.0], [3.0, 6.0, 0.0, 2.0]]]])
+    assert torch.equal(block_mean(x, 2), torch.tensor([[[[3.0, 4.0]]]]))
+    half = x.to(torch.bfloat16)  # other dtypes keep the pooling (it accumulates them in float)
+    assert torch.equal(block_mean(half, 2), F.avg_pool2d(half, 2))
+
+
+def test_block_mean_refuses_partial_blocks_and_bad_factors():
+    with pytest.raises(ValueError, match="a 5x4 image is not made of whole 2x2 blocks"):
+        block_mean(torch.zeros(1, 1, 5, 4), 2)
+    with pytest.raises(ValueError, match="factor must be a whole number >= 1, got 0"):
+        block_mean(torch.zeros(1, 1, 4, 4), 0)
