@@ -496,7 +496,8 @@ class Fused(Method):
             candidates.append(clip_to_moments(mean, *guide))
         features = _features(parts, self.net.head.weight.is_contiguous(memory_format=torch.channels_last))
         weights, kernels, new_hidden = self.net(features)
-        weights = torch.softmax(weights, dim=1).contiguous()  # the network runs channels_last: per-candidate reads are strided otherwise
+        # contiguous: from a channels_last network each candidate's weight is a strided slice otherwise
+        weights = torch.softmax(weights, dim=1).contiguous()
         if samples is not None:
             share = self._history_share(weights, self._sample_mean_trust_power).detach()
             samples_count = samples_count * block_mean(share, self.scale)
