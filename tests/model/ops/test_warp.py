@@ -249,3 +249,20 @@ def test_bilinear_spread_is_zero_at_whole_pixels_and_one_at_half_pixels():
     assert bilinear_spread(motion).flatten().tolist() == [0.0, 1.0, 0.5, 0.5]
     with pytest.raises(ValueError, match="motion must be"):
         bilinear_spread(torch.zeros(1, 3, 2, 2))
+
+
+@pytest.mark.parametrize("mode", ["bilinear", "bicubic"])
+@pytest.mark.parametrize("height", [16, 13])  # 13 rows do not split evenly in two: the last part is padded, cropped
+def test_a_single_frame_split_over_threads_reads_what_one_call_reads(mode, height):
+    generator = torch.Generator().manual_seed(height)
+    prev = torch.rand(1, 5, height, 11, generator=generator)
+    motion = (torch.rand(1, 2, height, 11, generator=generator) - 0.5) * 6
+    previous_threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)  # one thread: one grid_sample call
+        single, _ = backward_warp(prev, motion, mode=mode)
+        torch.set_num_threads(2)  # two: two batch items of half the rows each
+        split, _ = backward_warp(prev, motion, mode=mode)
+    finally:
+        torch.set_num_threads(previous_threads)
+    assert torch.equal(split, single)
