@@ -266,3 +266,21 @@ def test_a_single_frame_split_over_threads_reads_what_one_call_reads(mode, heigh
     finally:
         torch.set_num_threads(previous_threads)
     assert torch.equal(split, single)
+
+
+def test_the_split_warp_carries_the_same_gradients():
+    # a training batch of one goes through the split too: its gradients must be the single call's
+    generator = torch.Generator().manual_seed(5)
+    prev = torch.rand(1, 3, 13, 9, generator=generator, dtype=torch.float64, requires_grad=True)
+    motion = ((torch.rand(1, 2, 13, 9, generator=generator, dtype=torch.float64) - 0.5) * 4).requires_grad_()
+    previous_threads, results = torch.get_num_threads(), []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            warped, _ = backward_warp(prev, motion, mode="bicubic")
+            weights = torch.arange(warped.numel(), dtype=warped.dtype).view_as(warped)
+            results.append((warped.detach(), *torch.autograd.grad((warped * weights).sum(), [prev, motion])))
+    finally:
+        torch.set_num_threads(previous_threads)
+    for single, split in zip(*results):
+        torch.testing.assert_close(split, single, rtol=0, atol=1e-12)
