@@ -12,6 +12,8 @@ float32 cancellation (a running sum across a 1920-wide HDR row loses ~1e-7 of it
   moments);
 - ``replicated_box_extremes``: the window's max and min, edges repeated the same way (the rectification's clamp, the
   bounds of the fused 2x resample; 10x faster than a stride-1 3x3 ``max_pool2d``).
+
+Means over non-overlapping blocks are downsampling, not a window per pixel: ``model.ops.pyramid.block_mean``.
 """
 
 from __future__ import annotations
