@@ -226,6 +226,7 @@ RUN_TIME_SETTINGS: dict[str, tuple[bool, str]] = {
     "stale_region_pixels": (True, "no running mean for the stale-history test"),
     "sample_mean_frames": (False, "no spatial denoiser to feed a sample mean"),
     "sample_mean_trust_power": (False, "no spatial denoiser to feed a sample mean"),
+    "albedo_detail_frames": (False, "no albedo to gather on a target grid"),
 }
 
 

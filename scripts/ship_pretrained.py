@@ -27,8 +27,9 @@ pixels (the fused blend is the output there; 0: every frame filtered); the weigh
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
         --after-shipped fused-balanced-x1 --kernel-max-pixels 32768
 
---mean-max-frames, --stale-test-sigmas, --stale-region-pixels, --sample-mean-frames and --sample-mean-trust-power
-(fused only) set the other run-time settings the same way (model/methods/fused.py); the weights are the checkpoint's.
+--mean-max-frames, --stale-test-sigmas, --stale-region-pixels, --sample-mean-frames, --sample-mean-trust-power and
+--albedo-detail-frames (fused only; the last at 2x only) set the other run-time settings the same way
+(model/methods/fused.py); the weights are the checkpoint's.
 
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
         --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
@@ -95,6 +96,9 @@ def main() -> int:
     parser.add_argument("--sample-mean-trust-power", type=float, default=None, metavar="P",
                         help="fused only: the sample mean keeps the network's history share to the power P of its "
                              "frames (default 2)")
+    parser.add_argument("--albedo-detail-frames", type=int, default=None, metavar="N",
+                        help="fused at 2x only: the output takes the texture detail of the albedo gathered on the "
+                             "target grid from up to N jittered frames (0: none)")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")

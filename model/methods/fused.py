@@ -55,6 +55,12 @@ blotches look alike in its inputs; the unbiased samples tell them apart. With ``
 where a light that moved a little every frame shows as a whole though no single window is sure; the sample mean
 restarts on it too.
 
+At 2x a model may also give its output the texture of the albedo gathered on the target grid
+(``albedo_detail_frames``, ``ALBEDO_DETAIL_KEY``; absent or 0: none; ``model.ops.jittered_albedo``): each jittered
+frame's noise-free albedo samples land in one sub-pixel, their running mean over frames holds texture finer than a
+render pixel, and its ratio to its own render-pixel mean multiplies the output. OIDN and the network see that
+texture only as its pixel average. The history does not take the factor, so it never compounds.
+
 Where there is no history (disocclusion, a cut, the first frame), ``h`` is ``s`` itself and ``r`` is ``s`` clipped to
 its own neighbourhood, so the output is made of OIDN's estimate alone: the method falls back to the spatial
 estimate by construction and cannot ghost there. The fusion head starts at
@@ -79,6 +85,7 @@ from model.methods.oidn import QUALITIES, oidn_albedo, oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import MethodSpec, register
 from model.ops.box_filter import replicated_box_extremes
+from model.ops.jittered_albedo import gather_samples, splat_at_jitter, texture_detail
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.pyramid import block_mean
 from model.ops.rectify import clip_to_moments, neighbourhood_moments
@@ -118,6 +125,8 @@ SAMPLE_MEAN_STALE_SIGMAS = 2.0  # the sample mean restarts where the new samples
 SAMPLE_MEAN_TRUST_KEY = "sample_mean_share_power"  # state-dict entry: the sample mean keeps the network's history
 # share to this power of its frames (absent: SAMPLE_MEAN_TRUST_POWER)
 SAMPLE_MEAN_TRUST_POWER = 2.0
+ALBEDO_DETAIL_KEY = "albedo_detail_window"  # state-dict entry: at 2x, the output takes the texture detail of the
+# albedo gathered on the target grid over up to this many jittered frames (0 or absent: none)
 
 
 def frame_samples(frame: FrameBatch) -> torch.Tensor:
@@ -251,6 +260,8 @@ class Fused(Method):
         self._sample_mean_frames = 0
         self.register_buffer(SAMPLE_MEAN_TRUST_KEY, torch.tensor(SAMPLE_MEAN_TRUST_POWER))
         self._sample_mean_trust_power = SAMPLE_MEAN_TRUST_POWER
+        self.register_buffer(ALBEDO_DETAIL_KEY, torch.tensor(0.0))
+        self._albedo_detail_frames = 0
 
     @property
     def history_before_kernel(self) -> bool:
@@ -344,6 +355,23 @@ class Fused(Method):
         getattr(self, SAMPLE_MEAN_TRUST_KEY).fill_(float(value))
         self._sample_mean_trust_power = float(value)
 
+    @property
+    def albedo_detail_frames(self) -> int:
+        """At 2x, the output is multiplied by the texture detail of the albedo gathered on the target grid from up to
+        this many jittered frames (0: none; ``model.ops.jittered_albedo``). OIDN and the network work at the render
+        resolution, so texture finer than a render pixel (a brick wall's mortar, a checker floor) comes out at its
+        pixel average; the guides are noise-free, and each frame's jittered samples say what lies in one sub-pixel.
+        Only the output takes the detail: the history stays as the network made it, so the detail never compounds
+        (README, "Texture detail from the jittered albedo")."""
+        return self._albedo_detail_frames
+
+    def set_albedo_detail_frames(self, value: int) -> None:
+        refusal = "albedo_detail_frames must be a whole number of frames >= 0 (0: no texture detail)"
+        if self.scale == 1 and isinstance(value, int) and not isinstance(value, bool) and value > 0:
+            raise ValueError(f"albedo_detail_frames needs a target grid finer than the render (scale 2); this model "
+                             f"is at scale 1, got {value!r}")
+        self._albedo_detail_frames = self._store_count(ALBEDO_DETAIL_KEY, value, 0, refusal)
+
     def _store_count(self, key: str, value: int, minimum: int, refusal: str) -> int:
         """A whole-number setting checked and written to its state-dict buffer, so checkpoints record it."""
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
@@ -381,6 +409,8 @@ class Fused(Method):
             state_dict = {**state_dict, SAMPLE_MEAN_KEY: torch.tensor(0.0)}
         if SAMPLE_MEAN_TRUST_KEY not in state_dict:  # saved before the power was a setting: the one they ran
             state_dict = {**state_dict, SAMPLE_MEAN_TRUST_KEY: torch.tensor(SAMPLE_MEAN_TRUST_POWER)}
+        if ALBEDO_DETAIL_KEY not in state_dict:  # saved before the texture detail existed: none
+            state_dict = {**state_dict, ALBEDO_DETAIL_KEY: torch.tensor(0.0)}
         candidates = self._candidates_in(state_dict)
         if candidates not in (CANDIDATES, LEGACY_CANDIDATES):
             raise ValueError(f"fused: a checkpoint with {candidates} fusion candidates is not a fused network "
@@ -397,6 +427,7 @@ class Fused(Method):
         self.set_stale_region_pixels(int(round(getattr(self, STALE_REGION_KEY).item())))
         self.set_sample_mean_frames(int(round(getattr(self, SAMPLE_MEAN_KEY).item())))
         self.set_sample_mean_trust_power(float(getattr(self, SAMPLE_MEAN_TRUST_KEY).item()))
+        self.set_albedo_detail_frames(int(round(getattr(self, ALBEDO_DETAIL_KEY).item())))
         return result
 
     def load_initial_weights(self, state_dict: dict[str, torch.Tensor]) -> None:
@@ -448,7 +479,8 @@ class Fused(Method):
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         state = drop_history(state, frame)
         n, _, height, width = frame.color.shape
-        reprojected = None if state is None else self._reproject(frame, state)
+        motion_out = upscale_motion(frame.motion, self.scale) if self.scale > 1 else frame.motion
+        reprojected = None if state is None else self._reproject(frame, state, motion_out)
         samples = samples_count = None
         if self._sample_mean_frames:
             samples, samples_count = self._sample_mean(frame, state, None if reprojected is None else reprojected[3])
@@ -462,6 +494,7 @@ class Fused(Method):
         else:
             s_out = unjittered_resample(s, frame.jitter, self.scale)
         mean = count = None  # the running mean and its frame count, when the network has one
+        valid_out = None
         if state is None:
             valid = torch.zeros_like(frame.depth, dtype=torch.bool)
             history, hidden = s_out, frame.color.new_zeros(n, HIDDEN, height, width)
@@ -515,7 +548,32 @@ class Fused(Method):
             new_state.update(mean=mean, count=count)
         if samples is not None:
             new_state.update(samples=samples, samples_count=samples_count)
-        return reinhard_inverse(output), new_state
+        output = reinhard_inverse(output)
+        if self._albedo_detail_frames and self.scale > 1:
+            detail, gathered = self._texture_detail(frame, state, motion_out, valid_out)
+            output = output * detail
+            new_state.update(gathered)
+        return output, new_state
+
+    def _texture_detail(self, frame: FrameBatch, state: State | None, motion_out: torch.Tensor,
+                        valid_out: torch.Tensor | None) -> tuple[torch.Tensor, State]:
+        """The output's factor of texture detail (``model.ops.jittered_albedo``) and the gathered albedo's state:
+        the albedo OIDN reads (diffuse + specular), this frame's samples added to the sums warped from the frame
+        before where the geometry test holds. Bilinear: on held-out-style validation scenes with a moving camera a
+        nearest read put samples half a target pixel off and cost more than its blur (README)."""
+        albedo = oidn_albedo(frame).contiguous()  # frames stack channels_last, and mixed layouts are slow here
+        new_total, new_weight = splat_at_jitter(albedo, frame.jitter, self.scale)
+        previous = None if state is None else state.get("albedo_sum")
+        if previous is None or valid_out is None or previous.shape != new_total.shape:
+            total, weight = new_total, new_weight  # a new stream, or a session from before the detail
+        else:
+            warped, _ = backward_warp(torch.cat([previous, state["albedo_weight"]], dim=1), motion_out,
+                                      mode="bilinear")
+            warped = warped * valid_out
+            total, weight = gather_samples(warped[:, :-1], warped[:, -1:], new_total, new_weight,
+                                           self._albedo_detail_frames)
+        fallback = F.interpolate(albedo, scale_factor=self.scale, mode="nearest")  # where no sample was gathered
+        return texture_detail(total, weight, fallback, self.scale), {"albedo_sum": total, "albedo_weight": weight}
 
     def _sample_mean(self, frame: FrameBatch, state: State | None,
                      valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -553,12 +611,12 @@ class Fused(Method):
         moved = weights[:, 1:2] + weights[:, 3:4] - history - clipped_mean
         return torch.cat([weights[:, :1] + moved, history, rectified, clipped_mean], dim=1)
 
-    def _reproject(self, frame: FrameBatch, state: State) -> tuple[torch.Tensor, ...]:
+    def _reproject(self, frame: FrameBatch, state: State, motion_out: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """(history at output resolution, hidden features, history length, valid, running mean at output
         resolution, frames the mean will hold with this one) warped into this frame; the last two are None when
         the network has no mean or the state none (a session from before it: the mean starts at this frame).
-        Where the history is invalid the count is 1, so the caller's update replaces the mean with ``s``."""
-        motion_out = upscale_motion(frame.motion, self.scale) if self.scale > 1 else frame.motion
+        Where the history is invalid the count is 1, so the caller's update replaces the mean with ``s``.
+        ``motion_out``: the motion on the output grid."""
         with_mean = self.has_mean and "mean" in state
         # Bicubic: a bilinear read blurs the history a little every frame under camera motion, which adds up over
         # a long history (measured on held-out glass with OIDN + TAA: 29.97 dB bicubic against 29.25 bilinear).

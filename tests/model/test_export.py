@@ -89,6 +89,15 @@ def test_a_fused_model_with_a_sample_mean_exports_its_step_on_the_single_frame_a
     assert plain["sample_mean"] is None
 
 
+def test_a_2x_fused_model_with_texture_detail_exports_it_and_matches_pytorch_on_jittered_frames(tmp_path):
+    method = seeded("fused:fast", 2)
+    method.set_albedo_detail_frames(8)  # the gathered albedo is state, fed back like the history
+    info = export_step(method, tmp_path / "x.onnx", height=16, width=16)
+    assert {"albedo_sum", "albedo_weight"} <= set(info["state"])
+    assert info["state"]["albedo_sum"] == [1, 3, 32, 32]
+    assert check_export(method, tmp_path / "x.onnx", info, frames=4) <= 1  # the check's frames are jittered
+
+
 def test_torchscript_is_refused_with_the_reason(tmp_path):
     with pytest.raises(ExportError, match="custom autograd functions"):
         export_step(seeded("wskpn:xs", 1), tmp_path / "x.pt", "torchscript")

@@ -237,6 +237,28 @@ def test_a_shipped_fused_model_reshipped_with_a_run_time_setting_keeps_its_weigh
         ship_tiny(root, **{setting: value})
 
 
+def test_a_2x_fused_model_reshipped_with_texture_detail_keeps_its_weights_and_a_1x_one_is_refused(tmp_path):
+    root = tmp_path / "pretrained"
+    torch.manual_seed(7)
+    source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 2), step=30,
+                             train_config={"steps": 30})
+    shipped = ship_checkpoint(source, "fused-fast-x2", root=root)
+    assert load_pretrained("fused-fast-x2", root=root).albedo_detail_frames == 0
+    reshipped = ship_checkpoint(shipped.path, "fused-fast-x2", root=root, after_shipped="fused-fast-x2",
+                                albedo_detail_frames=8)
+    assert load_pretrained("fused-fast-x2", root=root).albedo_detail_frames == 8
+    before, after = (torch.load(model, weights_only=True)["model"] for model in (source, reshipped.path))
+    assert all(torch.equal(before[name], after[name]) for name in before if name != "albedo_detail_window")
+    with pytest.raises(PretrainedError, match="whole number of frames >= 0"):
+        ship_checkpoint(shipped.path, "fused-fast-x2", root=root, albedo_detail_frames=-1)
+    one_x = save_checkpoint(tmp_path / "fused1.pt", method=build_method("fused:fast", 1), step=30,
+                            train_config={"steps": 30})
+    with pytest.raises(PretrainedError, match="scale 2"):
+        ship_checkpoint(one_x, "fused-fast-x1", root=root, albedo_detail_frames=8)
+    with pytest.raises(PretrainedError, match="no albedo to gather"):
+        ship_tiny(root, albedo_detail_frames=8)
+
+
 def test_shipping_with_a_setting_no_model_has_is_refused_by_name(tmp_path):
     root = tmp_path / "pretrained"
     source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,

@@ -9,7 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from model.methods.base import FrameBatch
-from model.methods.fused import (KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES, MEAN_WINDOW_KEY,
+from model.methods.fused import (ALBEDO_DETAIL_KEY, KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES,
+                                 MEAN_WINDOW_KEY,
                                  RECURRENCE_KEY, SAMPLE_MEAN_KEY, SAMPLE_MEAN_TRUST_KEY, STALE_REGION_KEY,
                                  STALE_TEST_KEY, Fused, frame_samples, sample_mean_resample, unjittered_resample)
 from model.methods.oidn import oidn_denoise
@@ -642,3 +643,95 @@ def test_oidn_reads_the_mean_only_as_far_as_its_warp_keeps_it_sharp(monkeypatch,
                 "third": second.color * 2 / 3 + 0.5 / 3}[samples]
     inner = (..., slice(1, -3), slice(1, -3))  # the frame's edge reads outside the previous one
     torch.testing.assert_close(read[1][inner], expected[inner])
+
+
+# ------------------------------------------------------------------------------------ texture detail at 2x
+
+DETAIL_JITTERS = ((-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25))
+
+
+def _fine_checker_frame(jitter: tuple[float, float], size: int = 8) -> FrameBatch:
+    """A still wall whose albedo is a checker of one target pixel per square at 2x, seen at ``jitter``: the albedo
+    guide holds the square each render pixel's sample lies in, the colour the albedo under light 1."""
+    checker = 0.3 + 0.4 * ((torch.arange(2 * size).view(-1, 1) + torch.arange(2 * size).view(1, -1)) % 2)
+    column, row = (int(2 * (0.5 + value) // 1) for value in jitter)
+    albedo = checker.float()[row::2, column::2].expand(1, 3, size, size).contiguous()
+    frame = static_frame(size=size, jitter=jitter)
+    return dataclasses.replace(frame, albedo=albedo, color=albedo.clone(), spatial_estimate=albedo.clone())
+
+
+def _stream(method, frames):
+    outputs, state = [], None
+    with torch.no_grad():
+        for frame in frames:
+            output, state = method.step(frame, state)
+            outputs.append(output)
+    return outputs, state
+
+
+def test_the_texture_detail_is_recorded_and_refused_at_1x_and_when_not_a_whole_number():
+    saved = build_method("fused:fast", 2)
+    assert saved.albedo_detail_frames == 0
+    saved.set_albedo_detail_frames(8)
+    loaded = build_method("fused:fast", 2)
+    loaded.load_state_dict(saved.state_dict())
+    assert loaded.albedo_detail_frames == 8
+    tuned = build_method("fused:fast", 2)
+    tuned.load_initial_weights(saved.state_dict())  # --init-from keeps it
+    assert tuned.albedo_detail_frames == 8
+    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != ALBEDO_DETAIL_KEY})
+    assert loaded.albedo_detail_frames == 0  # a checkpoint from before it: no detail
+    with pytest.raises(ValueError, match="scale 2"):
+        build_method("fused:fast", 1).set_albedo_detail_frames(8)
+    build_method("fused:fast", 1).set_albedo_detail_frames(0)  # off is off at any scale
+    for value in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="whole number of frames >= 0"):
+            build_method("fused", 2).set_albedo_detail_frames(value)
+
+
+def test_jittered_frames_give_the_2x_output_the_albedo_texture_and_the_history_stays_the_networks():
+    frames = [_fine_checker_frame(jitter, size=16) for jitter in DETAIL_JITTERS]
+    plain, plain_state = _stream(build_method("fused:fast", 2), frames)
+    method = build_method("fused:fast", 2)
+    method.set_albedo_detail_frames(8)
+    detailed, state = _stream(method, frames)
+    torch.testing.assert_close(state["history"], plain_state["history"])  # the detail never feeds back
+    checker = 0.3 + 0.4 * ((torch.arange(32).view(-1, 1) + torch.arange(32).view(1, -1)) % 2).float()
+    # Every target pixel holds one sample after the four jitters: the ratio to the render-pixel mean (0.5),
+    # trusted 1 / (1 + 2). The geometry test fails on the border, where a jitter's shift reads past the image, and
+    # the bicubic mean reads two render pixels on: the pixels further in.
+    expected = 1 + ((checker + 0.02) / 0.52 - 1) / 3
+    inside = (slice(None), slice(None), slice(6, -6), slice(6, -6))
+    torch.testing.assert_close((detailed[-1] / plain[-1])[inside], expected.expand(1, 3, 32, 32)[inside],
+                               atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(state["albedo_weight"][inside], torch.ones(1, 1, 20, 20))
+    # One frame says nothing of the other sub-pixels: the block of each sample holds its value alone, and the
+    # output is the network's.
+    torch.testing.assert_close(detailed[0], plain[0])
+
+
+def test_frames_without_jitter_leave_the_output_as_it_was():
+    # A renderer without TAA jitter writes every sample at the pixel centre, a corner of four target pixels.
+    frames = [dataclasses.replace(_fine_checker_frame((0.25, 0.25)), jitter=torch.zeros(1, 2)) for _ in range(3)]
+    plain, _ = _stream(build_method("fused:fast", 2), frames)
+    method = build_method("fused:fast", 2)
+    method.set_albedo_detail_frames(8)
+    detailed, state = _stream(method, frames)
+    for a, b in zip(plain, detailed):
+        torch.testing.assert_close(a, b)
+    assert float(state["albedo_weight"].sum()) == 0
+
+
+def test_a_cut_and_a_state_from_before_the_detail_start_the_gather_at_this_frame():
+    method = build_method("fused:fast", 2)
+    method.set_albedo_detail_frames(8)
+    frames = [_fine_checker_frame(jitter) for jitter in DETAIL_JITTERS[:2]]
+    _, state = _stream(method, frames)
+    assert float(state["albedo_weight"].sum()) > 64  # both frames' samples, but where the border failed the test
+    cut = dataclasses.replace(_fine_checker_frame(DETAIL_JITTERS[2]), camera_cut=torch.tensor([True]))
+    with torch.no_grad():
+        _, after_cut = method.step(cut, state)
+        older = {k: v for k, v in state.items() if not k.startswith("albedo_")}
+        _, after_old = method.step(_fine_checker_frame(DETAIL_JITTERS[2]), older)
+    for new_state in (after_cut, after_old):
+        assert float(new_state["albedo_weight"].sum()) == 64  # this frame's samples only
