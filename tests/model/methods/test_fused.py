@@ -735,3 +735,25 @@ def test_a_cut_and_a_state_from_before_the_detail_start_the_gather_at_this_frame
         _, after_old = method.step(_fine_checker_frame(DETAIL_JITTERS[2]), older)
     for new_state in (after_cut, after_old):
         assert float(new_state["albedo_weight"].sum()) == 64  # this frame's samples only
+
+
+def test_a_2x_model_with_texture_detail_trains_on_a_batch_of_jitters():
+    # --init-from keeps the setting, so a fine-tune steps with it: one jitter per item, gradients to the network.
+    method = build_method("fused:fast", 2)
+    method.set_albedo_detail_frames(8)
+    first = [_fine_checker_frame(jitter) for jitter in DETAIL_JITTERS[:2]]
+    second = [_fine_checker_frame(jitter) for jitter in DETAIL_JITTERS[2:]]
+
+    def batch(frames):
+        return FrameBatch(**{name: torch.cat([getattr(f, name) for f in frames]) for name in frames[0].tensors()})
+
+    _, state = method.step(batch(first), None)
+    output, state = method.step(batch(second), state)
+    output.mean().backward()
+    assert method.net.head.weight.grad is not None and torch.isfinite(method.net.head.weight.grad).all()
+    assert state["albedo_weight"].shape == (2, 1, 16, 16)
+    # Each item's two jitters filled two sub-pixels of every block, item 0 the left column, item 1 the right.
+    blocks = F.avg_pool2d(state["albedo_weight"], 2)[:, :, 2:-2, 2:-2] * 4
+    torch.testing.assert_close(blocks, torch.full_like(blocks, 2.0))
+    inside = state["albedo_weight"][:, :, 4:-4, 4:-4]
+    assert float(inside[0, :, :, 0::2].min()) == 1 and float(inside[1, :, :, 1::2].min()) == 1
