@@ -559,8 +559,8 @@ class Fused(Method):
                         valid_out: torch.Tensor | None) -> tuple[torch.Tensor, State]:
         """The output's factor of texture detail (``model.ops.jittered_albedo``) and the gathered albedo's state:
         the albedo OIDN reads (diffuse + specular), this frame's samples added to the sums warped from the frame
-        before where the geometry test holds. Bilinear: on held-out-style validation scenes with a moving camera a
-        nearest read put samples half a target pixel off and cost more than its blur (README)."""
+        before where the geometry test holds. Bilinear: on the validation scenes a nearest read, which puts samples
+        up to half a target pixel off under camera motion, gained 0.05 dB where bilinear gained 0.28 (README)."""
         albedo = oidn_albedo(frame).contiguous()  # frames stack channels_last, and mixed layouts are slow here
         new_total, new_weight = splat_at_jitter(albedo, frame.jitter, self.scale)
         previous = None if state is None else state.get("albedo_sum")
