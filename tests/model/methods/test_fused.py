@@ -109,6 +109,18 @@ def test_a_sample_mean_estimate_is_read_at_its_frames_mean_jitter():
     assert float((at_jitter - centred).abs().max()) > 0.01  # the two reads differ: the test can tell them apart
 
 
+def test_the_sample_mean_read_of_a_batch_is_each_items_own():
+    # Its two reads run as one batch of twice the items: item i's reads must stay item i's, with its own jitter.
+    generator = torch.Generator().manual_seed(3)
+    image = torch.rand(3, 3, 8, 8, generator=generator)
+    jitter = torch.tensor([[0.3, -0.2], [-0.4, 0.1], [0.0, 0.45]])
+    count = torch.stack([torch.full((1, 8, 8), n) for n in (1.0, 2.0, 5.0)])
+    together = sample_mean_resample(image, jitter, count, 2)
+    for i in range(3):
+        alone = sample_mean_resample(image[i:i + 1], jitter[i:i + 1], count[i:i + 1], 2)
+        assert torch.equal(together[i:i + 1], alone)
+
+
 def test_training_teaches_it_to_trust_a_static_history():
     # A static scene whose spatial estimate is wrong by a different random amount every frame (like OIDN's
     # blotches): averaging over time is the answer, which the TAA start only partly does.
