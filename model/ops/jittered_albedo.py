@@ -29,9 +29,9 @@ __all__ = ["BOUNDARY", "DETAIL_BOUNDS", "DETAIL_OFFSET", "DETAIL_SAMPLES", "gath
            "texture_detail"]
 
 BOUNDARY = 0.05  # samples nearer than this to a sub-pixel edge (in target pixels) are not gathered
-DETAIL_OFFSET = 0.02  # added to both albedos of the ratio, so a dark albedo's noise of rounding is not magnified
+DETAIL_OFFSET = 0.02  # added to both albedos of the ratio: where albedo is near black, a small difference stays small
 DETAIL_SAMPLES = 2.0  # a target pixel's detail is trusted as n / (n + this) of its n gathered samples
-DETAIL_BOUNDS = (0.5, 2.0)  # the ratio is clamped to these: texture finer than the gathered mean cannot ask for more
+DETAIL_BOUNDS = (0.5, 2.0)  # the ratio's clamp: a few samples across an albedo edge never scale the output further
 
 
 def _check_scale(scale: int) -> None:
