@@ -85,7 +85,7 @@ from model.methods.oidn import QUALITIES, oidn_albedo, oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import MethodSpec, register
 from model.ops.box_filter import replicated_box_extremes
-from model.ops.jittered_albedo import gather_samples, splat_at_jitter, texture_detail
+from model.ops.jittered_albedo import gather_samples, sample_weights, texture_detail
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.pyramid import block_mean
 from model.ops.rectify import clip_to_moments, neighbourhood_moments
@@ -562,7 +562,11 @@ class Fused(Method):
         before where the geometry test holds. Bilinear: on the validation scenes a nearest read, which puts samples
         up to half a target pixel off under camera motion, gained 0.05 dB where bilinear gained 0.28 (README)."""
         albedo = oidn_albedo(frame).contiguous()  # frames stack channels_last, and mixed layouts are slow here
-        new_total, new_weight = splat_at_jitter(albedo, frame.jitter, self.scale)
+        # nearest: each sample on every sub-pixel of its render pixel, kept in the one it lies in (splat_at_jitter's
+        # arithmetic), and the fallback where nothing was gathered
+        upsampled = F.interpolate(albedo, scale_factor=self.scale, mode="nearest")
+        new_weight = sample_weights(frame.jitter.to(albedo.dtype), self.scale, *albedo.shape[-2:])
+        new_total = upsampled * new_weight
         previous = None if state is None else state.get("albedo_sum")
         if previous is None or valid_out is None or previous.shape != new_total.shape:
             total, weight = new_total, new_weight  # a new stream, or a session from before the detail
@@ -572,8 +576,7 @@ class Fused(Method):
             warped = warped * valid_out
             total, weight = gather_samples(warped[:, :-1], warped[:, -1:], new_total, new_weight,
                                            self._albedo_detail_frames)
-        fallback = F.interpolate(albedo, scale_factor=self.scale, mode="nearest")  # where no sample was gathered
-        return texture_detail(total, weight, fallback, self.scale), {"albedo_sum": total, "albedo_weight": weight}
+        return texture_detail(total, weight, upsampled, self.scale), {"albedo_sum": total, "albedo_weight": weight}
 
     def _sample_mean(self, frame: FrameBatch, state: State | None,
                      valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -25,8 +25,8 @@ import torch.nn.functional as F
 from model.ops.pyramid import block_mean
 from model.ops.separable_sample import scaled_bicubic
 
-__all__ = ["BOUNDARY", "DETAIL_BOUNDS", "DETAIL_OFFSET", "DETAIL_SAMPLES", "gather_samples", "splat_at_jitter",
-           "texture_detail"]
+__all__ = ["BOUNDARY", "DETAIL_BOUNDS", "DETAIL_OFFSET", "DETAIL_SAMPLES", "gather_samples", "sample_weights",
+           "splat_at_jitter", "texture_detail"]
 
 BOUNDARY = 0.05  # samples nearer than this to a sub-pixel edge (in target pixels) are not gathered
 DETAIL_OFFSET = 0.02  # added to both albedos of the ratio: where albedo is near black, a small difference stays small
@@ -39,25 +39,36 @@ def _check_scale(scale: int) -> None:
         raise ValueError(f"scale must be a whole number >= 2 (a target grid finer than the render), got {scale!r}")
 
 
+def sample_weights(jitter: torch.Tensor, scale: int, height: int, width: int,
+                   boundary: float = BOUNDARY) -> torch.Tensor:
+    """(N, 1, scale height, scale width): 1 in the target pixel each render pixel's sample lies in at the frame's
+    ``jitter`` (N, 2) in [-0.5, 0.5], 0 in the other sub-pixels, and 0 everywhere for a frame whose sample lies
+    within ``boundary`` of a sub-pixel edge."""
+    _check_scale(scale)
+    if jitter.dim() != 2 or jitter.shape[1] != 2:
+        raise ValueError(f"jitter must be (N, 2), got {tuple(jitter.shape)}")
+    n = jitter.shape[0]
+    dtype = jitter.dtype if jitter.is_floating_point() else torch.float32
+    position = scale * (0.5 + jitter.to(dtype).clamp(-0.5, 0.5))  # (N, 2) in [0, s]: where in the pixel
+    fraction = position - torch.floor(position)
+    clear = (torch.minimum(fraction, 1 - fraction) >= boundary).all(dim=1).to(dtype)  # (N,)
+    phase = torch.floor(position).clamp(0, scale - 1)
+    sub = torch.arange(scale, device=jitter.device, dtype=dtype)
+    columns, rows = (sub == phase[:, :1]).to(dtype), (sub == phase[:, 1:]).to(dtype)  # (N, s) one-hot
+    # The weights are the one sub-pixel of every s x s block: that block's pattern tiled over the image.
+    pattern = rows[:, :, None] * columns[:, None, :] * clear.view(n, 1, 1)
+    return pattern.unsqueeze(1).repeat(1, 1, height, width)
+
+
 def splat_at_jitter(image: torch.Tensor, jitter: torch.Tensor, scale: int,
                     boundary: float = BOUNDARY) -> tuple[torch.Tensor, torch.Tensor]:
     """(sum (N, C, sH, sW), weight (N, 1, sH, sW)): each render pixel's value of ``image`` (N, C, H, W) put in the
-    target pixel its sample lies in, at the frame's ``jitter`` (N, 2) in [-0.5, 0.5]; weight 1 there and 0 in the
-    other sub-pixels, and 0 everywhere for a frame whose sample lies within ``boundary`` of a sub-pixel edge."""
+    target pixel its sample lies in (``sample_weights``), 0 elsewhere."""
     _check_scale(scale)
     if image.dim() != 4 or jitter.shape != (image.shape[0], 2):
         raise ValueError(f"image must be (N, C, H, W) and jitter (N, 2), got {tuple(image.shape)} and "
                          f"{tuple(jitter.shape)}")
-    n, height, width = image.shape[0], image.shape[2], image.shape[3]
-    position = scale * (0.5 + jitter.to(image.dtype).clamp(-0.5, 0.5))  # (N, 2) in [0, s]: where in the pixel
-    fraction = position - torch.floor(position)
-    clear = (torch.minimum(fraction, 1 - fraction) >= boundary).all(dim=1).to(image.dtype)  # (N,)
-    phase = torch.floor(position).clamp(0, scale - 1)
-    sub = torch.arange(scale, device=image.device, dtype=image.dtype)
-    columns, rows = (sub == phase[:, :1]).to(image.dtype), (sub == phase[:, 1:]).to(image.dtype)  # (N, s) one-hot
-    # The weights are the one sub-pixel of every s x s block: that block's pattern tiled over the image.
-    pattern = rows[:, :, None] * columns[:, None, :] * clear.view(n, 1, 1)
-    weight = pattern.unsqueeze(1).repeat(1, 1, height, width)
+    weight = sample_weights(jitter.to(image.dtype), scale, image.shape[2], image.shape[3], boundary)
     return F.interpolate(image, scale_factor=scale, mode="nearest") * weight, weight
 
 

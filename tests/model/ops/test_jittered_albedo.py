@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from model.ops.jittered_albedo import DETAIL_BOUNDS, gather_samples, splat_at_jitter, texture_detail
+from model.ops.jittered_albedo import DETAIL_BOUNDS, gather_samples, sample_weights, splat_at_jitter, texture_detail
 
 SCALE = 2
 
@@ -114,5 +114,7 @@ def test_refuses_a_scale_without_a_finer_grid_and_mismatched_shapes():
         splat_at_jitter(torch.ones(1, 3, 4, 4), torch.zeros(1, 2), 1)
     with pytest.raises(ValueError, match="jitter"):
         splat_at_jitter(torch.ones(1, 3, 4, 4), torch.zeros(2, 2), 2)
+    with pytest.raises(ValueError, match="jitter must be"):
+        sample_weights(torch.zeros(2), 2, 4, 4)
     with pytest.raises(ValueError, match="scale must be"):
         texture_detail(torch.ones(1, 3, 4, 4), torch.ones(1, 1, 4, 4), torch.ones(1, 3, 4, 4), 1)
