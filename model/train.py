@@ -205,6 +205,8 @@ def prepare(config: TrainConfig) -> tuple[SequenceCrops, list[FrameCache], Metho
         raise ValueError(f"method {method.label!r} has no trainable parameters; only learned methods train")
     if config.init_from:
         _load_initial_weights(method, config.init_from)
+    elif config.shipped_settings:
+        method.use_shipped_settings()
     return crops, validation, method
 
 

@@ -88,6 +88,10 @@ class TrainingSettings(_TrainingChecks):
     loss_skip_frames: int = Field(0, ge=0, le=255, description="leave the first K frames of each sample out of "
                                                                "the loss")
     augment: bool = Field(True, description="flips, brightness and a random rotation of the normals' world frame")
+    shipped_settings: bool = Field(True, description="a model trained from nothing runs, and trains with, the "
+                                                     "run-time settings its family's shipped models run (fused: "
+                                                     "the stale-history tests, OIDN on a sample mean, the texture "
+                                                     "detail at 2x); off: none. A fine-tune keeps its start's")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="seed of the weights, crops and augmentation")
     train_split: Literal[SPLITS] = Field("train", description="split to train on")
     validation_split: Literal[SPLITS] = Field("validation", description="split to validate on (may be empty for a "

@@ -28,8 +28,10 @@ DATA=${1:-data/reuse}
 STEPS_X1=${STEPS_X1:-2000}
 STEPS_X2=${STEPS_X2:-1500}
 [ -f "$DATA/manifest.json" ] || bash scripts/generate_reuse_data.sh "$DATA"
+# The first stage trains without the run-time settings (--no-shipped-settings): they were measured on its weights
+# and its fine-tunes, each added later, and the stages below set them where the shipped models took them.
 train=(.venv/bin/denoiser train --data "$DATA" --method fused:balanced --frames-per-sample 10 --batch 4
-       --lr 2e-3 --threads 1 --validate-every 250 --checkpoint-every 250 --quiet)
+       --lr 2e-3 --threads 1 --validate-every 250 --checkpoint-every 250 --quiet --no-shipped-settings)
 "${train[@]}" --scale 1 --crop 64 --steps "$STEPS_X1" --out runs/fused-balanced-x1 > runs-fused-balanced-x1.log 2>&1 &
 "${train[@]}" --scale 2 --crop 48 --steps "$STEPS_X2" --out runs/fused-balanced-x2 > runs-fused-balanced-x2.log 2>&1 &
 wait

@@ -178,6 +178,11 @@ class Method(nn.Module, abc.ABC):
         """
         self.load_state_dict(state_dict)
 
+    def use_shipped_settings(self) -> None:
+        """Take the run-time settings the family's shipped models run (a training from nothing starts with them,
+        ``TrainingSettings.shipped_settings``). Most families have none; the fused family's are its stale-history
+        tests, sample mean and texture detail."""
+
     def for_inference(self) -> Method:
         """This method in its fast inference form (eval mode; subclasses fuse layers): sessions, benchmarks
         and evaluation run this, training runs the method as built. Outputs must match the training form."""

@@ -128,6 +128,19 @@ SAMPLE_MEAN_TRUST_POWER = 2.0
 ALBEDO_DETAIL_KEY = "albedo_detail_window"  # state-dict entry: at 2x, the output takes the texture detail of the
 # albedo gathered on the target grid over up to this many jittered frames (0 or absent: none)
 
+# The run-time settings the shipped models of a scale run (``pretrained/fused-*``; a test holds them to the shipped
+# weights), which a model trained from nothing starts with (``use_shipped_settings``). Each was measured on shipped
+# weights and kept where it helped held-out recipes (README, from "The stale-history test" to "Texture detail").
+# ``fused-high-x1`` alone keeps its sample mean at power 3: it never trained with the mean, and a model that did needs
+# no higher power (README, "How long the sample mean trusts"); a model trained from nothing trains with it.
+SHIPPED_SETTINGS: dict[int, dict[str, bool | int | float]] = {
+    1: {"history_before_kernel": True, "kernel_max_pixels": 32768, "mean_max_frames": 8, "stale_test_sigmas": 0.5,
+        "stale_region_pixels": 33, "sample_mean_frames": 8, "sample_mean_trust_power": 2.0},
+    2: {"history_before_kernel": False, "kernel_max_pixels": 0, "mean_max_frames": 8, "stale_test_sigmas": 1.0,
+        "stale_region_pixels": 33, "sample_mean_frames": 8, "sample_mean_trust_power": 2.0,
+        "albedo_detail_frames": 8},
+}
+
 
 def frame_samples(frame: FrameBatch) -> torch.Tensor:
     """The 1 spp colour with the guides OIDN reads of the same samples (its albedo, the normals), (N, 9, H, W)."""
@@ -371,6 +384,10 @@ class Fused(Method):
             raise ValueError(f"albedo_detail_frames needs a target grid finer than the render (scale 2); this model "
                              f"is at scale 1, got {value!r}")
         self._albedo_detail_frames = self._store_count(ALBEDO_DETAIL_KEY, value, 0, refusal)
+
+    def use_shipped_settings(self) -> None:
+        for setting, value in SHIPPED_SETTINGS[self.scale].items():
+            getattr(self, f"set_{setting}")(value)
 
     def _store_count(self, key: str, value: int, minimum: int, refusal: str) -> int:
         """A whole-number setting checked and written to its state-dict buffer, so checkpoints record it."""

@@ -11,6 +11,7 @@ from model.checkpoint import save_checkpoint
 from model.methods.registry import build_method, example_batch
 from model.pretrained import (
     PRETRAINED_DIR,
+    RUN_TIME_SETTINGS,
     PretrainedError,
     UnknownPretrained,
     get_pretrained,
@@ -125,6 +126,18 @@ def test_every_model_in_the_repository_matches_its_manifest_and_runs(name):
     assert held_out["status"] in ("measured", "pending")
     if held_out["status"] == "measured":
         assert held_out["model"]["psnr"] is not None and held_out["peers"]
+
+
+@pytest.mark.parametrize("name", [name for name in pretrained_names() if name.startswith("fused-")])
+def test_a_fused_model_trained_from_nothing_starts_with_the_settings_its_shipped_models_run(name):
+    from model.methods.fused import SHIPPED_SETTINGS
+
+    shipped = load_pretrained(name)
+    expected = dict(SHIPPED_SETTINGS[shipped.scale])
+    if name == "fused-high-x1":  # never trained with its sample mean (SHIPPED_SETTINGS' comment)
+        expected["sample_mean_trust_power"] = 3.0
+    assert {setting: getattr(shipped, setting) for setting in expected} == expected
+    assert set(expected) | {"albedo_detail_frames"} == set(RUN_TIME_SETTINGS)
 
 
 def test_evaluate_takes_a_pretrained_name(tmp_path, monkeypatch):

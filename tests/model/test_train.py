@@ -300,3 +300,43 @@ def test_init_from_loads_float32_jnds_weights_into_its_int8_preset(data, tmp_pat
     loaded = qat.state_dict()
     for name, value in float_method.state_dict().items():
         assert torch.equal(loaded[name], value), name
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_a_fused_model_trained_from_nothing_starts_with_the_shipped_settings(data, tmp_path, scale):
+    from model.methods.fused import SHIPPED_SETTINGS
+
+    _, _, method = prepare(tiny_config(data, tmp_path / "shipped", method="fused:fast", scale=scale))
+    assert {name: getattr(method, name) for name in SHIPPED_SETTINGS[scale]} == SHIPPED_SETTINGS[scale]
+    assert method.sample_mean_frames > 0 and method.stale_test_sigmas > 0
+    _, _, bare = prepare(tiny_config(data, tmp_path / "bare", method="fused:fast", scale=scale,
+                                     shipped_settings=False))
+    assert (bare.sample_mean_frames, bare.stale_test_sigmas, bare.stale_region_pixels, bare.albedo_detail_frames,
+            bare.kernel_max_pixels, bare.history_before_kernel) == (0, 0.0, 0, 0, 0, False)
+
+
+def test_a_fine_tune_keeps_the_settings_of_the_model_it_starts_from(data, tmp_path):
+    from model.checkpoint import save_checkpoint
+    from model.methods.registry import build_method
+
+    start = build_method("fused:fast")
+    start.set_stale_test_sigmas(2.5)  # none of the others set: a fine-tune must not take the shipped ones
+    path = save_checkpoint(tmp_path / "start.pt", method=start)
+    _, _, tuned = prepare(tiny_config(data, tmp_path / "tune", method="fused:fast", init_from=str(path)))
+    assert (tuned.stale_test_sigmas, tuned.sample_mean_frames, tuned.stale_region_pixels) == (2.5, 0, 0)
+
+
+def test_a_fused_run_trained_with_the_shipped_settings_saves_and_resumes_them(data, tmp_path):
+    from model.methods.fused import SHIPPED_SETTINGS
+
+    config = tiny_config(data, tmp_path / "run", method="fused:fast", scale=2, steps=2, validate_every=0)
+    train(config)
+    saved = load_method(tmp_path / "run" / LAST_CHECKPOINT)
+    assert {name: getattr(saved, name) for name in SHIPPED_SETTINGS[2]} == SHIPPED_SETTINGS[2]
+    # A run begun without them resumes without them, whatever the option says now.
+    bare = tiny_config(data, tmp_path / "bare", method="fused:fast", scale=2, steps=1, validate_every=0,
+                       shipped_settings=False)
+    train(bare)
+    train(tiny_config(data, tmp_path / "bare", method="fused:fast", scale=2, steps=2, validate_every=0))
+    resumed = load_method(tmp_path / "bare" / LAST_CHECKPOINT)
+    assert (resumed.sample_mean_frames, resumed.albedo_detail_frames) == (0, 0)
