@@ -194,6 +194,21 @@ def test_int8_jnds_trains_from_a_float_checkpoint_with_every_training_option(sto
         torch.testing.assert_close(tuned["model"][key], value, atol=1e-6, rtol=0)
 
 
+@pytest.mark.parametrize("shipped", [True, False])
+def test_a_fused_training_job_from_nothing_takes_the_shipped_settings_unless_told_not_to(store, storage, settings,
+                                                                                         dataset, shipped):
+    from model.checkpoint import load_method
+    from model.methods.fused import SHIPPED_SETTINGS
+
+    record = run(store, storage, settings, submit(store, storage, settings, "train", **train_params(
+        method="fused:fast", crop=16, steps=1, shipped_settings=shipped)))
+    assert record["state"] == "succeeded", record["error"]
+    trained = load_method(storage.root / record["result"]["checkpoint"])
+    expected = SHIPPED_SETTINGS[1] if shipped else {"sample_mean_frames": 0, "stale_test_sigmas": 0.0,
+                                                     "stale_region_pixels": 0, "history_before_kernel": False}
+    assert {name: getattr(trained, name) for name in expected} == expected
+
+
 @pytest.mark.parametrize("init_from, error_type, code, words", [
     ("nothing-here", NotFound, "init_from_not_found", "pretrained models: tiny-x1"),
     ("identity", NotFound, "init_from_not_found", "a method name has no weights"),
