@@ -77,6 +77,8 @@ class _Fit:
         width, height = self.plan.target.resolution or tuple(self.config.time_at)
         with torch_threads(self.config.threads):
             method = build_method(f"{self.config.family}:{preset}", self.config.scale)
+            if self.config.shipped_settings:  # timed as its training will run it
+                method.use_shipped_settings()
             return time_method(method, width, height, frames=self.config.timing_frames,
                                warmup=self.config.timing_warmup, device=self.plan.device)
 

@@ -314,3 +314,21 @@ def test_a_fit_stops_before_training_what_the_target_does_not_need(tiny_data, tm
 def test_a_fit_is_checked_before_anything_trains(tiny_data, tmp_path, changes, error, message):
     with pytest.raises(error, match=message):
         plan_fit(tiny_config(tiny_data, tmp_path / "bad", **changes))
+
+
+@pytest.mark.parametrize("shipped", [True, False])
+def test_a_fused_preset_is_timed_with_the_settings_its_training_will_run(tiny_data, tmp_path, monkeypatch, shipped):
+    from model.fit.plan import plan_fit
+    from model.fit.runner import _Fit
+
+    timed = []
+
+    def time_method(method, *args, **kwargs):
+        timed.append((method.sample_mean_frames, method.stale_test_sigmas))
+        return 1.0
+
+    monkeypatch.setattr("model.fit.runner.time_method", time_method)
+    config = tiny_config(tiny_data, tmp_path / "fit", family="fused", presets=["fast"], shipped_settings=shipped,
+                         register_as=None)
+    assert _Fit(plan_fit(config), None, None).time_preset("fast") == 1.0
+    assert timed == ([(8, 0.5)] if shipped else [(0, 0.0)])
