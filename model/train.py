@@ -455,7 +455,8 @@ class _Training:
                 "parameters": self.inference_params, "trainable_parameters": self.method.parameter_count(),
                 "flops_per_pixel": self.flops_per_pixel, "total_steps": self.total_steps,
                 "train_samples": len(self.crops), "unused_train_sequences": len(self.crops.unused),
-                "validation_sequences": len(self.validation), "device": str(self.device)}
+                "validation_sequences": len(self.validation), "device": str(self.device),
+                **{f"setting.{name}": value for name, value in self.method.run_time_settings().items()}}
 
     def _finish(self) -> dict[str, Any] | None:
         if not self.master_process:

@@ -183,6 +183,10 @@ class Method(nn.Module, abc.ABC):
         ``TrainingSettings.shipped_settings``). Most families have none; the fused family's are its stale-history
         tests, sample mean and texture detail."""
 
+    def run_time_settings(self) -> dict[str, Any]:
+        """The settings this model runs that are no weights (name -> value; training logs them to MLflow)."""
+        return {}
+
     def for_inference(self) -> Method:
         """This method in its fast inference form (eval mode; subclasses fuse layers): sessions, benchmarks
         and evaluation run this, training runs the method as built. Outputs must match the training form."""

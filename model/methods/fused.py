@@ -128,6 +128,10 @@ SAMPLE_MEAN_TRUST_POWER = 2.0
 ALBEDO_DETAIL_KEY = "albedo_detail_window"  # state-dict entry: at 2x, the output takes the texture detail of the
 # albedo gathered on the target grid over up to this many jittered frames (0 or absent: none)
 
+# The settings a model runs that are no weights, each with a ``set_`` method and a state-dict entry (above).
+RUN_TIME_SETTINGS = ("history_before_kernel", "kernel_max_pixels", "mean_max_frames", "stale_test_sigmas",
+                     "stale_region_pixels", "sample_mean_frames", "sample_mean_trust_power", "albedo_detail_frames")
+
 # The run-time settings the shipped models of a scale run (``pretrained/fused-*``; a test holds them to the shipped
 # weights), which a model trained from nothing starts with (``use_shipped_settings``). Each was measured on shipped
 # weights and kept where it helped held-out recipes (README, from "The stale-history test" to "Texture detail").
@@ -388,6 +392,9 @@ class Fused(Method):
     def use_shipped_settings(self) -> None:
         for setting, value in SHIPPED_SETTINGS[self.scale].items():
             getattr(self, f"set_{setting}")(value)
+
+    def run_time_settings(self) -> dict[str, bool | int | float]:
+        return {setting: getattr(self, setting) for setting in RUN_TIME_SETTINGS}
 
     def _store_count(self, key: str, value: int, minimum: int, refusal: str) -> int:
         """A whole-number setting checked and written to its state-dict buffer, so checkpoints record it."""

@@ -197,3 +197,20 @@ def test_a_registered_model_loads_through_mlflow_pyfunc_and_denoises_a_sequence(
         for index, frame in enumerate(full):
             expected, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
             np.testing.assert_allclose(direct[index], expected[0].permute(1, 2, 0).numpy(), rtol=1e-5, atol=1e-6)
+
+
+def test_a_fused_run_logs_the_run_time_settings_its_model_runs(tmp_path):
+    write_tiny_dataset(tmp_path / "data")
+    uri = f"sqlite:///{tmp_path / 'tracking' / 'mlflow.db'}"
+    config = config_for(tmp_path, tracking_uri=uri, method="fused:fast", scale=2, steps=1, validate_every=0,
+                        register_as="tiny-fused")
+    tracker = MLflowTracker(uri, config.experiment)
+    train(config, tracker=tracker)
+    params = tracker.client.get_run(tracker.run_id).data.params
+    assert params["shipped_settings"] == "True"
+    assert (params["setting.albedo_detail_frames"], params["setting.stale_test_sigmas"],
+            params["setting.history_before_kernel"]) == ("8", "1.0", "False")
+    plain = MLflowTracker(uri, config.experiment)
+    train(config_for(tmp_path, tracking_uri=uri, steps=1, validate_every=0, out=str(tmp_path / "plain")),
+          tracker=plain)
+    assert not any(name.startswith("setting.") for name in plain.client.get_run(plain.run_id).data.params)

@@ -137,7 +137,8 @@ def test_a_fused_model_trained_from_nothing_starts_with_the_settings_its_shipped
     if name == "fused-high-x1":  # never trained with its sample mean (SHIPPED_SETTINGS' comment)
         expected["sample_mean_trust_power"] = 3.0
     assert {setting: getattr(shipped, setting) for setting in expected} == expected
-    assert set(expected) | {"albedo_detail_frames"} == set(RUN_TIME_SETTINGS)
+    assert set(expected) | {"albedo_detail_frames"} == set(RUN_TIME_SETTINGS) == set(shipped.run_time_settings())
+    assert shipped.run_time_settings() == {setting: getattr(shipped, setting) for setting in RUN_TIME_SETTINGS}
 
 
 def test_evaluate_takes_a_pretrained_name(tmp_path, monkeypatch):
