@@ -33,6 +33,7 @@ from typing import Any
 import torch
 
 from model.methods.base import Method
+from model.methods.fused import RUN_TIME_SETTINGS  # shipped with the weights unchanged (ship_checkpoint)
 
 PRETRAINED_FORMAT = "denoiser-pretrained/1"
 # The repository's folder; an installed (not editable) package finds it through $DENOISER_PRETRAINED_DIR, which the
@@ -214,20 +215,6 @@ def held_out_from_report(report: dict[str, Any], row_source: str, method: str, p
             "threads": report.get("threads"), "device": report.get("device"), "timing_reference":
                 report.get("timing_reference"), "model": brief(row),
             "peers": [brief(entry) for entry in rows if entry.get("method") in PEER_METHODS]}
-
-
-# The fused family's run-time settings (``model.methods.fused``), each shipped with the weights unchanged: name ->
-# (whether it needs the network's running mean, what a model without it lacks).
-RUN_TIME_SETTINGS: dict[str, tuple[bool, str]] = {
-    "history_before_kernel": (False, "no choice of recurrence"),
-    "kernel_max_pixels": (False, "no output kernel to limit"),
-    "mean_max_frames": (True, "no running mean to set a window for"),
-    "stale_test_sigmas": (True, "no running mean for the stale-history test"),
-    "stale_region_pixels": (True, "no running mean for the stale-history test"),
-    "sample_mean_frames": (False, "no spatial denoiser to feed a sample mean"),
-    "sample_mean_trust_power": (False, "no spatial denoiser to feed a sample mean"),
-    "albedo_detail_frames": (False, "no albedo to gather on a target grid"),
-}
 
 
 def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.PathLike | None = None,

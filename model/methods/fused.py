@@ -128,9 +128,18 @@ SAMPLE_MEAN_TRUST_POWER = 2.0
 ALBEDO_DETAIL_KEY = "albedo_detail_window"  # state-dict entry: at 2x, the output takes the texture detail of the
 # albedo gathered on the target grid over up to this many jittered frames (0 or absent: none)
 
-# The settings a model runs that are no weights, each with a ``set_`` method and a state-dict entry (above).
-RUN_TIME_SETTINGS = ("history_before_kernel", "kernel_max_pixels", "mean_max_frames", "stale_test_sigmas",
-                     "stale_region_pixels", "sample_mean_frames", "sample_mean_trust_power", "albedo_detail_frames")
+# The settings a model runs that are no weights, each with a ``set_`` method and a state-dict entry (above): name ->
+# (whether it needs the network's running mean, what a model without it lacks; shipping refuses it there).
+RUN_TIME_SETTINGS: dict[str, tuple[bool, str]] = {
+    "history_before_kernel": (False, "no choice of recurrence"),
+    "kernel_max_pixels": (False, "no output kernel to limit"),
+    "mean_max_frames": (True, "no running mean to set a window for"),
+    "stale_test_sigmas": (True, "no running mean for the stale-history test"),
+    "stale_region_pixels": (True, "no running mean for the stale-history test"),
+    "sample_mean_frames": (False, "no spatial denoiser to feed a sample mean"),
+    "sample_mean_trust_power": (False, "no spatial denoiser to feed a sample mean"),
+    "albedo_detail_frames": (False, "no albedo to gather on a target grid"),
+}
 
 # The run-time settings the shipped models of a scale run (``pretrained/fused-*``; a test holds them to the shipped
 # weights), which a model trained from nothing starts with (``use_shipped_settings``). Each was measured on shipped
