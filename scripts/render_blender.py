@@ -14,7 +14,11 @@ view, which turns Cycles' planar depth into distance along the ray. OUT/cameras.
 
 Why these settings:
 - Noisy frames: 1 sample, Blender's denoiser off, pixel filter width 0.01 px, so the one sample of each pixel sits
-  at the pixel centre (the layout's jitter 0); a new seed per frame (``use_animated_seed``).
+  at the pixel centre (the layout's jitter 0); a new seed per frame (``use_animated_seed``). ``--jitter halton``
+  moves the sample by a TAA jitter per frame: the camera's shift, which moves the view by whole fractions of the
+  sensor, with no change of perspective. Cycles leaves the shift out of the Vector pass, so the motion stays the
+  frame bundle's (from this frame's jittered sample to the previous frame's unjittered projection). The note then
+  reads ``fov_y_degrees=... jitter=X,Y``. References are rendered without the shift.
 - Guides: Diffuse Color (``DiffCol``) and Glossy Color (``GlossCol``) as albedos, ``Normal``, ``Depth`` and
   ``Vector``. These are written at the first hit, so they are noise-free at 1 spp. Cycles' "Denoising Albedo" and
   "Denoising Normal" passes follow glossy and transmissive bounces until a diffuse-ish surface, choosing a lobe at
@@ -36,6 +40,9 @@ import math
 import random
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the project, when run as a script
+from model.data.camera import frame_jitter  # noqa: E402  (NumPy only)
 
 try:
     import bpy
@@ -62,6 +69,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         help="references at this multiple of --size (2: for evaluating 2x upscaling)")
     parser.add_argument("--seed", type=int, default=0, help="varies the procedural scene and the noise")
     parser.add_argument("--max-bounces", type=int, default=6, help="Cycles' total bounce limit")
+    parser.add_argument("--jitter", choices=("none", "halton"), default="none",
+                        help="where each noisy frame's one sample sits in its pixel: 'none' (default) the pixel "
+                             "centre; 'halton' a TAA jitter per frame (Halton(2, 3) of the frame index + 1, minus "
+                             "0.5; a camera shift, stamped into the note), which lets the fused 2x models gather "
+                             "detail finer than a pixel (README: 'Jittered Blender frames')")
     args = parser.parse_args(argv)
     width, _, height = args.size.partition("x")
     args.width, args.height = int(width), int(height or width)
@@ -280,10 +292,14 @@ def configure(scene, width: int, height: int, max_bounces: int) -> None:
         layer.use_pass_glossy_color = True
 
 
-def render(scene, path: Path, frame: int, samples: int, reference: bool, ref_scale: int = 1) -> None:
+def render(scene, path: Path, frame: int, samples: int, reference: bool, ref_scale: int = 1,
+           jitter: tuple[float, float] = (0.0, 0.0)) -> None:
     scene.frame_set(frame)
     scene.render.use_stamp_note = True  # written as the header attribute 'Note'
-    scene.render.stamp_note_text = f"fov_y_degrees={math.degrees(camera_fov(scene)[1]):.6f}"
+    note = f"fov_y_degrees={math.degrees(camera_fov(scene)[1]):.6f}"
+    if jitter != (0.0, 0.0):
+        note += f" jitter={jitter[0]:.6f},{jitter[1]:.6f}"
+    scene.render.stamp_note_text = note
     scene.cycles.samples = samples
     # Reference: box filter of one pixel (the pixel average). Noisy frame: the narrowest filter Cycles allows,
     # which puts the one sample at the pixel centre.
@@ -293,7 +309,24 @@ def render(scene, path: Path, frame: int, samples: int, reference: bool, ref_sca
     # its 2x2 mean is then the 1x reference (the import derives it).
     scene.render.resolution_percentage = 100 * ref_scale if reference else 100
     scene.render.filepath = str(path)
-    bpy.ops.render.render(write_still=True)
+    camera = scene.camera.data
+    shift = camera.shift_x, camera.shift_y  # the scene's own (possibly animated) shift, restored after
+    per_pixel = shift_per_pixel(scene)
+    # x right and y down in the frame bundle; Blender's shift moves the view right and up.
+    camera.shift_x, camera.shift_y = shift[0] + jitter[0] * per_pixel, shift[1] - jitter[1] * per_pixel
+    try:
+        bpy.ops.render.render(write_still=True)
+    finally:
+        camera.shift_x, camera.shift_y = shift
+
+
+def shift_per_pixel(scene) -> float:
+    """Blender's camera shift that moves the view by one pixel: shift is a fraction of the fitted sensor side."""
+    camera = scene.camera.data
+    width, height = scene.render.resolution_x, scene.render.resolution_y
+    fit = camera.sensor_fit
+    side = width if fit == "HORIZONTAL" else height if fit == "VERTICAL" else max(width, height)
+    return 1.0 / side
 
 
 def camera_fov(scene) -> tuple[float, float]:
@@ -346,8 +379,9 @@ def main(argv: list[str]) -> None:
     cameras = []
     for index in range(args.frames):
         name = f"frame_{index:04d}.exr"
-        render(scene, noisy / name, first + index, 1, reference=False)
-        cameras.append(camera_record(scene, index))
+        jitter = frame_jitter(index) if args.jitter == "halton" else (0.0, 0.0)
+        render(scene, noisy / name, first + index, 1, reference=False, jitter=jitter)
+        cameras.append({**camera_record(scene, index), "jitter": list(jitter)})
         if args.ref_spp:
             render(scene, references / name, first + index, args.ref_spp, reference=True, ref_scale=args.ref_scale)
         print(f"frame {index + 1}/{args.frames}: {noisy / name}", flush=True)

@@ -53,22 +53,26 @@ def test_a_users_blend_file_renders_at_a_non_square_size_and_its_depth_lands_on_
     subprocess.run([sys.executable, "-c", make], check=True, capture_output=True, timeout=300)
     out = tmp_path / "user"
     subprocess.run([sys.executable, str(SCRIPT), "--blend", str(blend), "--out", str(out), "--frames", "2",
-                    "--size", "24x16", "--ref-spp", "8"], check=True, capture_output=True, timeout=300)
+                    "--size", "24x16", "--ref-spp", "8", "--jitter", "halton"],
+                   check=True, capture_output=True, timeout=300)
     cameras = json.loads((out / "cameras.json").read_text())
     for index, camera in enumerate(cameras):
         frame = read_layout_frame(out / f"frame_000{index}.exr", LAYOUT).frame
-        assert frame.resolution == (24, 16)
+        assert frame.resolution == (24, 16) and frame.jitter == pytest.approx(camera["jitter"], abs=1e-6)
         floor = frame.normal[..., 2] > 0.999
-        # The field of view in the metadata note, with Blender's sensor fit, turns planar depth into ray distance.
-        assert np.median(np.abs(floor_hits(frame, camera, frame.depth)[floor])) < 1e-4
+        # The field of view in the metadata note, with Blender's sensor fit, turns planar depth into ray distance,
+        # and the camera shift moved each sample by the jitter in the note (a shift is a fraction of the wider side).
+        assert np.median(np.abs(floor_hits(frame, camera, frame.depth, jitter=frame.jitter)[floor])) < 1e-4
+    assert np.allclose(cameras[1]["jitter"], [-0.25, 1 / 6])  # Halton(2, 3) of frame 2, minus 0.5
 
 
 def test_references_at_twice_the_resolution_import_as_2x_and_1x_references(tmp_path):
     out = tmp_path / "orbit"
     subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--scene", "orbit", "--frames", "1",
-                    "--size", "16", "--ref-spp", "16", "--ref-scale", "2"],
+                    "--size", "16", "--ref-spp", "16", "--ref-scale", "2", "--jitter", "none"],
                    check=True, capture_output=True, timeout=300)
-    assert read_layout_frame(out / "frame_0000.exr", LAYOUT).frame.resolution == (16, 16)
+    frame = read_layout_frame(out / "frame_0000.exr", LAYOUT).frame
+    assert frame.resolution == (16, 16) and frame.jitter == (0.0, 0.0)
     assert read_layout_reference(out / "references" / "frame_0000.exr", LAYOUT)["reference"].shape == (32, 32, 3)
     report = import_sequence(out, LAYOUT, tmp_path / "data")
     assert report.warnings == [] and report.scales == (1, 2)

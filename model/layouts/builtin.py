@@ -7,7 +7,10 @@
   test_blender_cycles.py proves each on the committed fixture): ``Vector.X/Y`` is the offset to the previous
   frame's position in pixels with y up (``Vector.Z/W`` looks at the next frame: unused); ``Depth.Z`` is planar
   (along the view axis), 1e10 where nothing is hit; ``Normal`` is world space; with a 0.01 px pixel filter the
-  one sample sits at the pixel centre. Guides are the first-hit passes Diffuse Color and Glossy Color: Cycles'
+  one sample sits at the pixel centre, unless the note carries ``jitter=X,Y`` (``scripts/render_blender.py
+  --jitter halton`` shifts the camera by that many pixels, x right and y down, per frame; the Vector pass is then
+  still the frame bundle's motion, since Cycles leaves the shift out of it: proved on a second fixture).
+  Guides are the first-hit passes Diffuse Color and Glossy Color: Cycles'
   Denoising Albedo / Denoising Normal follow glossy bounces, so they are noisy at 1 spp.
   Planar depth needs the vertical field of view: ``scripts/render_blender.py`` stamps it into the header as
   Blender's metadata note ``fov_y_degrees=...``; else give it to the import (``--fov-y``).
@@ -48,7 +51,9 @@ BLENDER_CYCLES = {
     "motion": {"points_to": "previous", "units": "pixels", "y": "up"},
     "depth": {"kind": "planar", "no_hit_at_or_above": 1e9, "fov_y_attribute": "Note"},
     "normal": {"space": "world"},
-    "sample": {"jitter": "centre", "frame_index_attribute": "Frame"},
+    # scripts/render_blender.py --jitter halton stamps the jitter into the note ("... jitter=X,Y"); without it the
+    # sample is at the pixel centre (a 0.01 px pixel filter).
+    "sample": {"jitter": "header-or-centre", "jitter_attribute": "Note", "frame_index_attribute": "Frame"},
     # Alpha, and the Vector pass's motion towards the next frame.
     "ignore": ["ViewLayer.Combined.A", "ViewLayer.Vector.Z", "ViewLayer.Vector.W"],
 }

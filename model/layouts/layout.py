@@ -33,7 +33,7 @@ A layout is a mapping (a TOML or JSON file, or one of ``model.layouts.builtin``)
     [sample]
     jitter = "header"           # "header": the 'jitter' attribute (required); "centre": every sample at the
                                 # pixel centre (jitter 0); "header-or-centre": the attribute if present, else 0
-    jitter_attribute = "jitter"
+    jitter_attribute = "jitter"  # 2 floats, or text holding "jitter=X,Y" (Blender's metadata note)
     frame_index_attribute = "frame_index"
 
 Every problem with a layout is a LayoutError naming the layout, the key and what is allowed.

@@ -31,6 +31,7 @@ from model.layouts.layout import Layout
 
 Mode = Literal["strict", "import", "live"]
 _FOV_IN_TEXT = re.compile(r"fov_y_degrees\s*=\s*([0-9.eE+-]+)")
+_JITTER_IN_TEXT = re.compile(r"jitter\s*=\s*([0-9.eE+-]+)\s*,\s*([0-9.eE+-]+)")
 _LISTED_CHANNELS = 12  # how many of a file's channels an error message lists
 
 
@@ -185,6 +186,9 @@ def _jitter(headers: list[dict], layout: Layout, mode: Mode, source: str) -> tup
         return (0.0, 0.0), None
     name = layout.sample.jitter_attribute
     value = _attribute(headers, name)
+    if isinstance(value, str):  # a text attribute, e.g. Blender's metadata note "fov_y_degrees=39.6 jitter=0.25,-0.1"
+        match = _JITTER_IN_TEXT.search(value)
+        value = _text_jitter(match, source, name) if match else None
     if value is None:
         if layout.sample.jitter == "header-or-centre":
             return (0.0, 0.0), None
@@ -199,6 +203,14 @@ def _jitter(headers: list[dict], layout: Layout, mode: Mode, source: str) -> tup
     if jitter.shape != (2,) or not np.issubdtype(jitter.dtype, np.number):
         raise FrameFormatError(source, "jitter", f"attribute '{name}' is {value!r}, not a pair of numbers")
     return (float(jitter[0]), float(jitter[1])), None
+
+
+def _text_jitter(match: re.Match, source: str, name: str) -> tuple[float, float]:
+    try:
+        return float(match.group(1)), float(match.group(2))
+    except ValueError:
+        raise FrameFormatError(source, "jitter", f"attribute '{name}' has {match.group(0)!r}, not "
+                                                 f"'jitter=X,Y' with two numbers") from None
 
 
 def _fov_y(headers: list[dict], layout: Layout, override: float | None, source: str) -> float:

@@ -11,6 +11,7 @@ from model.frames import BUFFERS, FrameBundle
 
 FIXTURES = Path(__file__).parent / "data"
 BLENDER_ORBIT = FIXTURES / "blender_orbit"  # 4 frames, 32x32, rendered by scripts/render_blender.py --seed 0
+BLENDER_ORBIT_JITTERED = FIXTURES / "blender_orbit_jittered"  # the same, --jitter halton
 
 
 def bundle_channels(frame: FrameBundle, rename: dict[str, str] | None = None) -> dict[str, np.ndarray]:
@@ -78,8 +79,8 @@ def upscaled_copy(source: Path, destination: Path, factor: int) -> Path:
     return write_parts(destination, parts)
 
 
-def floor_hits(frame, camera: dict, depth: np.ndarray, jitter=(0.0, 0.0)) -> np.ndarray:
-    """World z of the hit point of every pixel's ray through (x + 0.5 + jitter) at distance ``depth`` along it."""
+def hit_points(camera: dict, depth: np.ndarray, jitter=(0.0, 0.0)) -> np.ndarray:
+    """World position of every pixel's hit along its ray through (x + 0.5 + jitter) at distance ``depth``."""
     matrix = np.array(camera["matrix_world"])
     height, width = depth.shape
     ys, xs = np.mgrid[0:height, 0:width] + 0.5
@@ -89,4 +90,19 @@ def floor_hits(frame, camera: dict, depth: np.ndarray, jitter=(0.0, 0.0)) -> np.
                           (1 - ys / height * 2) * np.tan(camera["fov_y"] / 2), -np.ones_like(xs)], axis=-1)
     direction = direction @ matrix[:3, :3].T
     direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
-    return (matrix[:3, 3] + depth[..., None] * direction)[..., 2]
+    return matrix[:3, 3] + depth[..., None] * direction
+
+
+def floor_hits(frame, camera: dict, depth: np.ndarray, jitter=(0.0, 0.0)) -> np.ndarray:
+    """World z of the hit point of every pixel's ray through (x + 0.5 + jitter) at distance ``depth`` along it."""
+    return hit_points(camera, depth, jitter)[..., 2]
+
+
+def image_positions(camera: dict, points: np.ndarray) -> np.ndarray:
+    """(x, y) in the frame bundle's image coordinates (x right, y down, unjittered) of world ``points`` (..., 3)."""
+    matrix = np.array(camera["matrix_world"])
+    local = (points - matrix[:3, 3]) @ matrix[:3, :3]  # the rotation's columns are orthonormal: its inverse is .T
+    forward = -local[..., 2]
+    x = (local[..., 0] / forward / np.tan(camera["fov_x"] / 2) + 1) * camera["width"] / 2
+    y = (1 - local[..., 1] / forward / np.tan(camera["fov_y"] / 2)) * camera["height"] / 2
+    return np.stack([x, y], axis=-1)

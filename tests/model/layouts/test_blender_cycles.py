@@ -1,6 +1,8 @@
 """Blender Cycles' conventions, proved on real Cycles output (the committed fixture, Blender 5.0.1, rendered by
 ``scripts/render_blender.py --out tests/model/layouts/data/blender_orbit --frames 4 --size 32 --ref-spp 256``:
-a camera orbiting 4 degrees a frame around boxes and a sphere on a checkered floor before a checkered wall).
+a camera orbiting 4 degrees a frame around boxes and a sphere on a checkered floor before a checkered wall), and the
+same clip with a TAA jitter per frame (``... --out tests/model/layouts/data/blender_orbit_jittered --jitter halton``:
+a camera shift, stamped into the metadata note).
 
 As the generator's tests do: warping the previous reference by the imported motion reproduces this frame's
 reference, far better than not warping and than every other convention; depth is checked on known geometry (the
@@ -17,7 +19,9 @@ import pytest
 
 from model.layouts import BUILTIN_LAYOUTS, read_layout_frame, read_layout_reference
 from model.layouts.checks import reprojection_psnr
-from tests.model.layouts.exr_builders import BLENDER_ORBIT, floor_hits
+from model.data.camera import frame_jitter
+from tests.model.layouts.exr_builders import BLENDER_ORBIT, BLENDER_ORBIT_JITTERED, floor_hits, hit_points, \
+    image_positions
 
 LAYOUT = BUILTIN_LAYOUTS["blender-cycles"]
 FRAMES = sorted(BLENDER_ORBIT.glob("frame_*.exr"))
@@ -103,3 +107,43 @@ def test_diffuse_color_is_a_noise_free_guide_at_one_sample(frames):
         assert smooth.sum() > 100
         assert np.median(np.abs(frame.albedo - references["reference_albedo"]).max(-1)[smooth]) < 1e-4
         assert np.median(np.abs(frame.color - references["reference"]).max(-1)[smooth]) > 1e-3
+
+
+def jittered_frames():
+    paths = sorted(BLENDER_ORBIT_JITTERED.glob("frame_*.exr"))
+    cameras = json.loads((BLENDER_ORBIT_JITTERED / "cameras.json").read_text())
+    return [read_layout_frame(path, LAYOUT).frame for path in paths], cameras
+
+
+def test_a_jittered_render_reads_its_jitter_from_the_note_and_its_samples_lie_there():
+    frames, cameras = jittered_frames()
+    for index, (frame, camera) in enumerate(zip(frames, cameras)):
+        assert frame.jitter == pytest.approx(frame_jitter(index), abs=1e-6) == camera["jitter"]
+        # Depth through the jittered positions lands on the floor plane z = 0; through the centres it does not.
+        floor = frame.normal[..., 2] > 0.999
+        at_jitter = np.abs(floor_hits(frame, camera, frame.depth, jitter=frame.jitter)[floor])
+        at_centre = np.abs(floor_hits(frame, camera, frame.depth)[floor])
+        assert floor.sum() > 200 and np.median(at_jitter) < 1e-4
+        if frame.jitter != (0.0, 0.0):
+            assert np.median(at_centre) > 100 * np.median(at_jitter)
+
+
+@pytest.mark.parametrize("jittered", [False, True], ids=["centre", "jittered"])
+def test_the_imported_motion_is_the_offset_from_the_sample_to_the_previous_unjittered_projection(frames, jittered):
+    """The frame bundle's motion, from known geometry: this frame's sample position (centre + jitter) lifted to the
+    world by its depth and projected by the previous camera without its jitter. Cycles leaves the camera shift out of
+    its Vector pass, so a jittered render needs no correction; the other reading (the previous frame's own jittered
+    projection) would be off by the change of jitter."""
+    clip, cameras = jittered_frames() if jittered else (frames, CAMERAS)
+    height, width = clip[0].depth.shape
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    for index in range(1, len(clip)):
+        frame = clip[index]
+        hit = frame.depth > 0
+        position = np.stack([xs + frame.jitter[0], ys + frame.jitter[1]], axis=-1)
+        points = hit_points(cameras[index], frame.depth, frame.jitter)
+        expected = image_positions(cameras[index - 1], points) - position
+        assert np.percentile(np.abs(expected - frame.motion)[hit], 99) < 1e-3  # measured: 1e-5 px
+        change = np.subtract(clip[index - 1].jitter, frame.jitter)
+        if jittered:
+            assert np.median(np.abs(expected - (frame.motion + change))[hit].max(-1)) > 0.2

@@ -13,7 +13,7 @@ from model.layouts.builtin import BLENDER_CYCLES
 def test_builtin_layouts_by_name():
     assert set(BUILTIN_LAYOUTS) == {"denoiser", "blender-cycles", "generic"}
     cycles = load_layout("blender-cycles")
-    assert cycles.motion.y == "up" and cycles.depth.kind == "planar" and cycles.sample.jitter == "centre"
+    assert cycles.motion.y == "up" and cycles.depth.kind == "planar" and cycles.sample.jitter == "header-or-centre"
     assert cycles.is_ignored("ViewLayer.Vector.Z") and not cycles.is_ignored("ViewLayer.Vector.X")
     assert load_layout("denoiser").channels["normal"] == (("normal.X", "normal.Y", "normal.Z"),)
 

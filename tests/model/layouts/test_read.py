@@ -93,6 +93,34 @@ def test_missing_jitter_is_zero_in_a_session_and_a_clear_error_for_stored_data(t
     assert read_layout_frame(path, GENERIC).frame.jitter == (0.0, 0.0)
 
 
+def blender_channels() -> dict[str, np.ndarray]:
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT
+
+    channels = {}
+    for part in OpenEXR.File(str(BLENDER_ORBIT / "frame_0001.exr"), separate_channels=True).parts:
+        channels.update({name: channel.pixels for name, channel in part.channels.items()})
+    return channels
+
+
+@pytest.mark.parametrize("note, jitter", [("fov_y_degrees=40", (0.0, 0.0)),
+                                          ("fov_y_degrees=40 jitter=0.25,-0.375", (0.25, -0.375)),
+                                          ("jitter = -0.5 , 1e-1 fov_y_degrees=40", (-0.5, 0.1))])
+def test_blenders_note_carries_the_jitter_or_leaves_the_sample_at_the_pixel_centre(tmp_path, note, jitter):
+    path = write_channels(tmp_path / "f.exr", blender_channels(), {"Note": note})
+    read = read_layout_frame(path, BUILTIN_LAYOUTS["blender-cycles"])
+    assert read.frame.jitter == jitter and read.repairs == ()
+
+
+@pytest.mark.parametrize("note, message", [
+    ("fov_y_degrees=40 jitter=0.25,1e", r"attribute 'Note' has 'jitter=0.25,1e', not 'jitter=X,Y' with two numbers"),
+    ("fov_y_degrees=40 jitter=0.75,0", r"attribute 'jitter': \(0.75, 0\) is outside \[-0.5, 0.5\]"),
+])
+def test_a_bad_jitter_in_blenders_note_is_refused_with_what_is_wrong(tmp_path, note, message):
+    path = write_channels(tmp_path / "f.exr", blender_channels(), {"Note": note})
+    with pytest.raises((FrameFormatError, FrameValidationError), match=message):
+        read_layout_frame(path, BUILTIN_LAYOUTS["blender-cycles"])
+
+
 def test_missing_frame_index_is_left_to_the_caller(tmp_path, frame):
     path = write_channels(tmp_path / "f.exr", bundle_channels(frame), {"jitter": np.zeros(2)})
     read = read_layout_frame(path, DENOISER)
