@@ -15,8 +15,8 @@ view, which turns Cycles' planar depth into distance along the ray. OUT/cameras.
 Why these settings:
 - Noisy frames: 1 sample, Blender's denoiser off, pixel filter width 0.01 px, so the one sample of each pixel sits
   at the pixel centre (the layout's jitter 0); a new seed per frame (``use_animated_seed``). ``--jitter halton``
-  moves the sample by a TAA jitter per frame: the camera's shift, which moves the view by whole fractions of the
-  sensor, with no change of perspective. Cycles leaves the shift out of the Vector pass, so the motion stays the
+  moves the sample by a TAA jitter per frame: the camera's shift, which slides the image plane by a fraction of the
+  sensor's side, with no change of perspective. Cycles leaves the shift out of the Vector pass, so the motion stays the
   frame bundle's (from this frame's jittered sample to the previous frame's unjittered projection). The note then
   reads ``fov_y_degrees=... jitter=X,Y``. References are rendered without the shift.
 - Guides: Diffuse Color (``DiffCol``) and Glossy Color (``GlossCol``) as albedos, ``Normal``, ``Depth`` and
