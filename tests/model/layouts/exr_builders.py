@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
 
+from model.data.camera import Camera
 from model.frames import BUFFERS, FrameBundle
 
 FIXTURES = Path(__file__).parent / "data"
@@ -99,10 +101,10 @@ def floor_hits(frame, camera: dict, depth: np.ndarray, jitter=(0.0, 0.0)) -> np.
 
 
 def image_positions(camera: dict, points: np.ndarray) -> np.ndarray:
-    """(x, y) in the frame bundle's image coordinates (x right, y down, unjittered) of world ``points`` (..., 3)."""
+    """(x, y) in the frame bundle's image coordinates (unjittered) of world ``points`` (..., 3), by the generator's
+    pinhole projection (``model.data.camera``) of the recorded Blender camera (columns: right, up, backward)."""
     matrix = np.array(camera["matrix_world"])
-    local = (points - matrix[:3, 3]) @ matrix[:3, :3]  # the rotation's columns are orthonormal: its inverse is .T
-    forward = -local[..., 2]
-    x = (local[..., 0] / forward / np.tan(camera["fov_x"] / 2) + 1) * camera["width"] / 2
-    y = (1 - local[..., 1] / forward / np.tan(camera["fov_y"] / 2)) * camera["height"] / 2
-    return np.stack([x, y], axis=-1)
+    origin = matrix[:3, 3]
+    pinhole = Camera(tuple(origin), tuple(origin - matrix[:3, 2]), tuple(matrix[:3, 1]), math.degrees(camera["fov_x"]))
+    positions, _ = pinhole.project(points.reshape(-1, 3), camera["width"], camera["height"])
+    return positions.reshape(*points.shape[:-1], 2)

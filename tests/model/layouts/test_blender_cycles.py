@@ -17,9 +17,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
+from model.data.camera import frame_jitter
 from model.layouts import BUILTIN_LAYOUTS, read_layout_frame, read_layout_reference
 from model.layouts.checks import reprojection_psnr
-from model.data.camera import frame_jitter
 from tests.model.layouts.exr_builders import BLENDER_ORBIT, BLENDER_ORBIT_JITTERED, floor_hits, hit_points, \
     image_positions
 
