@@ -294,3 +294,18 @@ measure() {  # NAME SCALE MODEL...: one held-out run of the models and the peers
 }
 measure reuse_x1_fast_ops 1 fused-balanced-x1 fused-fast-x1 fused-high-x1
 measure reuse_x2_fast_ops 2 fused-balanced-x2 fused-fast-x2
+# The default 1x model fine-tuned on Mitsuba and Blender Cycles frames together again (README: "The default model
+# back on Cycles' frames"): its sample-mean stage above read data/reuse alone, and on Cycles' frames with a TAA jitter
+# it fell 0.45 dB behind the fast preset, whose last stage read the mixed data. 600 steps from the shipped weights
+# and settings at the fast / high presets' rate (5e-4), the best validation checkpoint (step 500) shipped; one
+# held-out run beside the model before it (copied first) and the peers, and the Blender sets after it.
+cp pretrained/fused-balanced-x1/model.pt runs/old/fused-balanced-x1.pt
+"${mixed[@]}" --method fused:balanced --init-from fused-balanced-x1 --seed 0 --steps 600 --validate-every 100 \
+  --checkpoint-every 100 --no-tracking --out runs/balanced-mixed-lr5 > runs-balanced-mixed-lr5.log 2>&1
+cp runs/balanced-mixed-lr5/best.pt runs/balanced-mixed-lr5-best.pt
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method runs/balanced-mixed-lr5-best.pt \
+  --method fused-fast-x1 --method fused-high-x1 --method runs/old/fused-balanced-x1.pt "${peers[@]:0:12}" \
+  --out docs/results/reuse_x1_mixed_balanced.json | tee docs/results/reuse_x1_mixed_balanced.md
+.venv/bin/python scripts/ship_pretrained.py runs/balanced-mixed-lr5-best.pt --name fused-balanced-x1 \
+  --after-shipped fused-balanced-x1 --data data/reuse-mixed --dataset-script scripts/generate_blender_training_data.sh \
+  --training-script scripts/reproduce_reuse_results.sh --report docs/results/reuse_x1_mixed_balanced.json
