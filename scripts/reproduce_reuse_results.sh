@@ -298,7 +298,8 @@ measure reuse_x2_fast_ops 2 fused-balanced-x2 fused-fast-x2
 # back on Cycles' frames"): its sample-mean stage above read data/reuse alone, and on Cycles' frames with a TAA jitter
 # it fell 0.45 dB behind the fast preset, whose last stage read the mixed data. 600 steps from the shipped weights
 # and settings at the fast / high presets' rate (5e-4), the best validation checkpoint (step 500) shipped; one
-# held-out run beside the model before it (copied first) and the peers, and the Blender sets after it.
+# held-out run beside the model before it (copied first) and the peers. Its Blender numbers come from
+# scripts/reproduce_blender_results.sh (JITTER=none and JITTER=halton).
 cp pretrained/fused-balanced-x1/model.pt runs/old/fused-balanced-x1.pt
 "${mixed[@]}" --method fused:balanced --init-from fused-balanced-x1 --seed 0 --steps 600 --validate-every 100 \
   --checkpoint-every 100 --no-tracking --out runs/balanced-mixed-lr5 > runs-balanced-mixed-lr5.log 2>&1
