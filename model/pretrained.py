@@ -268,11 +268,15 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     dataset: dict[str, Any] = {"path": train_config.get("data"), "script": dataset_script}
     if dataset_dir is not None:
         dataset.update(dataset_summary(dataset_dir))
-    training["dataset"] = dataset
     earlier_stages: list[dict[str, Any]] = []
     if after_shipped is not None:
         shipped = get_pretrained(after_shipped, root)
         recorded = shipped.manifest.get("training") or {}
+        kept = recorded.get("dataset") or {}
+        if dataset_dir is None and kept.get("path") == dataset["path"]:
+            # The shipped model's own weights again (a run-time setting changed): its dataset's record stands,
+            # which a machine without that dataset could not write again.
+            dataset = {**kept, "script": dataset_script or kept.get("script")}
         earlier_stages += list(recorded.get("stages") or [])
         earlier_stages.append({"checkpoint": f"pretrained/{after_shipped}/{shipped.manifest['file']}",
                                "sha256": shipped.manifest["sha256"],
@@ -280,6 +284,7 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
                                           "scale": shipped.manifest["scale"]},
                                "step": recorded.get("step"), "best_metric": recorded.get("best_metric"),
                                "train_config": recorded.get("train_config")})
+    training["dataset"] = dataset
     if stages or earlier_stages:
         training["stages"] = earlier_stages
         for stage in stages or ():

@@ -310,3 +310,26 @@ cp runs/balanced-mixed-lr5/best.pt runs/balanced-mixed-lr5-best.pt
 .venv/bin/python scripts/ship_pretrained.py runs/balanced-mixed-lr5-best.pt --name fused-balanced-x1 \
   --after-shipped fused-balanced-x1 --data data/reuse-mixed --dataset-script scripts/generate_blender_training_data.sh \
   --training-script scripts/reproduce_reuse_results.sh --report docs/results/reuse_x1_mixed_balanced.json
+# The 1x models reading OIDN's estimate at the pixel centres (README: "The estimate at the pixel centres"): the same
+# weights, shipped with --unjitter-estimate first into a scratch folder (runs/unjitter/NAME.pt), evaluated beside the
+# models before (copied to runs/old/) and the peers in one run, then shipped with that run's numbers; and the peers
+# with the same read, for what it alone is worth.
+mkdir -p runs/unjitter
+for name in fused-balanced-x1 fused-fast-x1 fused-high-x1; do
+  cp "pretrained/$name/model.pt" "runs/old/$name.pt"
+  rm -rf runs/unjitter/pretrained && cp -r pretrained runs/unjitter/pretrained
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/$name/model.pt" --name "$name" --after-shipped "$name" \
+    --unjitter-estimate --root runs/unjitter/pretrained
+  cp "runs/unjitter/pretrained/$name/model.pt" "runs/unjitter/$name.pt"
+done
+.venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 \
+  --method runs/unjitter/fused-balanced-x1.pt --method runs/unjitter/fused-fast-x1.pt \
+  --method runs/unjitter/fused-high-x1.pt --method runs/old/fused-balanced-x1.pt --method runs/old/fused-fast-x1.pt \
+  --method runs/old/fused-high-x1.pt "${peers[@]:0:12}" --out docs/results/reuse_x1_unjittered.json \
+  | tee docs/results/reuse_x1_unjittered.md
+for name in fused-balanced-x1 fused-fast-x1 fused-high-x1; do
+  .venv/bin/python scripts/ship_pretrained.py "pretrained/$name/model.pt" --name "$name" --after-shipped "$name" \
+    --unjitter-estimate --report docs/results/reuse_x1_unjittered.json --report-source "runs/unjitter/$name.pt"
+done
+.venv/bin/python scripts/measure_unjittered_peers.py --data "$DATA" --split test \
+  --out docs/results/reuse_x1_unjittered_peers.json

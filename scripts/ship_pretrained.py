@@ -28,8 +28,9 @@ pixels (the fused blend is the output there; 0: every frame filtered); the weigh
         --after-shipped fused-balanced-x1 --kernel-max-pixels 32768
 
 --mean-max-frames, --stale-test-sigmas, --stale-region-pixels, --sample-mean-frames, --sample-mean-trust-power and
---albedo-detail-frames (fused only; the last at 2x only) set the other run-time settings the same way
-(model/methods/fused.py); the weights are the checkpoint's.
+--albedo-detail-frames (fused only; the last at 2x only), and --unjitter-estimate / --no-unjitter-estimate (fused
+only; the second at 1x only) set the other run-time settings the same way (model/methods/fused.py); the weights are
+the checkpoint's.
 
     .venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
         --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
@@ -99,6 +100,12 @@ def main() -> int:
     parser.add_argument("--albedo-detail-frames", type=int, default=None, metavar="N",
                         help="fused at 2x only: the output takes the texture detail of the albedo gathered on the "
                              "target grid from up to N jittered frames (0: none)")
+    unjitter = parser.add_mutually_exclusive_group()
+    unjitter.add_argument("--unjitter-estimate", dest="unjitter_estimate", action="store_const", const=True,
+                          default=None, help="fused only: at 1x OIDN's estimate is read at the pixel centres from "
+                                             "its samples' jittered positions (always so at 2x)")
+    unjitter.add_argument("--no-unjitter-estimate", dest="unjitter_estimate", action="store_const", const=False,
+                          help="fused at 1x only: OIDN's estimate is used where its samples lie")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")

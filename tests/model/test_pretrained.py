@@ -22,7 +22,7 @@ from model.pretrained import (
     ship_checkpoint,
     verify,
 )
-from tests.builders import report_for, ship_tiny
+from tests.builders import report_for, ship_tiny, write_tiny_dataset
 
 
 def test_shipping_strips_training_state_and_records_the_recipe(tmp_path):
@@ -178,6 +178,25 @@ def test_a_fine_tune_of_a_shipped_model_keeps_its_recorded_stages(tmp_path):
         ship_checkpoint(tuned, "wskpn-xs-x1", root=tmp_path / "pretrained", after_shipped="no-such-model")
 
 
+def test_a_shipped_model_reshipped_with_a_setting_keeps_its_dataset_record_and_a_new_dataset_replaces_it(tmp_path):
+    root = tmp_path / "pretrained"
+    data = write_tiny_dataset(tmp_path / "tiny")
+    source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
+                             train_config={"steps": 30, "data": str(data)})
+    shipped = ship_checkpoint(source, "fused-fast-x1", root=root, dataset_dir=data, dataset_script="render.sh")
+    recorded = shipped.manifest["training"]["dataset"]
+    assert recorded["digest"] and recorded["script"] == "render.sh"
+    # the same weights with a run-time setting, on a machine without the dataset: its record stands
+    reshipped = ship_checkpoint(shipped.path, "fused-fast-x1", root=root, after_shipped="fused-fast-x1",
+                                unjitter_estimate=True)
+    assert reshipped.manifest["training"]["dataset"] == recorded
+    other = write_tiny_dataset(tmp_path / "other", size=(8, 8))
+    tuned = save_checkpoint(tmp_path / "tuned.pt", method=build_method("fused:fast", 1), step=10,
+                            train_config={"steps": 10, "data": str(other)})
+    moved = ship_checkpoint(tuned, "fused-fast-x1", root=root, after_shipped="fused-fast-x1")
+    assert moved.manifest["training"]["dataset"] == {"path": str(other), "script": None}  # not the old record
+
+
 def test_a_shipped_model_remeasured_in_another_run_keeps_its_weights_and_training_record(tmp_path):
     root = tmp_path / "pretrained"
     shipped = ship_tiny(root, report=report_for(), report_path="docs/results/old.json")
@@ -230,6 +249,8 @@ def test_a_shipped_fused_model_reshipped_with_another_recurrence_keeps_its_weigh
                  "no spatial denoiser to feed a sample mean", id="sample mean"),
     pytest.param("sample_mean_trust_power", "sample_mean_share_power", 2.0, 3.0, 0.0, "finite number > 0",
                  "no spatial denoiser to feed a sample mean", id="sample mean trust"),
+    pytest.param("unjitter_estimate", "estimate_unjittered", False, True, 1, "true or false",
+                 "no spatial estimate to resample", id="unjittered estimate"),
 ])
 def test_a_shipped_fused_model_reshipped_with_a_run_time_setting_keeps_its_weights(tmp_path, setting, key, default,
                                                                                    value, bad, refusal, missing):

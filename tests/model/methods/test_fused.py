@@ -12,7 +12,8 @@ from model.methods.base import FrameBatch
 from model.methods.fused import (ALBEDO_DETAIL_KEY, KERNEL, KERNEL_LIMIT_KEY, LEGACY_CANDIDATES, MEAN_FRAMES,
                                  MEAN_WINDOW_KEY,
                                  RECURRENCE_KEY, SAMPLE_MEAN_KEY, SAMPLE_MEAN_TRUST_KEY, STALE_REGION_KEY,
-                                 STALE_TEST_KEY, Fused, frame_samples, sample_mean_resample, unjittered_resample)
+                                 STALE_TEST_KEY, UNJITTER_KEY, Fused, frame_samples, sample_mean_resample,
+                                 unjittered_resample)
 from model.methods.oidn import oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import build_method, example_batch, inference_cost, method_spec
@@ -107,6 +108,64 @@ def test_a_sample_mean_estimate_is_read_at_its_frames_mean_jitter():
     torch.testing.assert_close(sample_mean_resample(image, jitter, one, 2), at_jitter)
     torch.testing.assert_close(sample_mean_resample(image, jitter, two, 2), (at_jitter + centred) / 2)
     assert float((at_jitter - centred).abs().max()) > 0.01  # the two reads differ: the test can tell them apart
+
+
+def test_at_1x_the_unjittered_read_of_one_frame_is_the_bicubic_read_and_of_a_mean_part_of_it():
+    # 1x: the centred read is the image itself, so a mean of two frames is halfway between it and the shifted read.
+    generator = torch.Generator().manual_seed(5)
+    image = torch.rand(1, 3, 8, 8, generator=generator, dtype=torch.float64)
+    jitter = torch.tensor([[0.3, -0.2]], dtype=torch.float64)
+    at_jitter = unjittered_resample(image, jitter, 1)
+    torch.testing.assert_close(at_jitter, _resample_by_grid_sample(image, jitter, 1))
+    one, two = (torch.full((1, 1, 8, 8), n, dtype=torch.float64) for n in (1.0, 2.0))
+    torch.testing.assert_close(sample_mean_resample(image, jitter, one, 1), at_jitter)
+    torch.testing.assert_close(sample_mean_resample(image, jitter, two, 1), (at_jitter + image) / 2)
+    assert torch.equal(unjittered_resample(image, torch.zeros_like(jitter), 1), image)
+
+
+def _jittered_ramp_frame(jitter: tuple[float, float]) -> FrameBatch:
+    """A frame whose estimate is the ramp of ``truth`` sampled at x + 0.5 + jitter, as OIDN's estimate of a jittered
+    frame is."""
+    xs = (torch.arange(SIZE, dtype=torch.float32) + jitter[0]).view(1, 1, 1, SIZE)
+    ramp = (0.2 + 0.6 * xs / (SIZE - 1)).expand(1, 1, SIZE, SIZE) * torch.tensor([1.0, 0.8, 0.6]).view(1, 3, 1, 1)
+    return frame_with_estimate(ramp.contiguous(), jitter=jitter)
+
+
+def test_at_1x_the_unjittered_estimate_puts_a_jittered_frame_back_at_the_pixel_centres():
+    frame = _jittered_ramp_frame((0.4, 0.0))
+    plain, _ = build_method("fused:fast", 1).step(frame, None)
+    method = build_method("fused:fast", 1)
+    method.set_unjitter_estimate(True)
+    unjittered, _ = method.step(frame, None)
+    inside = (slice(None), slice(None), slice(None), slice(3, -3))  # bicubic reads two pixels on, clamped at the edge
+    # An untrained head weighs its candidates alike everywhere: the output is made of the estimate it reads.
+    torch.testing.assert_close(unjittered[inside], truth()[inside], atol=2e-3, rtol=2e-3)
+    assert float((plain - truth())[inside].abs().min()) > 0.009  # as OIDN made it: 0.4 px off, 0.0096 in blue
+    still = frame_with_estimate(truth())  # no jitter: the same output either way
+    assert torch.equal(method.step(still, None)[0], build_method("fused:fast", 1).step(still, None)[0])
+
+
+def test_the_unjitter_setting_is_recorded_always_on_at_2x_and_refused_unless_true_or_false():
+    saved = build_method("fused:fast", 1)
+    assert not saved.unjitter_estimate  # what every 1x model before the setting ran
+    saved.set_unjitter_estimate(True)
+    loaded = build_method("fused:fast", 1)
+    loaded.load_state_dict(saved.state_dict())
+    assert loaded.unjitter_estimate
+    tuned = build_method("fused:fast", 1)
+    tuned.load_initial_weights(saved.state_dict())  # --init-from keeps it
+    assert tuned.unjitter_estimate
+    loaded.load_state_dict({k: v for k, v in saved.state_dict().items() if k != UNJITTER_KEY})
+    assert not loaded.unjitter_estimate
+    two_x = build_method("fused:fast", 2)
+    assert two_x.unjitter_estimate
+    two_x.load_state_dict({k: v for k, v in two_x.state_dict().items() if k != UNJITTER_KEY})
+    assert two_x.unjitter_estimate  # a 2x checkpoint from before the setting resampled as it does now
+    with pytest.raises(ValueError, match="cannot be false at 2x"):
+        two_x.set_unjitter_estimate(False)
+    for value in (1, 0.0, "true", None):
+        with pytest.raises(ValueError, match="true or false"):
+            build_method("fused:fast", 1).set_unjitter_estimate(value)
 
 
 def test_the_sample_mean_read_of_a_batch_is_each_items_own():
