@@ -21,7 +21,28 @@ def test_the_listing_shows_held_out_scores_next_to_oidn(shipped, capsys):
     assert lines[0].split()[:3] == ["name", "method", "scale"]
     row = lines[1].split()
     assert row[:5] == ["wskpn-xs-x1", "wskpn:xs", "1", str(shipped.manifest["params"]), "120"]
-    assert row[5:9] == ["30.50", "0.1000", "31.00", "31.40"] and row[-1] == "ok"
+    assert row[5:10] == ["30.50", "0.1000", "31.00", "31.40", "(high)"] and row[-1] == "ok"
+
+
+def test_a_fused_model_is_listed_beside_oidn_taa_at_its_own_quality(tmp_path, monkeypatch, capsys):
+    from model.checkpoint import save_checkpoint
+    from model.methods.registry import build_method
+    from model.pretrained import ship_checkpoint
+
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
+    report = report_for()
+    own = report["methods"][0]
+    own.update(label="fused:fast", method="fused", preset="fast")
+    taa_fast = dict(report["methods"][2], label="oidn-taa:fast", source="oidn-taa:fast", preset="fast",
+                    metrics={"psnr": 29.9, "flip": 0.1})
+    report["methods"].append(taa_fast)
+    source = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
+                             train_config={"steps": 30})
+    ship_checkpoint(source, "fused-fast-x1", root=tmp_path / "pretrained", report=report,
+                    report_source="runs/x/best.pt")
+    assert main(["pretrained"]) == 0
+    row = capsys.readouterr().out.splitlines()[1].split()
+    assert row[0] == "fused-fast-x1" and row[7:10] == ["31.00", "29.90", "(fast)"]  # not OIDN + TAA-high's 31.40
 
 
 def test_registration_is_idempotent_and_sets_the_alias(shipped, tmp_path, capsys):
