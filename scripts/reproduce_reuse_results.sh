@@ -315,9 +315,9 @@ cp runs/balanced-mixed-lr5/best.pt runs/balanced-mixed-lr5-best.pt
 # models before (copied to runs/old/) and the peers in one run, then shipped with that run's numbers; and the peers
 # with the same read, for what it alone is worth.
 mkdir -p runs/unjitter
+rm -rf runs/unjitter/pretrained && cp -r pretrained runs/unjitter/pretrained
 for name in fused-balanced-x1 fused-fast-x1 fused-high-x1; do
   cp "pretrained/$name/model.pt" "runs/old/$name.pt"
-  rm -rf runs/unjitter/pretrained && cp -r pretrained runs/unjitter/pretrained
   .venv/bin/python scripts/ship_pretrained.py "pretrained/$name/model.pt" --name "$name" --after-shipped "$name" \
     --unjitter-estimate --root runs/unjitter/pretrained
   cp "runs/unjitter/pretrained/$name/model.pt" "runs/unjitter/$name.pt"

@@ -203,7 +203,7 @@ def sample_mean_resample(image: torch.Tensor, jitter: torch.Tensor, count: torch
     """``unjittered_resample`` for an estimate made from a sample mean of ``count`` (N, 1, H, W) frames: this frame's
     samples weigh 1 / count and sit at its jitter, the older frames' jitters average to the pixel centre. So each
     target pixel blends the image read at this jitter and at none in those proportions (1 frame: the plain resample)."""
-    current = F.interpolate(1.0 / count.clamp_min(1.0), scale_factor=scale, mode="nearest")
+    current = _upsample_values(1.0 / count.clamp_min(1.0), scale)
     bounds = _source_bounds(image)
     # at 1x a read at no shift is the image itself (the cubic's taps at whole pixels are 1, 0, 0, 0)
     centred = image if scale == 1 else _read_within_bounds(image, bounds, torch.zeros_like(jitter), scale)
