@@ -13,6 +13,7 @@
 # Usage: scripts/generate_blender_training_data.sh  (after generate_reuse_data.sh)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+bash scripts/install.sh --blender  # the project and bpy (the 'blender' extra), idempotent
 RENDERS=renders/blender-train
 mkdir -p "$RENDERS"
 render() {  # SCENE SEED

@@ -1,32 +1,64 @@
 #!/usr/bin/env bash
 # Installs everything the project needs into .venv (idempotent: a second run with an unchanged
 # pyproject.toml only checks). System packages: libLLVM-19 for Mitsuba's vectorized CPU backend.
+# Usage: scripts/install.sh [--blender]
+#   --blender  also Blender as a Python module (the 'blender' extra of pyproject.toml, for scripts/render_blender.py),
+#              installed without its dependencies: bpy's metadata pins numpy<2, and the project's numpy 2 renders fine.
+# PIP (default: .venv/bin/python -m pip) is the pip the Blender step asks and installs with.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
 LLVM19=/usr/lib/x86_64-linux-gnu/libLLVM-19.so
+blender=0
+for arg in "$@"; do
+  case "$arg" in
+    --blender) blender=1 ;;
+    -h|--help) sed -n '2,7p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) echo "[install] unknown option '$arg' (options: --blender)" >&2; exit 2 ;;
+  esac
+done
 
 as_root() {
   if [ "$(id -u)" = 0 ]; then "$@"; elif command -v sudo >/dev/null 2>&1; then sudo -n "$@"; else return 1; fi
 }
 
-if [ ! -e "$LLVM19" ] && [ -z "${DRJIT_LIBLLVM_PATH:-}" ]; then
-  echo "[install] libLLVM-19 missing: installing Debian package libllvm19 (Mitsuba's llvm_ad_rgb needs it)"
-  if ! { as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19; }; then
-    echo "[install] warning: could not install libllvm19; rendering falls back to the slow scalar_rgb variant" >&2
+install_project() {
+  if [ ! -e "$LLVM19" ] && [ -z "${DRJIT_LIBLLVM_PATH:-}" ]; then
+    echo "[install] libLLVM-19 missing: installing Debian package libllvm19 (Mitsuba's llvm_ad_rgb needs it)"
+    if ! { as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19; }; then
+      echo "[install] warning: could not install libllvm19; rendering falls back to the slow scalar_rgb variant" >&2
+    fi
   fi
-fi
+  local stamp
+  stamp=.venv/.installed-$(sha256sum pyproject.toml | cut -c1-16)
+  if [ -f "$stamp" ]; then
+    echo "[install] .venv is up to date"
+    return
+  fi
+  [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
+  .venv/bin/python -m pip install -q --upgrade pip
+  # torch==2.13.0 is pinned in pyproject.toml: that exact version installs a CPU build from local disk.
+  .venv/bin/python -m pip install -q -e '.[dev]'
+  rm -f .venv/.installed-*
+  touch "$stamp"
+  echo "[install] .venv ready"
+}
 
-stamp=.venv/.installed-$(sha256sum pyproject.toml | cut -c1-16)
-if [ -f "$stamp" ]; then
-  echo "[install] .venv is up to date"
-  exit 0
-fi
-[ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
-.venv/bin/python -m pip install -q --upgrade pip
-# torch==2.13.0 is pinned in pyproject.toml: that exact version installs a CPU build from local disk.
-.venv/bin/python -m pip install -q -e '.[dev]'
-rm -f .venv/.installed-*
-touch "$stamp"
-echo "[install] .venv ready"
+install_blender() {
+  # The one pin is the extra's in pyproject.toml.
+  local requirement version pip
+  requirement=$(.venv/bin/python -c 'import tomllib
+print(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["blender"][0])')
+  version=${requirement#*==}
+  pip=${PIP:-.venv/bin/python -m pip}
+  if $pip show bpy 2>/dev/null | grep -qx "Version: $version"; then
+    echo "[install] $requirement is installed"
+    return
+  fi
+  echo "[install] installing $requirement (Blender as a Python module, without its numpy<2 pin)"
+  $pip install -q --no-deps "$requirement"
+}
+
+install_project
+if [ "$blender" = 1 ]; then install_blender; fi

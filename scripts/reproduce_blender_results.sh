@@ -14,6 +14,7 @@
 # Usage: scripts/reproduce_blender_results.sh   (JITTER=none|halton RENDERS=... DATA=...)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+bash scripts/install.sh --blender  # the project and bpy (the 'blender' extra), idempotent
 JITTER=${JITTER:-none}
 case "$JITTER" in
   none) name=blender; suffix= ;;

@@ -14,6 +14,7 @@
 # Usage: scripts/reproduce_finetune_results.sh   (STEPS=300 RENDERS=renders/user DATA=data/user)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+bash scripts/install.sh --blender  # the project and bpy (the 'blender' extra), idempotent
 RENDERS=${RENDERS:-renders/user}
 DATA=${DATA:-data/user}
 STEPS=${STEPS:-300}

@@ -16,7 +16,7 @@ from model.layouts import BUILTIN_LAYOUTS, read_layout_frame, read_layout_refere
 from model.layouts.checks import reprojection_psnr, warp_previous
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("bpy") is None,
-                                reason="needs Blender as a Python module (pip install --no-deps bpy==5.0.1)")
+                                reason="needs Blender as a Python module (bash scripts/install.sh --blender)")
 SCRIPT = Path(__file__).parent.parent / "scripts" / "render_blender.py"
 LAYOUT = BUILTIN_LAYOUTS["blender-cycles"]
 
