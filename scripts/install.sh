@@ -47,12 +47,14 @@ install_project() {
 
 install_blender() {
   # The one pin is the extra's in pyproject.toml.
-  local requirement version pip
+  local requirement version pip shown
   requirement=$(.venv/bin/python -c 'import tomllib
 print(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["blender"][0])')
   version=${requirement#*==}
   pip=${PIP:-.venv/bin/python -m pip}
-  if $pip show bpy 2>/dev/null | grep -qx "Version: $version"; then
+  # pip's answer is read whole first: grep -q stops reading at its match, and pipefail would count pip's SIGPIPE
+  shown=$($pip show bpy 2>/dev/null || true)
+  if grep -qx "Version: $version" <<< "$shown"; then
     echo "[install] $requirement is installed"
     return
   fi

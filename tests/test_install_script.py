@@ -29,7 +29,9 @@ def run_with_pip(tmp_path: Path, shown_version: str | None, *args: str) -> tuple
     """Run the script with PIP pointing at a stub that answers `show bpy` with ``shown_version`` (None: not
     installed) and records every call."""
     calls = tmp_path / "calls"
-    shown = f"echo 'Name: bpy'; echo 'Version: {shown_version}'" if shown_version else "exit 1"
+    # a long answer, as pip's is: a reader that stops at the version line must not make the check fail
+    shown = (f"echo 'Name: bpy'; echo 'Version: {shown_version}'; for i in $(seq 20000); do echo 'Location: x'; done"
+             if shown_version else "exit 1")
     stub = tmp_path / "pip"
     stub.write_text(f'#!/usr/bin/env bash\necho "$*" >> {calls}\nif [ "$1" = show ]; then {shown}; fi\n')
     stub.chmod(0o755)
