@@ -7,6 +7,7 @@ HTTP error body builds it here, so there is one copy of each. Randomness always 
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import io
 import socket
 from pathlib import Path
@@ -289,6 +290,15 @@ def randomize_batch_norms(module: nn.Module, seed: int = 1) -> None:
 
 
 # -------------------------------------------------------------------------------------- files and models
+
+def load_script(name: str):
+    """A module of ``scripts/`` by its file name without ``.py`` (the scripts are files, not a package)."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
 
 def zero_bomb(width: int, height: int) -> bytes:
     """An all-zero ZIP-compressed EXR declaring width x height: a few kilobytes that decode to megabytes."""

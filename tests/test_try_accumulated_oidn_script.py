@@ -3,7 +3,6 @@ set, and the experiment end to end on a tiny dataset."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -15,20 +14,13 @@ import torch
 from model.checkpoint import load_method, save_checkpoint
 from model.methods.fused import frame_samples
 from model.methods.registry import build_method
-from tests.builders import static_frame, write_tiny_dataset
+from tests.builders import load_script, static_frame, write_tiny_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "try_accumulated_oidn.py"
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("try_accumulated_oidn", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-experiment = _script()
+experiment = load_script("try_accumulated_oidn")
 
 
 def test_oidn_reads_the_mean_of_the_frames_and_a_cut_restarts_it():
