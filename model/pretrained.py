@@ -34,6 +34,7 @@ import torch
 
 from model.methods.base import Method
 from model.methods.fused import RUN_TIME_SETTINGS  # shipped with the weights unchanged (ship_checkpoint)
+from model.methods.history_rectification import HISTORY_SETTINGS  # WSKPN's and AFN's, the same way
 
 PRETRAINED_FORMAT = "denoiser-pretrained/1"
 # The repository's folder; an installed (not editable) package finds it through $DENOISER_PRETRAINED_DIR, which the
@@ -231,7 +232,8 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     first of them, or this checkpoint, started from (``--init-from pretrained/NAME/model.pt``): its recorded stages
     and its own training come first, so a fine-tune of a shipped model keeps the whole recipe where the earlier
     runs are gone (a fresh checkout holds none). ``settings``: the fused family's run-time settings
-    (``RUN_TIME_SETTINGS``; None or absent: as the checkpoint has them), shipped with the weights unchanged."""
+    (``RUN_TIME_SETTINGS``) and WSKPN's and AFN's (``HISTORY_SETTINGS``; None or absent: as the checkpoint has them),
+    shipped with the weights unchanged."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
 
@@ -243,17 +245,23 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     method.load_state_dict(content["model"])
     if not method.learned:
         raise PretrainedError(f"{checkpoint} holds {method.label}, which has no weights to ship")
-    unknown = sorted(set(settings) - set(RUN_TIME_SETTINGS))
+    known = [*RUN_TIME_SETTINGS, *HISTORY_SETTINGS]
+    unknown = sorted(set(settings) - set(known))
     if unknown:
-        raise PretrainedError(f"no run-time setting {', '.join(unknown)}; settings: {', '.join(RUN_TIME_SETTINGS)}")
+        raise PretrainedError(f"no run-time setting {', '.join(unknown)}; settings: {', '.join(known)}")
     fused = hasattr(method, "set_kernel_max_pixels")
     for setting, value in settings.items():
         if value is None:
             continue
-        needs_mean, missing = RUN_TIME_SETTINGS[setting]
-        if not fused or (needs_mean and not method.has_mean):
-            raise PretrainedError(f"{checkpoint} holds {method.label}, which has {missing} (only the fused family "
-                                  f"has)")
+        if setting in HISTORY_SETTINGS:
+            if not hasattr(method, f"set_{setting}"):
+                raise PretrainedError(f"{checkpoint} holds {method.label}, which has {HISTORY_SETTINGS[setting]} "
+                                      f"(only WSKPN and AFN have)")
+        else:
+            needs_mean, missing = RUN_TIME_SETTINGS[setting]
+            if not fused or (needs_mean and not method.has_mean):
+                raise PretrainedError(f"{checkpoint} holds {method.label}, which has {missing} (only the fused "
+                                      f"family has)")
         try:
             getattr(method, f"set_{setting}")(value)
         except ValueError as error:

@@ -36,6 +36,13 @@ the checkpoint's.
         --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
         --report-source runs/fast-sm8.pt
 
+--rectify-history / --no-rectify-history (WSKPN and AFN only): ship the weights clipping the reprojected history to
+the current frame's neighbourhood before accumulating, or not (model/methods/history_rectification.py); the weights
+are the checkpoint's.
+
+    .venv/bin/python scripts/ship_pretrained.py pretrained/wskpn-s-x1/model.pt --name wskpn-s-x1 \
+        --after-shipped wskpn-s-x1 --rectify-history
+
 --remeasure: the checkpoint is the shipped model NAME itself, evaluated again in the report's run (beside newer
 models); only its held-out section is replaced, its weights and training record stay.
 """
@@ -50,6 +57,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model.pretrained import (  # noqa: E402
+    HISTORY_SETTINGS,
     PRETRAINED_DIR,
     RUN_TIME_SETTINGS,
     PretrainedError,
@@ -106,11 +114,17 @@ def main() -> int:
                                              "its samples' jittered positions (always so at 2x)")
     unjitter.add_argument("--no-unjitter-estimate", dest="unjitter_estimate", action="store_const", const=False,
                           help="fused at 1x only: OIDN's estimate is used where its samples lie")
+    rectify = parser.add_mutually_exclusive_group()
+    rectify.add_argument("--rectify-history", dest="rectify_history", action="store_const", const=True, default=None,
+                         help="WSKPN and AFN: clip the reprojected history to the current frame before accumulating")
+    rectify.add_argument("--no-rectify-history", dest="rectify_history", action="store_const", const=False,
+                         help="WSKPN and AFN: accumulate the reprojected history as it is")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")
     args = parser.parse_args()
-    settings = {name: getattr(args, name) for name in RUN_TIME_SETTINGS if getattr(args, name) is not None}
+    settings = {name: getattr(args, name) for name in [*RUN_TIME_SETTINGS, *HISTORY_SETTINGS]
+                if getattr(args, name) is not None}
     if args.remeasure and (args.report is None or args.stage or args.after_shipped or args.data or settings):
         parser.error("--remeasure takes --report (and --report-source), and no --stage, --after-shipped, --data, "
                      "--history-*-kernel or other run-time setting")

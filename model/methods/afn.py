@@ -31,10 +31,12 @@ from torch import nn
 
 from model.methods.baselines import bicubic_upscale
 from model.methods.base import FrameBatch, Method, State, drop_history
+from model.methods.history_rectification import RectifiableHistory
 from model.methods.registry import MethodSpec, register
 from model.ops.accumulate import accumulate
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.pyramid import downsample2x, upsample2x
+from model.ops.rectify import rectify_accumulated
 from model.ops.reproject import reproject_history
 from model.ops.tonemap import log_tonemap, log_tonemap_inverse
 from model.ops.demodulate import demodulate
@@ -101,9 +103,10 @@ def guide_features(frame: FrameBatch, count: torch.Tensor) -> torch.Tensor:
 
 
 def temporal_accumulate(
-    radiance: torch.Tensor, frame: FrameBatch, state: State | None
+    radiance: torch.Tensor, frame: FrameBatch, state: State | None, rectify: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Blend demodulated ``radiance`` (N, 3, H, W) with the reprojected history; returns ``(r_TA, count)``.
+    """Blend demodulated ``radiance`` (N, 3, H, W) with the reprojected history; returns ``(r_TA, count)``. With
+    ``rectify`` the history is first clipped to ``radiance``'s neighbourhood (``rectify_accumulated``).
 
     Reprojection (bilinear history, nearest count, depth/normal test, camera cuts) is
     ``model.ops.reproject.reproject_history``.
@@ -113,6 +116,8 @@ def temporal_accumulate(
     history, count, valid = reproject_history(state["accumulated"], state["count"], frame.depth, frame.normal,
                                               state["depth"], state["normal"], frame.motion, frame.jitter,
                                               state["jitter"])
+    if rectify:
+        history = rectify_accumulated(history, radiance)
     return accumulate(radiance, history, count, valid,
                       alpha_min=TA_ALPHA_MIN, max_count=TA_MAX_COUNT)
 
@@ -225,7 +230,7 @@ class Refinement(nn.Module):
 # The method
 
 
-class AFN(Method):
+class AFN(RectifiableHistory, Method):
     """Adaptive fusion network. State: accumulated demodulated radiance, its count, and the frame's depth/normal
     (for the next frame's geometry test); none of it depends on the parameters, so it carries no gradient."""
 
@@ -241,12 +246,13 @@ class AFN(Method):
         self.kernel_size = self.afn_config.kernel_size
         self.predictor = KernelPredictor(self.afn_config, in_channels=6 + GUIDE_CHANNELS)
         self.refinement = Refinement(self.afn_config, in_channels=3 + GUIDE_CHANNELS)
+        self._init_rectification()
 
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         state = drop_history(state, frame)
         radiance, divisor = demodulate(frame.color, frame.albedo)
         with torch.no_grad():  # TA has no parameters; keeping it out of the graph saves memory when unrolling
-            accumulated, count = temporal_accumulate(radiance, frame, state)
+            accumulated, count = temporal_accumulate(radiance, frame, state, self.rectify_history)
         guides = guide_features(frame, count)
 
         network_input = torch.cat([log_tonemap(radiance), log_tonemap(accumulated), guides], dim=1)

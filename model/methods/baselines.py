@@ -21,7 +21,7 @@ from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.registry import MethodSpec, register
 from model.ops.accumulate import accumulate, accumulate_moments
 from model.ops.reproject import reproject_history
-from model.ops.rectify import variance_clip_hdr
+from model.ops.rectify import rectify_accumulated
 from model.ops.tonemap import luminance
 from model.ops.demodulate import demodulate
 
@@ -99,9 +99,8 @@ class TemporalAccumulation(RenderResolutionFilter):
 
     name = "accumulation"
     ALPHA_MIN = {"default": 0.1, "fast": 0.2, "rectified": 0.1}
-    # "rectified": the warped history is variance-clipped (model.ops.rectify) against this frame's illumination,
-    # over a window wide enough that the 1 spp noise does not make the box meaningless.
-    RECTIFY_WINDOW, RECTIFY_GAMMA = 5, 1.5
+    # "rectified": the warped history is variance-clipped against this frame's illumination
+    # (model.ops.rectify.rectify_accumulated).
 
     def __init__(self, preset: str = "default", scale: int = 1,
                  depth_rel_tol: float = 0.1, normal_cos_tol: float = 0.9):
@@ -125,7 +124,7 @@ class TemporalAccumulation(RenderResolutionFilter):
                                                              self.depth_rel_tol, self.normal_cos_tol)
             history = warped["history"]
             if self.preset == "rectified":
-                history = variance_clip_hdr(history, illumination, self.RECTIFY_WINDOW, self.RECTIFY_GAMMA)
+                history = rectify_accumulated(history, illumination)
             accumulated, count = accumulate(illumination, history, history_count, valid,
                                             alpha_min=self.alpha_min)
         new_state = {"history": accumulated, "count": count, "depth": frame.depth, "normal": frame.normal,
@@ -337,8 +336,7 @@ class SVGF(RenderResolutionFilter):
                                                              params.depth_rel_tol, params.normal_cos_tol)
             history = warped["history"]
             if self.preset == "rectified":
-                history = variance_clip_hdr(history, illumination, TemporalAccumulation.RECTIFY_WINDOW,
-                                            TemporalAccumulation.RECTIFY_GAMMA)
+                history = rectify_accumulated(history, illumination)
             accumulated, count = accumulate(illumination, history, history_count, valid,
                                             alpha_min=params.alpha_color)
             mean, mean_sq, temporal_variance = accumulate_moments(

@@ -38,6 +38,7 @@ from torch import nn
 
 from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.baselines import bicubic_upscale
+from model.methods.history_rectification import RectifiableHistory
 from model.methods.registry import MethodSpec, register
 from model.methods.repvgg import RepVGGBlock, reparameterize
 from model.ops.accumulate import accumulate
@@ -127,7 +128,7 @@ class ImportanceNet(nn.Module):
         return self.head(x)
 
 
-class WSKPN(Method):
+class WSKPN(RectifiableHistory, Method):
     """Weight-sharing kernel prediction denoiser; state holds the accumulated irradiance and last geometry.
 
     State tensors: ``irradiance`` (N, 3, H, W) accumulated demodulated radiance, ``count`` (N, 1, H, W) its
@@ -145,6 +146,7 @@ class WSKPN(Method):
             raise KeyError(f"wskpn has no preset {preset!r}; presets: {', '.join(PRESETS)}")
         self.sizes = WSKPN_SIZES
         self.importance_net = ImportanceNet(INPUT_CHANNELS, 2 * len(self.sizes), PRESETS[preset])
+        self._init_rectification()
 
     def reparameterize(self) -> WSKPN:
         """Fuse every RepVGG block into one convolution (in place) for inference; returns self."""
@@ -166,9 +168,8 @@ class WSKPN(Method):
                      "jitter": frame.jitter}
         return output, new_state
 
-    @staticmethod
     def _accumulate(
-        irradiance: torch.Tensor, frame: FrameBatch, state: State | None
+        self, irradiance: torch.Tensor, frame: FrameBatch, state: State | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         if state is None:
             return accumulate(irradiance, None, None, None, alpha_min=ACCUMULATION_ALPHA)
@@ -176,7 +177,8 @@ class WSKPN(Method):
             state["irradiance"], state["count"], frame.depth, frame.normal, state["depth"], state["normal"],
             frame.motion, frame.jitter, state["jitter"]
         )
-        return accumulate(irradiance, history, count, valid, alpha_min=ACCUMULATION_ALPHA, max_count=MAX_COUNT)
+        return accumulate(irradiance, self.rectified(history, irradiance), count, valid, alpha_min=ACCUMULATION_ALPHA,
+                          max_count=MAX_COUNT)
 
     @staticmethod
     def _network_inputs(irradiance: torch.Tensor, count: torch.Tensor, frame: FrameBatch) -> torch.Tensor:

@@ -23,7 +23,12 @@ import torch
 from model.ops.box_filter import replicated_box_extremes, replicated_box_mean
 
 __all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip",
-           "clip_to_moments", "variance_clip_hdr"]
+           "clip_to_moments", "variance_clip_hdr", "rectify_accumulated", "ACCUMULATION_WINDOW", "ACCUMULATION_GAMMA"]
+
+# The clip of an accumulated history against a 1 spp frame: a window wide enough that the noise does not make the
+# box meaningless, and a box a little wider than TAA's (``accumulation:rectified``, ``svgf:rectified``, and WSKPN and
+# AFN with ``rectify_history``).
+ACCUMULATION_WINDOW, ACCUMULATION_GAMMA = 5, 1.5
 
 
 def rgb_to_ycocg(rgb: torch.Tensor) -> torch.Tensor:
@@ -85,3 +90,9 @@ def variance_clip_hdr(history: torch.Tensor, guide: torch.Tensor, size: int = 3,
     tonemapped = variance_clip(history / (1.0 + history), guide / (1.0 + guide), size, gamma)
     tonemapped = tonemapped.clamp(0.0, 1.0 - 1e-6)
     return tonemapped / (1.0 - tonemapped)
+
+
+def rectify_accumulated(history: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+    """An accumulated (linear HDR, demodulated) history clipped to the 1 spp ``current`` frame's neighbourhood:
+    :func:`variance_clip_hdr` over ``ACCUMULATION_WINDOW`` pixels at ``ACCUMULATION_GAMMA`` sigma."""
+    return variance_clip_hdr(history, current, ACCUMULATION_WINDOW, ACCUMULATION_GAMMA)

@@ -301,3 +301,25 @@ def test_shipping_with_a_setting_no_model_has_is_refused_by_name(tmp_path):
     with pytest.raises(PretrainedError, match="no run-time setting sample_mean_power; settings: "):
         ship_checkpoint(source, "fused-fast-x1", root=root, sample_mean_power=3.0)
     assert not (root / "fused-fast-x1").exists()
+
+
+def test_a_wskpn_model_reshipped_with_its_history_rectified_keeps_its_weights_and_a_fused_one_is_refused(tmp_path):
+    root = tmp_path / "pretrained"
+    shipped = ship_tiny(root)  # wskpn-xs-x1, shipped without the setting
+    assert load_pretrained("wskpn-xs-x1", root=root).rectify_history is False
+    before = torch.load(shipped.path, weights_only=True)["model"]
+    reshipped = ship_checkpoint(shipped.path, "wskpn-xs-x1", root=root, after_shipped="wskpn-xs-x1",
+                                rectify_history=True)
+    assert load_pretrained("wskpn-xs-x1", root=root).rectify_history is True
+    after = torch.load(reshipped.path, weights_only=True)["model"]
+    assert (before["history_rectification"].item(), after["history_rectification"].item()) == (0.0, 1.0)
+    assert all(torch.equal(before[name], after[name]) for name in before if name != "history_rectification")
+    with pytest.raises(PretrainedError, match="rectify_history must be true or false"):
+        ship_checkpoint(reshipped.path, "wskpn-xs-x1", root=root, rectify_history="yes")
+    assert load_pretrained("wskpn-xs-x1", root=root).rectify_history is True  # a refused ship changes nothing
+    fused = save_checkpoint(tmp_path / "fused.pt", method=build_method("fused:fast", 1), step=30,
+                            train_config={"steps": 30})
+    with pytest.raises(PretrainedError, match="no accumulated history to rectify"):
+        ship_checkpoint(fused, "fused-fast-x1", root=root, rectify_history=True)
+    with pytest.raises(PretrainedError, match="only the fused family"):
+        ship_checkpoint(reshipped.path, "wskpn-xs-x1", root=root, stale_test_sigmas=0.5)
