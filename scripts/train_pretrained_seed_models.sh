@@ -7,7 +7,7 @@
 # On the 2-core CPU, one torch thread per run, two runs side by side. The step counts are short (these are
 # starting points for fine-tuning, not the families' best: the README's other result sections train the same
 # presets 5-40x longer): about 35 minutes of training on a busy machine (WSKPN 8 minutes per scale), 10 of
-# evaluation, then WSKPN and AFN shipped again with their history rectified.
+# evaluation, then WSKPN, AFN and JNDS shipped again with their history rectified.
 # Usage: scripts/train_pretrained_seed_models.sh [DATA_DIR]   (SKIP_TRAINED=1 keeps runs that have best.pt)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -51,22 +51,26 @@ for run in wskpn-s-x2 afn-m-x2 munet-s-x2 jnds-s-x2; do
 done
 "${ship[@]}" runs/jnds-s-int8-x2/best.pt --name jnds-s-int8-x2 --stage runs/jnds-s-x2/best.pt \
   --report docs/results/seed_models_x2.json
-# WSKPN and AFN run with their accumulated history rectified (README, "History rectification for the learned seed
+# WSKPN, AFN and JNDS run with their history rectified (README, "History rectification for the learned seed
 # methods"): the shipped weights are copied to a scratch folder with the setting, evaluated beside the models without
 # it, and shipped again with that report (the same weights; only the setting changes).
 rm -rf runs/rectify && mkdir -p runs/rectify && cp -r pretrained runs/rectify/pretrained
-for scale in 1 2; do
-  for name in wskpn-s-x$scale afn-m-x$scale; do
+rectify() {  # REPORT SCALE NAME...
+  local report=$1 scale=$2 methods=() name
+  shift 2
+  for name in "$@"; do
     .venv/bin/python scripts/ship_pretrained.py "runs/rectify/pretrained/$name/model.pt" --name "$name" \
       --after-shipped "$name" --rectify-history --root runs/rectify/pretrained
+    methods+=(--method "$name" --method "runs/rectify/pretrained/$name/model.pt")
   done
-  .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 --method "wskpn-s-x$scale" \
-    --method "afn-m-x$scale" --method "runs/rectify/pretrained/wskpn-s-x$scale/model.pt" \
-    --method "runs/rectify/pretrained/afn-m-x$scale/model.pt" "${baselines[@]}" \
-    --out "docs/results/seed_models_rectified_x$scale.json" | tee "docs/results/seed_models_rectified_x$scale.md"
-  for name in wskpn-s-x$scale afn-m-x$scale; do
+  .venv/bin/denoiser evaluate --data "$DATA" --split test --scale "$scale" --threads 2 "${methods[@]}" \
+    "${baselines[@]}" --out "docs/results/$report.json" | tee "docs/results/$report.md"
+  for name in "$@"; do
     .venv/bin/python scripts/ship_pretrained.py "pretrained/$name/model.pt" --name "$name" --after-shipped "$name" \
-      --rectify-history --report "docs/results/seed_models_rectified_x$scale.json" \
-      --report-source "runs/rectify/pretrained/$name/model.pt"
+      --rectify-history --report "docs/results/$report.json" --report-source "runs/rectify/pretrained/$name/model.pt"
   done
-done
+}
+rectify seed_models_rectified_x1 1 wskpn-s-x1 afn-m-x1
+rectify seed_models_rectified_x2 2 wskpn-s-x2 afn-m-x2
+rectify seed_models_rectified_jnds_x1 1 jnds-s-x1
+rectify seed_models_rectified_jnds_x2 2 jnds-s-x2 jnds-s-int8-x2

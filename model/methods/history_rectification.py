@@ -1,11 +1,12 @@
-"""History rectification for the learned methods that accumulate demodulated radiance (WSKPN, AFN), as a run-time
-setting that checkpoints record.
+"""History rectification for the learned seed methods that carry a demodulated history (WSKPN, AFN, JNDS), as a
+run-time setting that checkpoints record.
 
-Both papers' temporal accumulation keeps a reprojected history wherever the geometry test passes, so where a light
-moved the accumulated input the network reads still holds the old shading, and the network, trained on scenes whose
-lights stand still, filters it as it is. ``rectify_history`` clips the warped history to the current 1 spp frame's
-neighbourhood first, as the ``rectified`` presets of ``accumulation`` and ``svgf`` do
-(``model.ops.rectify.rectify_accumulated``). The weights are unchanged: it runs on models trained without it, and
+WSKPN's and AFN's temporal accumulation keeps a reprojected history wherever the geometry test passes, and JNDS
+blends its warped filtered lobes wherever they stay in the image, so where a light moved the history the network
+reads still holds the old shading, and the network, trained on few moving lights, filters it as it is.
+``rectify_history`` clips the warped history to the current 1 spp frame's neighbourhood first, as the ``rectified``
+presets of ``accumulation`` and ``svgf`` do (``model.ops.rectify.rectify_accumulated``; JNDS: each lobe against this
+frame's). The weights are unchanged: it runs on models trained without it, and
 on the held-out recipes it gains most where lights move (README, "History rectification for the learned seed
 methods").
 

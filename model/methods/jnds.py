@@ -76,6 +76,7 @@ from torch.ao.quantization import DeQuantStub, QuantStub
 
 from model.losses import SequenceLoss
 from model.methods.base import FrameBatch, Method, State, drop_history
+from model.methods.history_rectification import RectifiableHistory
 from model.methods.quantization import (
     conv_relu,
     convert_to_int8,
@@ -392,7 +393,7 @@ def hierarchical_filter(current: torch.Tensor, history: torch.Tensor, history_ok
     return x
 
 
-class JNDS(Method):
+class JNDS(RectifiableHistory, Method):
     """Joint denoiser and supersampler; ``preset`` "xs" / "s" / "m" / "l", or with "-int8" for the QAT model.
 
     State (render resolution unless noted): ``diffuse`` filtered demodulated diffuse, ``specular`` filtered
@@ -416,6 +417,7 @@ class JNDS(Method):
         self.network = JNDSNetwork(self.preset_config, scale)
         if self.quantized:
             prepare_qat(self.network)
+        self._init_rectification()
 
     # ------------------------------------------------------------------------------------- modes
 
@@ -498,6 +500,9 @@ class JNDS(Method):
         # Bicubic overshoots at edges: radiance stays >= 0 and albedo in [0, 1].
         history = {"diffuse": warped[:, 0:3].clamp_min(0.0), "specular": warped[:, 3:6].clamp_min(0.0),
                    "albedo": warped[:, 6:9].clamp(0.0, 1.0), "normal": warped[:, 9:12]}
+        # rectify_history: both filtered lobes clipped to this frame's, before the network and the filters read them
+        history["diffuse"] = self.rectified(history["diffuse"], irradiance)
+        history["specular"] = self.rectified(history["specular"], specular)
 
         inputs = self._network_inputs(frame, irradiance, specular, history, history_ok)
         level_heads, native_head, features = self.network(inputs)

@@ -1,4 +1,4 @@
-"""History rectification as a run-time setting of WSKPN and AFN (model/methods/history_rectification.py): what the
+"""History rectification as a run-time setting of WSKPN, AFN and JNDS (model/methods/history_rectification.py): what the
 clip does to a stale history, and how the setting is recorded, loaded and refused."""
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ from model.methods.registry import build_method
 from model.ops.demodulate import demodulate
 from tests.builders import static_frame
 
-METHODS = ("wskpn:xs", "afn:xs")
+METHODS = ("wskpn:xs", "afn:xs")  # they accumulate: the accumulated history has a known answer
+WITH_THE_SETTING = (*METHODS, "jnds:xs", "jnds:xs-int8")
 
 
 def lit(level: float, seed: int = 0):
@@ -57,7 +58,7 @@ def test_afns_accumulation_is_clipped_only_when_asked():
     torch.testing.assert_close(rectified, radiance)
 
 
-@pytest.mark.parametrize("name", METHODS)
+@pytest.mark.parametrize("name", WITH_THE_SETTING)
 def test_the_setting_is_recorded_with_the_weights_and_older_checkpoints_load_without_it(name, tmp_path):
     method = build_method(name)
     assert not method.rectify_history and method.run_time_settings() == {"rectify_history": False}
@@ -75,3 +76,27 @@ def test_the_setting_is_recorded_with_the_weights_and_older_checkpoints_load_wit
 def test_a_setting_that_is_not_a_bool_is_refused(value):
     with pytest.raises(ValueError, match="rectify_history must be true or false"):
         build_method("wskpn:xs").set_rectify_history(value)
+
+
+def test_jnds_filters_its_lobes_history_clipped_to_this_frame_only_when_asked(monkeypatch):
+    import model.methods.jnds as jnds
+
+    seen = []
+    original = jnds.hierarchical_filter
+
+    def recording(current, history, *args, **kwargs):
+        seen.append((current, history))
+        return original(current, history, *args, **kwargs)
+
+    monkeypatch.setattr(jnds, "hierarchical_filter", recording)
+    method = build_method("jnds:xs", 1).eval()
+    with torch.no_grad():
+        _, state = method.step(lit(1.0), None)
+        state = {**state, "diffuse": state["diffuse"] * 100.0}  # a history far off what this frame shows
+        for rectify in (False, True):
+            method.set_rectify_history(rectify)
+            seen.clear()
+            method.step(lit(1.0, seed=1), state)
+            current, history = seen[0]  # the diffuse lobe
+            # a flat frame's clip box is its value: the clipped history is the frame itself
+            assert torch.allclose(history, current, atol=1e-4) is rectify
