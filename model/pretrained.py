@@ -34,7 +34,7 @@ import torch
 
 from model.methods.base import Method
 from model.methods.fused import RUN_TIME_SETTINGS  # shipped with the weights unchanged (ship_checkpoint)
-from model.methods.history_rectification import HISTORY_SETTINGS  # WSKPN's, AFN's and JNDS's, the same way
+from model.methods.history_rectification import HISTORY_SETTINGS  # the seed methods', the same way
 
 PRETRAINED_FORMAT = "denoiser-pretrained/1"
 # The repository's folder; an installed (not editable) package finds it through $DENOISER_PRETRAINED_DIR, which the
@@ -232,7 +232,7 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
     first of them, or this checkpoint, started from (``--init-from pretrained/NAME/model.pt``): its recorded stages
     and its own training come first, so a fine-tune of a shipped model keeps the whole recipe where the earlier
     runs are gone (a fresh checkout holds none). ``settings``: the fused family's run-time settings
-    (``RUN_TIME_SETTINGS``) and WSKPN's, AFN's and JNDS's (``HISTORY_SETTINGS``; None or absent: as the checkpoint
+    (``RUN_TIME_SETTINGS``) and the seed methods' (``HISTORY_SETTINGS``; None or absent: as the checkpoint
     has them), shipped with the weights unchanged."""
     from model.checkpoint import load_checkpoint, save_checkpoint
     from model.methods.registry import build_method, inference_cost
@@ -256,7 +256,7 @@ def ship_checkpoint(checkpoint: str | os.PathLike, name: str, *, root: str | os.
         if setting in HISTORY_SETTINGS:
             if not hasattr(method, f"set_{setting}"):
                 raise PretrainedError(f"{checkpoint} holds {method.label}, which has {HISTORY_SETTINGS[setting]} "
-                                      f"(only WSKPN, AFN and JNDS have)")
+                                      f"(only WSKPN, AFN, JNDS and MUNet have)")
         else:
             needs_mean, missing = RUN_TIME_SETTINGS[setting]
             if not fused or (needs_mean and not method.has_mean):

@@ -36,9 +36,9 @@ the checkpoint's.
         --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
         --report-source runs/fast-sm8.pt
 
---rectify-history / --no-rectify-history (WSKPN, AFN and JNDS only): ship the weights clipping the reprojected
-history to the current frame's neighbourhood before it is used, or not (model/methods/history_rectification.py); the weights
-are the checkpoint's.
+--rectify-history / --no-rectify-history (WSKPN, AFN, JNDS and MUNet only): ship the weights clipping the
+reprojected history to the current frame's neighbourhood before it is used, or not
+(model/methods/history_rectification.py); the weights are the checkpoint's.
 
     .venv/bin/python scripts/ship_pretrained.py pretrained/wskpn-s-x1/model.pt --name wskpn-s-x1 \
         --after-shipped wskpn-s-x1 --rectify-history
@@ -116,9 +116,9 @@ def main() -> int:
                           help="fused at 1x only: OIDN's estimate is used where its samples lie")
     rectify = parser.add_mutually_exclusive_group()
     rectify.add_argument("--rectify-history", dest="rectify_history", action="store_const", const=True, default=None,
-                         help="WSKPN, AFN and JNDS: clip the reprojected history to the current frame first")
+                         help="the seed methods: clip the reprojected history to the current frame first")
     rectify.add_argument("--no-rectify-history", dest="rectify_history", action="store_const", const=False,
-                         help="WSKPN, AFN and JNDS: use the reprojected history as it is")
+                         help="the seed methods: use the reprojected history as it is")
     parser.add_argument("--remeasure", action="store_true",
                         help="CHECKPOINT is the shipped NAME: replace only its held-out section from --report")
     parser.add_argument("--root", type=Path, default=PRETRAINED_DIR, help="folder of pretrained models")

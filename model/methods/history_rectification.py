@@ -1,12 +1,13 @@
-"""History rectification for the learned seed methods that carry a demodulated history (WSKPN, AFN, JNDS), as a
-run-time setting that checkpoints record.
+"""History rectification for the learned seed methods (WSKPN, AFN, JNDS, MUNet), as a run-time setting that
+checkpoints record.
 
-WSKPN's and AFN's temporal accumulation keeps a reprojected history wherever the geometry test passes, and JNDS
-blends its warped filtered lobes wherever they stay in the image, so where a light moved the history the network
-reads still holds the old shading, and the network, trained on few moving lights, filters it as it is.
-``rectify_history`` clips the warped history to the current 1 spp frame's neighbourhood first, as the ``rectified``
-presets of ``accumulation`` and ``svgf`` do (``model.ops.rectify.rectify_accumulated``; JNDS: each lobe against this
-frame's). The weights are unchanged: it runs on models trained without it, and
+WSKPN's and AFN's temporal accumulation keeps a reprojected history wherever the geometry test passes, MUNet blends
+its accumulated radiance by a predicted weight wherever that test passes, and JNDS blends its warped filtered lobes
+wherever they stay in the image; so where a light moved the history the network reads still holds the old shading,
+and the network, trained on few moving lights, filters it as it is. ``rectify_history`` clips the warped history to
+the current frame's 1 spp neighbourhood first, as the ``rectified`` presets of ``accumulation`` and ``svgf`` do
+(``model.ops.rectify.rectify_accumulated``; JNDS: each lobe against this frame's; MUNet: the accumulated radiance
+against this frame's upscaled samples). The weights are unchanged: it runs on models trained without it, and
 on the held-out recipes it gains most where lights move (README, "History rectification for the learned seed
 methods").
 

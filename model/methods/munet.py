@@ -60,6 +60,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from model.methods.base import FrameBatch, Method, State, drop_history
+from model.methods.history_rectification import RectifiableHistory
 from model.methods.munet_blocks import (
     LEVELS,
     MUNetFeatureConfig,
@@ -300,7 +301,7 @@ def _kernel_logits(params: dict[str, torch.Tensor], prefix: str) -> torch.Tensor
 # The method
 
 
-class MUNet(Method):
+class MUNet(RectifiableHistory, Method):
     """Joint denoiser and upscaler; see the module docstring. State: ``HISTORY_CHANNELS`` and
     ``GEOMETRY_CHANNELS``, at target resolution.
 
@@ -321,6 +322,7 @@ class MUNet(Method):
         self.munet_config = MUNET_PRESETS[preset]
         self.features = MUNetFeatures(self.munet_config.features, RADIANCE_INPUTS, GUIDE_INPUTS)
         self.heads = _Heads(self.munet_config)
+        self._init_rectification()
 
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         state = drop_history(state, frame)
@@ -338,6 +340,8 @@ class MUNet(Method):
                                        normalize="softmax")
         albedos = apply_pixel_kernels(torch.cat([current.albedo, current.specular_albedo], dim=1),
                                       _kernel_logits(params, "up_albedo"), KERNEL, normalize="softmax")
+        # rectify_history: the accumulated radiance clipped to this frame's upscaled samples before the blend
+        history["radiance"] = self.rectified(history["radiance"], radiance)
         alpha_radiance = torch.sigmoid(params["alpha_radiance"])
         alpha_albedo = torch.sigmoid(params["alpha_albedo"])
         radiance = torch.where(valid, torch.lerp(history["radiance"], radiance, alpha_radiance), radiance)

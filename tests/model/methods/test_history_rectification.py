@@ -1,5 +1,5 @@
-"""History rectification as a run-time setting of WSKPN, AFN and JNDS (model/methods/history_rectification.py): what the
-clip does to a stale history, and how the setting is recorded, loaded and refused."""
+"""History rectification as a run-time setting of WSKPN, AFN, JNDS and MUNet (model/methods/history_rectification.py):
+what the clip does to a stale history, and how the setting is recorded, loaded and refused."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from model.ops.demodulate import demodulate
 from tests.builders import static_frame
 
 METHODS = ("wskpn:xs", "afn:xs")  # they accumulate: the accumulated history has a known answer
-WITH_THE_SETTING = (*METHODS, "jnds:xs", "jnds:xs-int8")
+WITH_THE_SETTING = (*METHODS, "jnds:xs", "jnds:xs-int8", "munet:xs")
 
 
 def lit(level: float, seed: int = 0):
@@ -100,3 +100,18 @@ def test_jnds_filters_its_lobes_history_clipped_to_this_frame_only_when_asked(mo
             current, history = seen[0]  # the diffuse lobe
             # a flat frame's clip box is its value: the clipped history is the frame itself
             assert torch.allclose(history, current, atol=1e-4) is rectify
+
+
+def test_munet_blends_its_radiance_history_clipped_to_this_frames_samples_only_when_asked():
+    method = build_method("munet:xs", 1).eval()
+    inner = (slice(None), slice(None), slice(2, -2), slice(2, -2))  # away from the kernels' borders
+    with torch.no_grad():
+        _, state = method.step(lit(1.0), None)
+        state = {**state, "radiance": state["radiance"] * 100.0}  # an accumulated radiance far off this frame
+        for rectify in (False, True):
+            method.set_rectify_history(rectify)
+            _, after = method.step(lit(1.0, seed=1), state)
+            # a flat frame's clip box is its value, so the blend of the clipped history and the frame is the frame,
+            # whatever weight the network predicts
+            assert torch.allclose(after["radiance"][inner], torch.ones_like(after["radiance"][inner]),
+                                  atol=1e-3) is rectify
