@@ -36,6 +36,7 @@ from model.methods.base import FrameBatch, Method, State  # noqa: E402
 from model.methods.fused import unjittered_resample  # noqa: E402
 from model.methods.oidn import oidn_denoise  # noqa: E402
 from model.methods.oidn_taa import reinhard, reinhard_inverse  # noqa: E402
+from model.ops.rectify import rgb_to_ycocg  # noqa: E402
 from model.ops.stale_history import stale_history_trust  # noqa: E402
 
 GATES = ("none", "difference", "stale")
@@ -55,10 +56,6 @@ def gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
                     taps.view(1, 1, -1, 1).repeat(channels, 1, 1, 1), groups=channels)
 
 
-def luminance(image: torch.Tensor) -> torch.Tensor:
-    return 0.25 * image[:, 0:1] + 0.5 * image[:, 1:2] + 0.25 * image[:, 2:3]
-
-
 def low_band_corrected(output: torch.Tensor, estimate: torch.Tensor, gate: torch.Tensor | float,
                        sigma: float) -> torch.Tensor:
     """``output``'s detail over ``estimate``'s low band, weighted by ``gate`` (linear radiance in and out)."""
@@ -73,7 +70,9 @@ def gate_of(kind: str, threshold: float, sigma: float, frame: FrameBatch, output
     if kind == "none":
         return 1.0
     if kind == "difference":
-        difference = luminance(gaussian_blur(reinhard(estimate), sigma) - gaussian_blur(reinhard(output), sigma))
+        # the luma of YCoCg, the space the project's clips work in
+        low = gaussian_blur(reinhard(estimate), sigma) - gaussian_blur(reinhard(output), sigma)
+        difference = rgb_to_ycocg(low)[:, :1]
         return 1 - torch.exp(-(difference / threshold) ** 2)
     return 1 - stale_history_trust(frame.color, output, threshold, STALE_REGION)
 

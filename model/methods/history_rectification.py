@@ -22,14 +22,14 @@ from model.ops.rectify import rectify_accumulated
 
 __all__ = ["HISTORY_SETTINGS", "RECTIFY_KEY", "RectifiableHistory"]
 
-RECTIFY_KEY = "history_rectification"  # state-dict entry: 1 = the warped history is clipped before accumulation
+RECTIFY_KEY = "history_rectification"  # state-dict entry: 1 = the warped history is clipped before it is used
 # The run-time settings of this mixin's methods that shipping can set (name -> what a model without it lacks).
 HISTORY_SETTINGS: dict[str, str] = {"rectify_history": "no accumulated history to rectify"}
 
 
 class RectifiableHistory:
-    """Mixin for a ``Method`` (listed before it) whose step accumulates demodulated radiance: the setting, its
-    state-dict buffer and the clip itself. ``_init_rectification`` belongs in ``__init__``."""
+    """Mixin for a ``Method`` (listed before it) whose step reads a reprojected history of the frame's radiance: the
+    setting, its state-dict buffer and the clip itself. ``_init_rectification`` belongs in ``__init__``."""
 
     def _init_rectification(self) -> None:
         self.register_buffer(RECTIFY_KEY, torch.tensor(0.0))
@@ -37,7 +37,7 @@ class RectifiableHistory:
 
     @property
     def rectify_history(self) -> bool:
-        """Whether the reprojected history is clipped to the current frame's neighbourhood before accumulation."""
+        """Whether the reprojected history is clipped to the current frame's neighbourhood before it is used."""
         return self._rectify_history
 
     def set_rectify_history(self, value: bool) -> None:

@@ -26,8 +26,8 @@ __all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourho
            "clip_to_moments", "variance_clip_hdr", "rectify_accumulated", "ACCUMULATION_WINDOW", "ACCUMULATION_GAMMA"]
 
 # The clip of an accumulated history against a 1 spp frame: a window wide enough that the noise does not make the
-# box meaningless, and a box a little wider than TAA's (``accumulation:rectified``, ``svgf:rectified``, and WSKPN and
-# AFN with ``rectify_history``).
+# box meaningless, and a box a little wider than TAA's (``accumulation:rectified``, ``svgf:rectified``, and the seed
+# methods with ``rectify_history``).
 ACCUMULATION_WINDOW, ACCUMULATION_GAMMA = 5, 1.5
 
 
