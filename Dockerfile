@@ -39,11 +39,11 @@ RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml
 
 COPY model ./model
 COPY core ./core
-COPY api ./api
+COPY service ./service
 COPY workers ./workers
 COPY cli ./cli
 COPY client ./client
-# The pretrained models (weights + manifests, model/pretrained.py); the installed package finds them here.
+# The pretrained models (weights + manifests, model/deployment/pretrained.py); the installed package finds them here.
 COPY pretrained ./pretrained
 ENV DENOISER_PRETRAINED_DIR=/app/pretrained
 # --no-deps: everything is installed above; this adds the packages and the `denoiser` console script.
@@ -60,4 +60,4 @@ EXPOSE 8000
 ENV DENOISER_REQUIRE_API_KEY=true
 # One uvicorn process: inference sessions keep their models and history in its memory (mirrored to Redis).
 # --ws-max-size: a session stream's frame (one WebSocket message) may be as large as DENOISER_MAX_FRAME_BYTES.
-CMD ["uvicorn", "api.main:app", "--host", "0.0.0.0", "--port", "8000", "--ws-max-size", "268435456"]
+CMD ["uvicorn", "service.http.app:app", "--host", "0.0.0.0", "--port", "8000", "--ws-max-size", "268435456"]

@@ -108,8 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from model.frames import FrameError
-    from model.malloc import tune_for_large_frames
+    from model.io.frames import FrameError
+    from model.deployment.malloc import tune_for_large_frames
 
     args = build_parser().parse_args(argv)
     tune_for_large_frames()  # before any frame is read: a 1080p step otherwise faults its tensors in every time

@@ -40,14 +40,14 @@ from core.names import FINISHED_STATES
 if TYPE_CHECKING:  # numpy and the frame library load only when frames are sent
     import numpy as np
 
-    from model.frames import FrameBundle
+    from model.io.frames import FrameBundle
     from client.stream import SessionStream
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 URL_ENV = "DENOISER_URL"
 API_KEY_ENV = "DENOISER_API_KEY"
 API_KEY_HEADER = "X-API-Key"
-SESSION_TOKEN_HEADER = "X-Session-Token"  # owner tokens of sessions (api.routes.sessions)
+SESSION_TOKEN_HEADER = "X-Session-Token"  # owner tokens of sessions (service.http.routes.sessions)
 EXR_MEDIA_TYPE = "image/x-exr"
 MANIFEST = "manifest.json"
 STREAM_TRANSPORTS = ("http", "websocket")  # how stream_sequence sends frames
@@ -484,7 +484,7 @@ class DenoiserClient:
         """
         if transport not in STREAM_TRANSPORTS:
             raise ValueError(f"transport must be one of {', '.join(STREAM_TRANSPORTS)}, got {transport!r}")
-        from model.dataset import Sequence, frame_file_name
+        from model.io.dataset import Sequence, frame_file_name
 
         out_dir = Path(out_dir)
         bundles = (Path(sequence_dir) / MANIFEST).is_file()
@@ -493,7 +493,7 @@ class DenoiserClient:
             paths = [sequence.frame_path(index) for index in range(len(sequence))]
             reencode = strip_references and bool(sequence.scales)
         else:
-            from model.importer import frame_files
+            from model.io.importer import frame_files
 
             paths, reencode = frame_files(Path(sequence_dir)), False
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -589,7 +589,7 @@ def archive_media_type(path: Path) -> str:
 
 def _sequence_files(folder: Path) -> list[Path]:
     """The manifest and the frame files a sequence folder's manifest lists (reads the manifest only)."""
-    from model.dataset import Sequence
+    from model.io.dataset import Sequence
 
     sequence = Sequence(folder)
     return [folder / MANIFEST] + [sequence.frame_path(index) for index in range(len(sequence))]
@@ -610,7 +610,7 @@ def folder_members(folder: str | os.PathLike) -> tuple[list[Path], list[str]]:
     - any other folder: every sub-folder holding a sequence manifest.
     Everything else (hidden files, pictures, reports, unlisted frames) is left out and named in the second list.
     """
-    from model.dataset import DATASET_FORMAT, SEQUENCE_FORMAT, Dataset
+    from model.io.dataset import DATASET_FORMAT, SEQUENCE_FORMAT, Dataset
 
     root = Path(folder)
     manifest = root / MANIFEST
@@ -622,7 +622,7 @@ def folder_members(folder: str | os.PathLike) -> tuple[list[Path], list[str]]:
     elif kind == SEQUENCE_FORMAT:
         members = _sequence_files(root)
     elif manifest.is_file():
-        from model.dataset import DatasetError
+        from model.io.dataset import DatasetError
 
         raise DatasetError(f"{manifest}: field 'format' is {kind!r}, expected {DATASET_FORMAT!r} or "
                            f"{SEQUENCE_FORMAT!r}")
@@ -726,8 +726,8 @@ def frame_bytes(frame: FrameBundle | str | os.PathLike, *, strip_references: boo
     """
     import OpenEXR
 
-    from model.exr import encode_frame_exr, read_frame
-    from model.frames import FrameBundle
+    from model.io.exr import encode_frame_exr, read_frame
+    from model.io.frames import FrameBundle
 
     if compression not in FRAME_COMPRESSIONS:
         raise ValueError(f"compression must be one of {', '.join(FRAME_COMPRESSIONS)}, got {compression!r}")
@@ -741,6 +741,6 @@ def frame_bytes(frame: FrameBundle | str | os.PathLike, *, strip_references: boo
 
 def decode_rgb_exr(data: bytes) -> np.ndarray:
     """The (H, W, 3) float32 RGB of the server's output EXR; a ValueError (FrameFormatError) if it is not one."""
-    from model.exr import decode_image_exr
+    from model.io.exr import decode_image_exr
 
     return decode_image_exr(data, source="the server's output")

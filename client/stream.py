@@ -1,14 +1,14 @@
 """The client side of a session's WebSocket (GET /sessions/{id}/stream): ``DenoiserClient.open_stream`` returns one.
 
     with client.open_stream(session["id"], dtype="float16") as stream:
-        for frame in frames:                      # model.frames.FrameBundle
+        for frame in frames:                      # model.io.frames.FrameBundle
             image, info = stream.send(frame)      # (H*s, W*s, 3) float32, FrameInfo as send_frame gives it
 
 One frame in flight at a time: ``send`` returns once the frame's output has arrived. A frame the session refuses
 raises ApiClientError (with the status the REST API gives the same error, its code and message) and the stream
 stays usable; an error that ends the stream (the session is gone, the API key or owner token is wrong) raises
 ApiClientError too and closes it. Built on ``websockets.sync.client``; a frame call packs and unpacks messages with
-model.stream_codec (NumPy only, never torch), imported when the call is made, as client.rest reads EXR frames.
+service.sessions.stream_codec (NumPy only, never torch), imported when the call is made, as client.rest reads EXR frames.
 """
 
 from __future__ import annotations
@@ -26,13 +26,13 @@ from client.rest import API_KEY_HEADER, ApiClientError, FrameInfo, ServerUnreach
 if TYPE_CHECKING:
     import numpy as np
 
-    from model.frames import FrameBundle
+    from model.io.frames import FrameBundle
 
 STREAM_PATH = "/sessions/{session_id}/stream"
 # A close code 4000 + status carries the REST API's status for the error that ended the stream.
 APPLICATION_CLOSE_CODES = range(4000, 5000)
 MESSAGE_TOO_BIG = 1009
-STREAM_DTYPES = ("float16", "float32")  # model.stream_codec.DTYPES, named here so opening a stream needs no NumPy
+STREAM_DTYPES = ("float16", "float32")  # service.sessions.stream_codec.DTYPES, named here so opening a stream needs no NumPy
 
 
 def websocket_url(http_url: str, path: str) -> str:
@@ -82,11 +82,11 @@ class SessionStream:
 
     def send(self, frame: FrameBundle | bytes, frame_index: int | None | bool = True) -> tuple[np.ndarray, FrameInfo]:
         """Denoise one frame: a FrameBundle (sent in ``dtype``; ``frame_index`` True sends its own index, None
-        leaves it to the session) or a message packed already (model.stream_codec.encode_frame). Returns the
+        leaves it to the session) or a message packed already (service.sessions.stream_codec.encode_frame). Returns the
         (H, W, 3) float32 output and its FrameInfo (round trip: from sending until the output was read)."""
         from websockets.exceptions import ConnectionClosed
 
-        from model.stream_codec import decode_output, encode_bundle
+        from service.sessions.stream_codec import decode_output, encode_bundle
 
         data = frame if isinstance(frame, (bytes, bytearray, memoryview)) else encode_bundle(
             frame, dtype=self.dtype, output_dtype=self.output_dtype, frame_index=frame_index, buffers=self.buffers)
@@ -157,7 +157,7 @@ def file_sender(stream: SessionStream, bundles: bool,
     bundle files (``bundles``) are read leniently (the session repairs NaN / Inf), a renderer's files in ``layout``
     (default denoiser) in live mode, as the session would read them; a file without a frame index leaves it to the
     session."""
-    from model.exr import encode_image_exr, read_frame
+    from model.io.exr import encode_image_exr, read_frame
     from model.layouts import layout_from_value, read_layout_frame
 
     reader = None if bundles else layout_from_value(layout or "denoiser")

@@ -1,7 +1,7 @@
 """Names every layer shares: dataset splits, job kinds, states and devices, the queues, the auto model name.
 
 Plain constants, no imports, so the CLI's --help and the client stay light. ``SPLITS`` equals
-``model.dataset.SPLITS`` (a test checks it).
+``model.io.dataset.SPLITS`` (a test checks it).
 """
 
 SPLITS = ("train", "validation", "test")

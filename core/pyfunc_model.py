@@ -9,13 +9,13 @@ registered version loads in a notebook::
                          "jitter": jitter})          # (T, H * scale, W * scale, 3) float32
 
 Input: one call is one sequence of T frames at render resolution H x W, channels last, as named arrays (the frame
-bundle's buffers, ``model/frames.py``): ``color``, ``albedo``, ``normal`` (T, H, W, 3), ``depth`` (T, H, W, 1),
+bundle's buffers, ``model/io/frames.py``): ``color``, ``albedo``, ``normal`` (T, H, W, 3), ``depth`` (T, H, W, 1),
 ``motion`` (T, H, W, 2), ``jitter`` (T, 2). MLflow's tensor signatures have no optional inputs and drop names they
 do not declare, so the optional buffers (``diffuse``, ``specular``, ``specular_albedo``, ``roughness``) and
 ``camera_cut`` reach the model only through ``model.unwrap_python_model().predict(None, inputs)``; without them
 methods run as for a renderer that does not write them. The method steps through the frames in order with its
 history carried from frame to frame (``method.step``), exactly as a session does; every call starts a new history.
-Input values are repaired as in sessions (``model.sanitize``: NaN / Inf, out-of-range guides).
+Input values are repaired as in sessions (``model.io.sanitize``: NaN / Inf, out-of-range guides).
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def denoise_sequence(method, inputs: dict[str, np.ndarray]) -> np.ndarray:
     """Step ``method`` over the sequence, history carried; (T, H * scale, W * scale, 3) float32."""
     import torch
 
-    from model.sanitize import sanitize_frame
+    from model.io.sanitize import sanitize_frame
 
     outputs, state = [], None
     with torch.no_grad():
@@ -94,7 +94,7 @@ class DenoiserModel(mlflow.pyfunc.PythonModel):
     """The checkpoint (artifact ``checkpoint``) as a pyfunc model; see the module notes for the input."""
 
     def load_context(self, context) -> None:
-        from model.checkpoint import load_method
+        from model.training.checkpoint import load_method
 
         self.method = load_method(context.artifacts[CHECKPOINT_KEY]).for_inference()
 

@@ -65,7 +65,7 @@ class Settings(BaseSettings):
         "half the bytes; a restored session's outputs differ by float16 rounding) or float (exact)")
     inference_forms: str = Field(
         "measured", min_length=1, description="how learned methods' networks run on the CPU: measured (the form "
-        "table shipped in model/inference_forms.json: channels_last and/or bf16 where they measured faster per method "
+        "table shipped in model/deployment/inference_forms.json: channels_last and/or bf16 where they measured faster per method "
         "and resolution), off (fp32 eager everywhere), or the path of a table written by "
         "scripts/bench_inference_forms.py")
     worker_heartbeat_seconds: float = Field(

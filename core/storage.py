@@ -1,6 +1,6 @@
 """Every path the service and the workers use on disk, under one root (settings.data_dir).
 
-    datasets/<id>/          a model.dataset.Dataset (manifest.json + sequence folders)
+    datasets/<id>/          a model.io.dataset.Dataset (manifest.json + sequence folders)
     jobs/<id>/              job working folder: checkpoints, reports, charts, logs
     results/<id>/           outputs of an infer job: <sequence>/<frame>.exr
     models/<name>/<version>/ checkpoints downloaded from the MLflow registry (cache)

@@ -1,6 +1,6 @@
 """Every MLflow call of the project: runs, metrics, sample grids, logged and registered models.
 
-``MLflowTracker`` implements ``model.train.Tracker`` (the model library itself never imports MLflow). Only rank 0
+``MLflowTracker`` implements ``model.training.train.Tracker`` (the model library itself never imports MLflow). Only rank 0
 of a training job creates one.
 
 Where things go. The tracking URI is one setting: ``TrainConfig.tracking_uri``, else ``$DENOISER_TRACKING_URI``,
@@ -9,7 +9,7 @@ SQLite URI, artifacts go to ``artifacts/<experiment>/`` next to the database fil
 them under the current folder of whichever process created the experiment); a server or PostgreSQL URI keeps
 the server's artifact store.
 
-Models. The final checkpoint (``model.checkpoint``, loadable with ``load_method``) is stored as an MLflow 3
+Models. The final checkpoint (``model.training.checkpoint``, loadable with ``load_method``) is stored as an MLflow 3
 *logged model* of the run in the ``pyfunc`` flavour (``core.pyfunc_model``: an MLmodel file with a signature,
 the checkpoint inside as its artifact, so ``mlflow.pyfunc.load_model("models:/NAME@ALIAS")`` denoises a
 sequence), with a copy of the checkpoint at the model's root (``checkpoint.pt``, what the service downloads: it
@@ -20,7 +20,7 @@ checkpoint back. Aliases (not stages) mark versions for serving; choosing them i
 Lineage. Every run is tagged with the code version (``mlflow.source.git.commit`` and ``code_version``: the git
 commit of the project, with ``+dirty`` when the working tree has uncommitted changes, else the package version),
 and ``log_dataset`` records a dataset as a run input (``mlflow.log_input``): its name, path and digest (sha256 of
-its manifests, ``model.dataset.dataset_digest``) with the context (training, evaluation).
+its manifests, ``model.io.dataset.dataset_digest``) with the context (training, evaluation).
 """
 
 from __future__ import annotations
@@ -183,7 +183,7 @@ class MLflowTracker:
 
     def log_dataset(self, path: str | os.PathLike, context: str) -> None:
         """Record a dataset folder as an input of the run (``mlflow.log_input``): name, path, manifests' digest."""
-        from model.dataset import dataset_digest
+        from model.io.dataset import dataset_digest
 
         root = Path(path).resolve()
         dataset = Dataset(name=root.name, digest=dataset_digest(root)[:36], source_type="local",
@@ -261,7 +261,7 @@ PRETRAINED_EXPERIMENT = "pretrained"
 
 
 def pretrained_tags(model) -> dict[str, str]:
-    """Version tags of a shipped model (``model.pretrained.PretrainedModel``): what training tags, its sha256, and
+    """Version tags of a shipped model (``model.deployment.pretrained.PretrainedModel``): what training tags, its sha256, and
     its held-out PSNR / FLIP with OIDN-high's of the same evaluation run when measured."""
     manifest, training = model.manifest, model.manifest.get("training") or {}
     tags = {"method": model.method, "preset": model.preset, "scale": str(model.scale),
@@ -286,7 +286,7 @@ def register_pretrained(model, tracking_uri: str | None = None, alias: str = PRE
     """Register a shipped model once and point ``alias`` at it: a version of ``model.name`` tagged with the same
     sha256 is reused (so running this again changes nothing), else the file is checked and logged as a new version
     from a run of the ``pretrained`` experiment. Returns name, version, uri and whether it was created."""
-    from model.pretrained import verify
+    from model.deployment.pretrained import verify
 
     tracker = MLflowTracker(tracking_uri, experiment=PRETRAINED_EXPERIMENT, run_name=model.name)
     client = tracker.client

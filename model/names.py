@@ -3,5 +3,5 @@ so the training settings (and the CLI options derived from them) load without to
 
 SPLITS = ("train", "validation", "test")
 SCHEDULES = ("cosine", "step", "constant")  # learning-rate schedules after the linear warm-up
-TONEMAPS = ("log", "mulaw", "linear")  # what the training loss compares (model.losses)
+TONEMAPS = ("log", "mulaw", "linear")  # what the training loss compares (model.training.losses)
 TRAIN_DEVICES = ("auto", "cpu", "cuda")

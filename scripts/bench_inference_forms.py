@@ -2,11 +2,11 @@
 
     .venv/bin/python scripts/bench_inference_forms.py          # every shipped model; 128, 256, 512, 1080p output
     .venv/bin/python scripts/bench_inference_forms.py --model munet-s-x2 --size 256 --compile
-    .venv/bin/python scripts/bench_inference_forms.py --write model/inference_forms.json
+    .venv/bin/python scripts/bench_inference_forms.py --write model/deployment/inference_forms.json
 
 Per model (a pretrained name, or METHOD[:PRESET] with --scale) and render size, a short synthetic stream
-(``model.synthetic``; sizes are output sizes, the table's rows are keyed by render size) is stepped in every form of
-``model.inference_forms`` (rounds of all forms in turn, so a busy machine slows them alike); the first frame of each
+(``model.io.synthetic``; sizes are output sizes, the table's rows are keyed by render size) is stepped in every form of
+``model.deployment.inference_forms`` (rounds of all forms in turn, so a busy machine slows them alike); the first frame of each
 stream is a warm-up. Printed per form: the median step (ms), the time inside the networks and what their
 convolutions achieve there (GFLOP/s, and the share of this machine's ceiling measured in the same run: fp32 sgemm
 for fp32 forms, bf16 gemm for bf16 ones), and the lowest PSNR of the form's output against the eager fp32 output
@@ -34,12 +34,12 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.inference_forms import (  # noqa: E402
+from model.deployment.inference_forms import (  # noqa: E402
     FORMS, MIN_PSNR_DB, bf16_available, form_psnr, method_key, networks_of, run_networks_as)
 from model.methods.base import FrameBatch, Method  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
-from model.pretrained import is_pretrained, load_pretrained, pretrained_names  # noqa: E402
-from model.synthetic import moving_pattern_frames  # noqa: E402
+from model.deployment.pretrained import is_pretrained, load_pretrained, pretrained_names  # noqa: E402
+from model.io.synthetic import moving_pattern_frames  # noqa: E402
 
 CHOOSE_MARGIN = 0.95  # another form must take at most 95% of eager's time to be chosen over it
 

@@ -27,7 +27,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.checkpoint import load_checkpoint  # noqa: E402
+from model.training.checkpoint import load_checkpoint  # noqa: E402
 from model.methods.base import FrameBatch, Method, State  # noqa: E402
 from model.methods.jnds import INT8_SUFFIX, JNDS, PRESETS  # noqa: E402
 from model.methods.registry import example_batch  # noqa: E402

@@ -7,7 +7,7 @@
     .venv/bin/python scripts/bench_resolution_scaling.py --device cuda --out docs/results/resolution_scaling_gpu.json
 
 Every (model, output size) runs in a fresh process (so its peak memory is its own): the model is loaded as sessions
-load it (inference form and the measured ``model.inference_forms`` table), a synthetic stream at the render size
+load it (inference form and the measured ``model.deployment.inference_forms`` table), a synthetic stream at the render size
 (the output size over the model's scale) is stepped, the first frame as a warm-up, and the child reports the median
 step, the process's peak resident memory and how much of it the steps added over the loaded model and frames,
 and the FLOPs per output pixel torch counts (convolutions and matmuls; OIDN's are not visible, so it has none).
@@ -69,14 +69,14 @@ def child(model: str, size: str, threads: int, frames: int, device_name: str = "
     import numpy as np
     import torch
 
-    from model.inference_forms import load_form_table, with_inference_forms
-    from model.malloc import tune_for_large_frames
+    from model.deployment.inference_forms import load_form_table, with_inference_forms
+    from model.deployment.malloc import tune_for_large_frames
     from model.methods.base import FrameBatch
     from model.methods.oidn import oidn_device_for
     from model.methods.registry import build_method, inference_cost
-    from model.pretrained import is_pretrained, load_pretrained
-    from model.synthetic import moving_pattern_frames
-    from model.timing import timed
+    from model.deployment.pretrained import is_pretrained, load_pretrained
+    from model.io.synthetic import moving_pattern_frames
+    from model.evaluation.timing import timed
 
     torch.set_num_threads(threads)
     tune_for_large_frames()  # as the sessions and the CLI run
@@ -114,7 +114,7 @@ def sgemm_ceiling(threads: int, device_name: str = "cpu", size: int = 2048) -> f
     """fp32 matrix-product GFLOP/s, the best of five (on a GPU 8192-square with TF32 off: true fp32)."""
     import torch
 
-    from model.timing import timed
+    from model.evaluation.timing import timed
 
     torch.set_num_threads(threads)
     device = torch.device(device_name)
@@ -128,7 +128,7 @@ def sgemm_ceiling(threads: int, device_name: str = "cpu", size: int = 2048) -> f
 
 
 def draw(rows: list[dict], path: Path) -> None:
-    from model.benchmark import save_figure
+    from model.evaluation.benchmark import save_figure
     from matplotlib.figure import Figure
 
     scales = sorted({row["scale"] for row in rows})

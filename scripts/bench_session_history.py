@@ -4,13 +4,13 @@
     .venv/bin/python scripts/bench_session_history.py --size 1920x1080 --model fused-balanced-x1 --model oidn-taa
 
 Per model (a pretrained name, or a registry method such as ``oidn-taa:balanced``) and render size: two frames are
-stepped, the state after them is encoded as a session mirrors it (``model.state_codec``, float32 and float16),
-written to Redis the way the session store writes it (``api.sessions.state_fields``: one transaction, chunked
+stepped, the state after them is encoded as a session mirrors it (``service.sessions.state_codec``, float32 and float16),
+written to Redis the way the session store writes it (``service.sessions.store.state_fields``: one transaction, chunked
 fields) and read back whole, and the third frame is stepped both from the original state and from the restored
 float16 one. Printed: the state's size in memory, stored float32 and float16; encode, Redis write and read, decode
 (ms); the step (ms); and how far the output continued from the float16 history is from the uninterrupted one (max
 absolute difference in linear radiance, and the PSNR between the two display-encoded outputs: higher is closer). Frames are synthetic
-(``model.synthetic``); the differences do not depend on their content much, the sizes not at all.
+(``model.io.synthetic``); the differences do not depend on their content much, the sizes not at all.
 """
 
 from __future__ import annotations
@@ -29,15 +29,15 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from api.sessions import state_fields, state_from_fields  # noqa: E402
-from model.inference_forms import load_form_table, with_inference_forms  # noqa: E402
-from model.malloc import tune_for_large_frames  # noqa: E402
+from service.sessions.store import state_fields, state_from_fields  # noqa: E402
+from model.deployment.inference_forms import load_form_table, with_inference_forms  # noqa: E402
+from model.deployment.malloc import tune_for_large_frames  # noqa: E402
 from model.methods.base import FrameBatch, Method  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 from model.ops.tonemap import display_encode  # noqa: E402
-from model.pretrained import is_pretrained, load_pretrained, pretrained_names  # noqa: E402
-from model.state_codec import decode_state, encode_state  # noqa: E402
-from model.synthetic import moving_pattern_frames  # noqa: E402
+from model.deployment.pretrained import is_pretrained, load_pretrained, pretrained_names  # noqa: E402
+from service.sessions.state_codec import decode_state, encode_state  # noqa: E402
+from model.io.synthetic import moving_pattern_frames  # noqa: E402
 
 
 def parse_args() -> argparse.Namespace:

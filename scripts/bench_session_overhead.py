@@ -8,7 +8,7 @@ WebSocket (GET /sessions/{id}/stream) against method.step in process.
         --checkpoint jnds-s.pt --api-key "$DENOISER_API_KEY"
 
 Without ``--url`` the API is started here on a free port, on a temporary data folder and MLflow store: by default
-as its own process (``uvicorn api.main:app``), as in a deployment, so client and server share no Python
+as its own process (``uvicorn service.http.app:app``), as in a deployment, so client and server share no Python
 interpreter; ``--server thread`` runs it in a thread of this process instead (client and server then share one
 GIL, which inflates the round trip). The method (``--method`` preset with seeded random weights, or
 ``--checkpoint``) is saved, registered there, and a session is opened on it by name. Timing does not depend on the
@@ -19,7 +19,7 @@ Frames are synthetic valid frame bundles (or the first sequence of ``--data``, c
 is client.rest.DenoiserClient. Timed per frame, after ``--warmup`` frames, median over ``--frames``:
 
 - client encode: the frame bundle to EXR bytes (client.rest.frame_bytes, ``--compression``), or to a stream
-  message (model.stream_codec.encode_bundle, ``--stream-dtype``);
+  message (service.sessions.stream_codec.encode_bundle, ``--stream-dtype``);
 - HTTP round trip: send_frame_raw's POST until the whole output EXR has arrived (upload, server, download);
 - WebSocket round trip: SessionStream.send of the packed message until the whole output message has arrived
   (float32 or ``--stream-dtype`` both ways; the buffers the session's method reads, as DenoiserClient.open_stream
@@ -62,16 +62,16 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.checkpoint import load_method, save_checkpoint  # noqa: E402
-from model.exr import decode_image_exr  # noqa: E402
-from model.frames import FrameBundle  # noqa: E402
-from model.inference_forms import load_form_table, with_inference_forms  # noqa: E402
-from model.malloc import tune_for_large_frames  # noqa: E402
+from model.training.checkpoint import load_method, save_checkpoint  # noqa: E402
+from model.io.exr import decode_image_exr  # noqa: E402
+from model.io.frames import FrameBundle  # noqa: E402
+from model.deployment.inference_forms import load_form_table, with_inference_forms  # noqa: E402
+from model.deployment.malloc import tune_for_large_frames  # noqa: E402
 from model.methods.base import FrameBatch  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 from client.rest import FRAME_COMPRESSIONS, DenoiserClient, frame_bytes  # noqa: E402
-from model.stream_codec import DTYPES, encode_bundle  # noqa: E402
-from model.synthetic import moving_pattern_frames  # noqa: E402
+from service.sessions.stream_codec import DTYPES, encode_bundle  # noqa: E402
+from model.io.synthetic import moving_pattern_frames  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -81,7 +81,7 @@ def parse_args() -> argparse.Namespace:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--method", default="jnds:xs", help="NAME:PRESET to build (default jnds:xs)")
     parser.add_argument("--scale", type=int, default=2, help="output / render resolution (default 2)")
-    parser.add_argument("--checkpoint", type=Path, help="a model.checkpoint file instead of --method")
+    parser.add_argument("--checkpoint", type=Path, help="a model.training.checkpoint file instead of --method")
     parser.add_argument("--model", help="already registered model: NAME, NAME/VERSION or NAME@ALIAS")
     parser.add_argument("--url", help="a running API (default: start one here, see --server)")
     parser.add_argument("--server", choices=("process", "thread"), default="process",
@@ -125,7 +125,7 @@ def synthetic_frames(count: int, size: tuple[int, int], seed: int = 0) -> list[F
 
 def dataset_frames(path: Path, count: int) -> list[FrameBundle]:
     """``count`` frames of the sequence at ``path`` (or a dataset's first sequence), cycled, renumbered 0..count-1."""
-    from model.dataset import Dataset, DatasetError, Sequence
+    from model.io.dataset import Dataset, DatasetError, Sequence
 
     try:
         sequence = Sequence(path)
@@ -181,7 +181,7 @@ def wait_until_up(url: str, alive, what: str) -> None:
 
 
 class ProcessApi:
-    """``uvicorn api.main:app`` as a child process (the deployment's program), stopped on ``stop()``."""
+    """``uvicorn service.http.app:app`` as a child process (the deployment's program), stopped on ``stop()``."""
 
     def __init__(self, env: dict) -> None:
         from core.settings import get_settings
@@ -191,7 +191,7 @@ class ProcessApi:
         environment.pop("DENOISER_API_KEY", None)
         environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), environment.get("PYTHONPATH")]))
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1", "--port", str(port),
+            [sys.executable, "-m", "uvicorn", "service.http.app:app", "--host", "127.0.0.1", "--port", str(port),
              "--log-level", "warning", "--no-access-log",
              # as `denoiser serve` does: a WebSocket message may be as large as a frame may be (1080p frames)
              "--ws-max-size", str(get_settings().max_frame_bytes)], cwd=REPO, env=environment)
@@ -223,7 +223,7 @@ class ThreadApi:
         from core.settings import get_settings
 
         get_settings.cache_clear()
-        from api.main import create_app
+        from service.http.app import create_app
 
         port = free_port()
         self.server = uvicorn.Server(uvicorn.Config(create_app(), host="127.0.0.1", port=port, log_level="warning"))

@@ -45,13 +45,13 @@ import OpenEXR  # noqa: E402
 import redis  # noqa: E402
 import torch  # noqa: E402
 
-from model.checkpoint import load_method, save_checkpoint  # noqa: E402
-from model.dataset import Dataset, SequenceWriter  # noqa: E402
-from model.exr import encode_frame_exr  # noqa: E402
-from model.frames import FrameBundle  # noqa: E402
+from model.training.checkpoint import load_method, save_checkpoint  # noqa: E402
+from model.io.dataset import Dataset, SequenceWriter  # noqa: E402
+from model.io.exr import encode_frame_exr  # noqa: E402
+from model.io.frames import FrameBundle  # noqa: E402
 from model.methods.base import inference_outputs  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
-from model.synthetic import moving_pattern_frames  # noqa: E402
+from model.io.synthetic import moving_pattern_frames  # noqa: E402
 from client.rest import DenoiserClient  # noqa: E402
 
 MODEL = "drill-jnds-xs-x2"
@@ -140,7 +140,7 @@ class Stack:
         self._wait(lambda: client.ping(), "Redis")
 
     def start_api(self) -> None:
-        self._start("api", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1", "--port",
+        self._start("api", [sys.executable, "-m", "uvicorn", "service.http.app:app", "--host", "127.0.0.1", "--port",
                             str(self.args.api_port), "--log-level", "warning", "--no-access-log"])
         self._wait(lambda: httpx.get(f"{self.url}/health", timeout=1).status_code == 200, "the API")
 
@@ -212,7 +212,7 @@ def stream_sessions(url: str, streams: list[list[bytes]], start: int = 0, stop: 
     errors: list[str] = []
 
     def run(session_id: str, frames: list[bytes]) -> None:
-        from model.exr import decode_image_exr
+        from model.io.exr import decode_image_exr
 
         with DenoiserClient(url, timeout=300) as client:
             for body in frames[start:stop]:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.dataset import MANIFEST, Dataset  # noqa: E402
+from model.io.dataset import MANIFEST, Dataset  # noqa: E402
 from model.names import SPLITS  # noqa: E402
 
 

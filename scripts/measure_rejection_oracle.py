@@ -24,15 +24,15 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.evaluate import EvaluationSequence, load_split, resolve_method, run_sequence  # noqa: E402
+from model.evaluation.evaluate import EvaluationSequence, load_split, resolve_method, run_sequence  # noqa: E402
 from model.methods.fused import unjittered_resample  # noqa: E402
 from model.methods.oidn import oidn_denoise  # noqa: E402
 from model.methods.oidn_taa import reinhard, reinhard_inverse  # noqa: E402
-from model.metrics import FovVideoVdp, psnr, temporal_error  # noqa: E402
+from model.evaluation.metrics import FovVideoVdp, psnr, temporal_error  # noqa: E402
 from model.ops.box_filter import replicated_box_mean  # noqa: E402
 from model.ops.tonemap import display_encode  # noqa: E402
-from model.sanitize import sanitize_frame  # noqa: E402
-from model.timing import torch_threads  # noqa: E402
+from model.io.sanitize import sanitize_frame  # noqa: E402
+from model.evaluation.timing import torch_threads  # noqa: E402
 
 CHANGE_WINDOW = 5  # the change is averaged over this many pixels a side, so a region changes, not single pixels
 CHANGE_OFFSET = 0.02  # keeps the relative change of two dark pixels small

@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import model.methods.oidn as oidn  # noqa: E402
 import model.methods.oidn_taa as oidn_taa  # noqa: E402
-from model.evaluate import evaluate, format_table  # noqa: E402
+from model.evaluation.evaluate import evaluate, format_table  # noqa: E402
 from model.methods.fused import unjittered_resample  # noqa: E402
 from model.methods.oidn_taa import reinhard, reinhard_inverse  # noqa: E402
 

@@ -217,7 +217,7 @@ reship "--mean-max-frames 8 --stale-test-sigmas 2" fused-balanced-x1 fused-fast-
 reship "--mean-max-frames 8" fused-balanced-x2 fused-fast-x2
 # The default model trained with its sample mean (README: "Accumulating samples before OIDN"): 400 steps from the
 # shipped weights with sample_mean_frames 8; the best validation checkpoint ships.
-.venv/bin/python -c "from model.pretrained import load_pretrained; from model.checkpoint import save_checkpoint
+.venv/bin/python -c "from model.deployment.pretrained import load_pretrained; from model.training.checkpoint import save_checkpoint
 m = load_pretrained('fused-balanced-x1'); m.set_sample_mean_frames(8); save_checkpoint('runs/balanced-sm8-init.pt', method=m)"
 .venv/bin/denoiser train --data "$DATA" --method fused:balanced --init-from runs/balanced-sm8-init.pt --batch 4 \
   --lr 2e-4 --warmup 10 --threads 1 --quiet --display-weight 50 --scale 1 --crop 64 --frames-per-sample 12 --seed 5 \
@@ -230,7 +230,7 @@ cp runs/sm8-balanced/best.pt runs/sm8-balanced-best.pt
   --report docs/results/reuse_x1_sample_mean.json
 # The fast preset with the sample mean, its weights unchanged, once the mean averages OIDN's guides too (README:
 # "The guides averaged with the samples").
-.venv/bin/python -c "from model.pretrained import load_pretrained; from model.checkpoint import save_checkpoint
+.venv/bin/python -c "from model.deployment.pretrained import load_pretrained; from model.training.checkpoint import save_checkpoint
 m = load_pretrained('fused-fast-x1'); m.set_sample_mean_frames(8); save_checkpoint('runs/fast-sm8.pt', method=m)"
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method runs/fast-sm8.pt --method fused-fast-x1 --method fused-high-x1 "${peers[@]}" \
@@ -240,7 +240,7 @@ m = load_pretrained('fused-fast-x1'); m.set_sample_mean_frames(8); save_checkpoi
   --report-source runs/fast-sm8.pt
 # The high preset with the sample mean, its weights unchanged, keeping the mean's frames in the network's history
 # share cubed (README: "How long the sample mean trusts"); one quiet run of the shipped 1x models and the peers.
-.venv/bin/python -c "from model.pretrained import load_pretrained; from model.checkpoint import save_checkpoint
+.venv/bin/python -c "from model.deployment.pretrained import load_pretrained; from model.training.checkpoint import save_checkpoint
 m = load_pretrained('fused-high-x1'); m.set_sample_mean_frames(8); m.set_sample_mean_trust_power(3.0)
 save_checkpoint('runs/high-sm8-p3.pt', method=m)"
 reship "--sample-mean-frames 8 --sample-mean-trust-power 3" fused-high-x1

@@ -1,4 +1,4 @@
-"""Ship a trained checkpoint as a pretrained model of the repository (model/pretrained.py): the weights without
+"""Ship a trained checkpoint as a pretrained model of the repository (model/deployment/pretrained.py): the weights without
 optimizer state under pretrained/NAME/model.pt and a manifest with the training recipe, the sha256 checked on every
 load, and the held-out metrics copied from an evaluation report of the same run (else "pending").
 
@@ -56,7 +56,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.pretrained import (  # noqa: E402
+from model.deployment.pretrained import (  # noqa: E402
     HISTORY_SETTINGS,
     PRETRAINED_DIR,
     RUN_TIME_SETTINGS,

@@ -3,7 +3,7 @@ weights (README: "Accumulating samples before OIDN").
 
     .venv/bin/python scripts/try_accumulated_oidn.py --data data/reuse --split validation --model fused-fast-x1
 
-Evaluates in one run, every method on the same frames (`model.evaluate`, 2 threads):
+Evaluates in one run, every method on the same frames (`model.evaluation.evaluate`, 2 threads):
 - the model as given;
 - `accumulated-oidn`: OIDN on a reprojected running mean of the noisy frames and their guides (up to 4 frames),
   restarted where the depth/normal test fails, faded by the stale-history test (`model.ops.stale_history`)
@@ -26,8 +26,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.checkpoint import save_checkpoint  # noqa: E402
-from model.evaluate import evaluate, format_table, resolve_method  # noqa: E402
+from model.training.checkpoint import save_checkpoint  # noqa: E402
+from model.evaluation.evaluate import evaluate, format_table, resolve_method  # noqa: E402
 from model.methods.base import FrameBatch, Method, State, drop_history  # noqa: E402
 from model.methods.fused import frame_of_sample_mean, frame_samples  # noqa: E402
 from model.methods.baselines import reproject_state  # noqa: E402

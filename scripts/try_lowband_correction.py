@@ -14,7 +14,7 @@ the model's quality, read at the pixel centres) below it, as a ratio in x / (1 +
   (``model.ops.stale_history``: 9 x 9 windows, a 33-pixel region) at ``threshold`` standard errors.
 
 The history is the model's own, untouched: the correction is on the output only. Evaluates in one run, on the same
-frames (``model.evaluate``, fp32 eager): the model, each variant (``--variant GATE:SIGMA:THRESHOLD``, repeatable),
+frames (``model.evaluation.evaluate``, fp32 eager): the model, each variant (``--variant GATE:SIGMA:THRESHOLD``, repeatable),
 OIDN + TAA at the model's OIDN quality and OIDN-high.
 """
 
@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.evaluate import evaluate, format_table, resolve_method  # noqa: E402
+from model.evaluation.evaluate import evaluate, format_table, resolve_method  # noqa: E402
 from model.methods.base import FrameBatch, Method, State  # noqa: E402
 from model.methods.fused import unjittered_resample  # noqa: E402
 from model.methods.oidn import oidn_denoise  # noqa: E402

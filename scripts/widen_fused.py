@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
+from model.training.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from model.methods.fused_growth import widened_state_dict  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 

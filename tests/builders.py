@@ -17,12 +17,12 @@ import OpenEXR
 import torch
 from torch import nn
 
-from model.checkpoint import save_checkpoint
-from model.dataset import Dataset, SequenceWriter
-from model.frames import FrameBundle, box_downsample
+from model.training.checkpoint import save_checkpoint
+from model.io.dataset import Dataset, SequenceWriter
+from model.io.frames import FrameBundle, box_downsample
 from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.registry import build_method
-from model.pretrained import ship_checkpoint
+from model.deployment.pretrained import ship_checkpoint
 
 GRADIENT_SIZE = 16  # gradient_frame's side (render resolution)
 GRADIENT_FRAMES = 4  # frames per sequence of write_gradient_dataset

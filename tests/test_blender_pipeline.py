@@ -1,11 +1,11 @@
 """A Blender Cycles render, as Blender writes it, goes through import, training and evaluation without hand
-conversion (the upload and the session with the raw files are tests/api/routes/test_dataset_layouts.py and
+conversion (the upload and the session with the raw files are tests/service/http/routes/test_dataset_layouts.py and
 test_session_layouts.py)."""
 
 from __future__ import annotations
 
-from model.checkpoint import load_method
-from model.dataset import Dataset
+from model.training.checkpoint import load_method
+from model.io.dataset import Dataset
 from cli.main import main
 from tests.model.layouts.exr_builders import BLENDER_ORBIT
 from tests.model.training_fixtures import TINY_METHOD

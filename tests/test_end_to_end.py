@@ -1,6 +1,6 @@
 """The whole service end to end: a real API process (uvicorn), a real Celery worker process, real Redis (db 15).
 
-One stack per module (``stack``): the API is ``api.main:app`` served by uvicorn on a free port, with an API
+One stack per module (``stack``): the API is ``service.http.app:app`` served by uvicorn on a free port, with an API
 key, a temporary data folder and a temporary SQLite MLflow store; the worker is ``celery -A workers.celery_app
 worker -P solo`` on the same settings. Both are configured by DENOISER_* environment variables only, as deployed.
 Changed for the test: the API sends jobs to a queue named for this module, which only this module's worker
@@ -10,7 +10,7 @@ while it starts (``-I``) and this process creates the MLflow store's tables mean
 pays both, 10-15 s on a busy machine).
 
 Everything lives in Redis db 15 under the service's own key names (job records, session mirrors), removed at the
-end. ``tests/api/conftest.py``'s ``redis_db`` fixture flushes db 15, so another test run on the same Redis at
+end. ``tests/service/conftest.py``'s ``redis_db`` fixture flushes db 15, so another test run on the same Redis at
 the same time wipes this module's jobs and sessions (the tests then fail with "job ... does not exist").
 
 - ``test_upload_train_register_and_stream``: the path a user takes, through ``client.rest.DenoiserClient``:
@@ -46,10 +46,10 @@ from pathlib import Path
 
 import pytest
 
-from model.dataset import Dataset, Sequence
+from model.io.dataset import Dataset, Sequence
 from client.rest import DenoiserClient, decode_rgb_exr
 from tests.builders import write_sequence, write_tiny_dataset
-from tests.api.session_fixtures import assert_same_image, in_process_outputs
+from tests.service.session_fixtures import assert_same_image, in_process_outputs
 from tests.workers.tasks.fixtures import TEST_REDIS_URL, redis_client
 from core.job_store import JobStore
 
@@ -64,9 +64,9 @@ TRAIN = {"method": "wskpn:xs", "scale": 1, "crop": 8, "batch": 2, "frames_per_sa
 # The API process: the production app, with this module's queue for every job (see the module notes).
 API_SERVER = """
 import os, sys, uvicorn
-import api.routes.jobs as jobs
+import service.http.routes.jobs as jobs
 jobs.QUEUE_FOR_DEVICE = {"cpu": os.environ["E2E_QUEUE"], "gpu": os.environ["E2E_QUEUE"]}
-uvicorn.run("api.main:app", host="127.0.0.1", port=int(sys.argv[1]), log_level="info")
+uvicorn.run("service.http.app:app", host="127.0.0.1", port=int(sys.argv[1]), log_level="info")
 """
 
 
@@ -131,7 +131,7 @@ class Stack:
             "--concurrency", "1", "-n", f"{self.queue}-{self._starts['worker']}@%h", "--without-gossip",
             "--without-mingle", "--without-heartbeat", "--loglevel", "INFO",
             # Imported while the worker starts rather than by its first job (seconds on a busy machine).
-            "-I", "model.train,core.tracking,workers.tasks.train"])
+            "-I", "model.training.train,core.tracking,workers.tasks.train"])
 
     def wait_for_api(self, timeout: float = 90.0) -> None:
         import httpx
@@ -299,7 +299,7 @@ def test_a_session_continues_on_a_restarted_api(stack, trained, dataset_folder):
             output, info = client.send_frame(session["id"], frames[index])
             assert info.history == ("started" if index == 0 else "continued")
             assert_same_image(output, expected[index])
-        # A frame's mirror is written just after its response (api.sessions); the API is killed once the
+        # A frame's mirror is written just after its response (service.sessions.store); the API is killed once the
         # last one has landed, as any time after that frame's response would leave it.
         deadline = time.monotonic() + 10
         while mirrored_frame(stack, session["id"]) != half and time.monotonic() < deadline:

@@ -14,27 +14,30 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("model", "core", "api", "workers", "cli", "client")
+PACKAGES = ("model", "core", "service", "workers", "cli", "client")
 OURS = set(PACKAGES)
+# The service's serving domain (every package of service/ but http/) never imports its HTTP layer or FastAPI.
+SERVICE_HTTP = "service.http"
 
 # package -> imports it must not make (a name forbids the package and everything below it)
 FORBIDDEN = {
     "model": OURS - {"model"},
-    "core": {"api", "workers", "cli", "client", "celery", "kombu", "fastapi", "starlette", "uvicorn"},
-    "api": {"workers", "cli"},
-    "workers": {"api", "cli", "fastapi", "starlette"},
-    "cli": {"api", "workers"},
-    "client": {"torch", "model", "core", "api", "workers", "cli", "numpy", "mlflow"},
+    "core": {"service", "workers", "cli", "client", "celery", "kombu", "fastapi", "starlette", "uvicorn"},
+    "service": {"workers", "cli"},
+    "service-domain": {"workers", "cli", SERVICE_HTTP, "fastapi", "starlette", "uvicorn"},
+    "workers": {"service", "cli", "fastapi", "starlette"},
+    "cli": {"service", "workers"},
+    "client": {"torch", "model", "core", "service", "workers", "cli", "numpy", "mlflow"},
 }
 # Imports a layer may make inside a function only (never when the module is imported), with the reason.
 DEFERRED = {
     # Sending and receiving frames: the client encodes and decodes EXR frame bundles with the model library's
     # readers (numpy, OpenEXR; never torch) when, and only when, a frames call is made. `import client.rest`
     # loads none of it (the subprocess test below proves it with torch and model blocked).
-    ("client", "model.exr"), ("client", "model.frames"), ("client", "model.dataset"), ("client", "model.importer"),
+    ("client", "model.io.exr"), ("client", "model.io.frames"), ("client", "model.io.dataset"), ("client", "model.io.importer"),
     # A session's WebSocket (client.stream): its messages are packed by the codec the API shares (NumPy only), and
     # a renderer's frames are read in their layout on the client before they are sent.
-    ("client", "model.stream_codec"), ("client", "model.layouts"),
+    ("client", "service.sessions.stream_codec"), ("client", "model.layouts"),
 }
 # What a forbidden package may still import, each with its reason.
 ALLOWED = {
@@ -86,13 +89,23 @@ def _listed(pairs: set[tuple[str, str]], layer: str, name: str) -> bool:
 def breaks_rule(layer: str, name: str, in_function: bool = False) -> bool:
     if _listed(ALLOWED, layer, name) or (in_function and _listed(DEFERRED, layer, name)):
         return False
-    return name.split(".")[0] in FORBIDDEN[layer]
+    return any(name == banned or name.startswith(banned + ".") for banned in FORBIDDEN[layer])
+
+
+def layer_of(path: Path, root: Path = ROOT) -> str:
+    """The layer whose rules a module follows: its top-level package, or ``service-domain`` for service/ outside
+    service/http/."""
+    parts = path.relative_to(root).parts
+    if parts[0] == "service" and (len(parts) < 3 or parts[1] != "http"):
+        return "service-domain"
+    return parts[0]
 
 
 def violations() -> list[str]:
     found = []
-    for layer in PACKAGES:
-        for path in sorted((ROOT / layer).rglob("*.py")):
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            layer = layer_of(path)
             for line, name, in_function in _imports(path):
                 if breaks_rule(layer, name, in_function):
                     found.append(f"{path.relative_to(ROOT)}:{line}: {layer} imports {name}")
@@ -103,24 +116,37 @@ def test_the_layers_import_only_what_they_may():
     assert violations() == []
 
 
-def test_the_old_service_package_is_gone():
-    assert not list(ROOT.glob("service/**/*.py"))  # its modules live in core, api, cli and client now
+def test_the_old_api_package_is_gone():
+    assert not list(ROOT.glob("api/**/*.py"))  # the REST service is service/: its HTTP layer and its serving domain
+
+
+def test_the_service_splits_into_its_http_layer_and_its_domain():
+    assert layer_of(ROOT / "service" / "http" / "routes" / "sessions.py") == "service"
+    assert layer_of(ROOT / "service" / "sessions" / "store.py") == "service-domain"
+    assert layer_of(ROOT / "service" / "__init__.py") == "service-domain"
 
 
 @pytest.mark.parametrize("layer, name, broken", [
-    ("api", "workers.tasks.jobs", True),
-    ("workers", "api.errors", True),
+    ("service", "workers.tasks.jobs", True),
+    ("service", "service.sessions.store", False),
+    ("service-domain", "service.http.errors", True),
+    ("service-domain", "fastapi", True),
+    ("service-domain", "service.datasets.catalog", False),
+    ("service-domain", "core.registry", False),
+    ("workers", "service.sessions.store", True),
+    ("model", "service.sessions.stream_codec", True),
+    ("workers", "service.http.errors", True),
     ("core", "celery", True),
     ("core", "fastapi.responses", True),
-    ("core", "api.schemas.jobs", True),
+    ("core", "service.http.schemas.jobs", True),
     ("model", "core.settings", True),
     ("client", "torch", True),
-    ("client", "model.exr", True),
+    ("client", "model.io.exr", True),
     ("client", "core.names", False),
     ("client", "numpy", True),
     ("cli", "workers.ddp", False),
     ("cli", "workers.celery_app", True),
-    ("api", "core.jobs.dispatch", False),
+    ("service", "core.jobs.dispatch", False),
     ("workers", "core.job_store", False),
 ])
 def test_the_rules_catch_what_they_should(layer, name, broken):
@@ -128,18 +154,18 @@ def test_the_rules_catch_what_they_should(layer, name, broken):
 
 
 def test_the_client_reads_frames_with_the_library_only_inside_a_function():
-    assert breaks_rule("client", "model.exr.read_frame", in_function=False)
-    assert not breaks_rule("client", "model.exr.read_frame", in_function=True)
+    assert breaks_rule("client", "model.io.exr.read_frame", in_function=False)
+    assert not breaks_rule("client", "model.io.exr.read_frame", in_function=True)
     assert breaks_rule("client", "torch", in_function=True)
 
 
 def test_imports_are_read_everywhere_in_a_module(tmp_path):
-    path = tmp_path / "api" / "routes" / "probe.py"
+    path = tmp_path / "service" / "http" / "routes" / "probe.py"
     path.parent.mkdir(parents=True)
     path.write_text("import os\n\ndef late():\n    from workers.tasks import jobs\n    from . import health\n"
                     "    from ..errors import ApiError\n")
-    assert imports_of(path, tmp_path) == [(1, "os"), (4, "workers.tasks.jobs"), (5, "api.routes.health"),
-                                          (6, "api.errors.ApiError")]
+    assert imports_of(path, tmp_path) == [(1, "os"), (4, "workers.tasks.jobs"), (5, "service.http.routes.health"),
+                                          (6, "service.http.errors.ApiError")]
 
 
 def test_the_api_process_never_loads_celery_tasks_and_the_client_never_loads_torch():
@@ -151,7 +177,7 @@ def test_the_api_process_never_loads_celery_tasks_and_the_client_never_loads_tor
              "sys.meta_path.insert(0, Block())\n"
              "import client.rest\n"
              "sys.meta_path.pop(0)\n"
-             "import api.main\n"
+             "import service.http.app\n"
              "loaded = sorted(m for m in sys.modules if m.startswith('workers'))\n"
              "assert not loaded, loaded\n")
     result = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=300)

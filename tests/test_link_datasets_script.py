@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from model.dataset import Dataset
+from model.io.dataset import Dataset
 from tests.builders import write_tiny_dataset
 
 ROOT = Path(__file__).resolve().parents[1]

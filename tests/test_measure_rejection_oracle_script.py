@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from model.checkpoint import save_checkpoint
+from model.training.checkpoint import save_checkpoint
 from model.methods.registry import build_method
 from tests.builders import load_script, write_gradient_dataset
 

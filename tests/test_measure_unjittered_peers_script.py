@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from model.evaluate import evaluate
+from model.evaluation.evaluate import evaluate
 from tests.builders import write_gradient_dataset, write_tiny_dataset
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model.importer import import_sequence
+from model.io.importer import import_sequence
 from model.layouts import BUILTIN_LAYOUTS, read_layout_frame, read_layout_reference
 from model.layouts.checks import reprojection_psnr, warp_previous
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from model.checkpoint import load_method, save_checkpoint
+from model.training.checkpoint import load_method, save_checkpoint
 from model.methods.fused import frame_samples
 from model.methods.registry import build_method
 from tests.builders import load_script, static_frame, write_tiny_dataset

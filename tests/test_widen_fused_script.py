@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from model.checkpoint import load_checkpoint, save_checkpoint
+from model.training.checkpoint import load_checkpoint, save_checkpoint
 from model.methods.registry import build_method
 
 ROOT = Path(__file__).resolve().parents[1]

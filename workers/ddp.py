@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from model.train import Progress, TrainConfig
+from model.training.train import Progress, TrainConfig
 from core.jobs.files import DDP_LOG_FILE
 
 MESSAGE_PREFIX = "denoiser-ddp "  # marks protocol lines on the launcher's stdout
@@ -201,7 +201,7 @@ def _torchrun_rank(config: TrainConfig, track: bool, imports: list[str]) -> int:
 
     import torch
 
-    from model.train import train
+    from model.training.train import train
 
     rank, world_size = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
     if world_size != config.world_size:
@@ -227,7 +227,7 @@ def _rank_main(rank: int, config_values: dict[str, Any], track: bool, imports: l
 
     import torch
 
-    from model.train import train
+    from model.training.train import train
 
     # Only rank 0 speaks the protocol on stdout; anything else printed, by any rank, goes to the log.
     messages = os.fdopen(os.dup(1), "w", buffering=1) if rank == 0 else None

@@ -1,4 +1,4 @@
-"""`denoiser benchmark`: speed against accuracy for every method and preset at 1x and 2x (model/benchmark.py)."""
+"""`denoiser benchmark`: speed against accuracy for every method and preset at 1x and 2x (model/evaluation/benchmark.py)."""
 
 from __future__ import annotations
 
@@ -153,7 +153,7 @@ def registered_checkpoint(ref: str, tracking_uri: str | None) -> Path:
 
 def learned_entrant(text: str, scales: tuple[int, ...], tracking_uri: str | None = None) -> Entrant:
     """A checkpoint file or model reference, with the requested scales it can run at."""
-    from model.checkpoint import load_checkpoint
+    from model.training.checkpoint import load_checkpoint
     from model.methods.registry import build_method
 
     if text.startswith(MODEL_REF_PREFIX):
@@ -180,9 +180,9 @@ def learned_entrant(text: str, scales: tuple[int, ...], tracking_uri: str | None
 # --------------------------------------------------------------------------------------------- running
 
 def _run_benchmark(args) -> int:
-    from model.benchmark import BENCHMARK_MARKDOWN, QUALITY_COST_CHART, QUALITY_SPEED_CHART, write_benchmark
+    from model.evaluation.benchmark import BENCHMARK_MARKDOWN, QUALITY_COST_CHART, QUALITY_SPEED_CHART, write_benchmark
     from core.settings import get_settings
-    from model.evaluate import TIMING_REFERENCE, evaluate, load_split
+    from model.evaluation.evaluate import TIMING_REFERENCE, evaluate, load_split
 
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder")

@@ -125,7 +125,7 @@ def _converted_for_upload(source: Path, layout: str | None, work: Path, split: s
         chosen = load_layout(layout)
     except LayoutError as error:
         raise UsageError(str(error)) from None
-    from model.importer import frame_files, import_sequence
+    from model.io.importer import frame_files, import_sequence
 
     if not source.is_dir():
         raise UsageError(f"{source}: --layout FILE converts a folder of frame EXRs, not an archive")
@@ -552,9 +552,9 @@ def _add_stream(commands, common) -> None:
 
 
 def _run_stream(args) -> int:
-    from model.dataset import Sequence
+    from model.io.dataset import Sequence
 
-    from model.importer import frame_files
+    from model.io.importer import frame_files
     from model.layouts import BUILTIN_LAYOUTS, LayoutError, read_layout_file
 
     if not args.sequence_dir.is_dir():

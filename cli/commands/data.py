@@ -138,7 +138,7 @@ def _degrees(text: str) -> float:
 def _run_import(args) -> int:
     import sys
 
-    from model.importer import import_sequence
+    from model.io.importer import import_sequence
     from model.layouts import LayoutError, load_layout
 
     try:
@@ -189,7 +189,7 @@ def _run_summary(args) -> int:
 
 
 def _print_summary(root: Path, as_json: bool = False) -> None:
-    from model.dataset import Dataset
+    from model.io.dataset import Dataset
 
     dataset = Dataset(root)
     print(json.dumps(dataset.summary(), indent=2) if as_json else dataset.format_summary())
@@ -206,11 +206,11 @@ def _add_preview(commands) -> None:
 
 
 def _run_preview(args) -> int:
-    from model.exr import read_frame
-    from model.preview import save_buffer_sheet
+    from model.io.exr import read_frame
+    from model.io.preview import save_buffer_sheet
 
     if args.frame.is_dir():
-        from model.dataset import Sequence
+        from model.io.dataset import Sequence
 
         sequence = Sequence(args.frame)
         if not 0 <= args.index < len(sequence):

@@ -54,7 +54,7 @@ def _add_evaluate(commands) -> None:
 
 def _run_evaluate(args) -> int:
     from core.settings import get_settings
-    from model.evaluate import TIMING_REFERENCE, evaluate, format_table
+    from model.evaluation.evaluate import TIMING_REFERENCE, evaluate, format_table
 
     if args.out is not None and args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give a file name such as report.json")
@@ -110,8 +110,8 @@ def _zoom_option(text: str) -> tuple[int, int, int]:
 
 
 def _run_compare(args) -> int:
-    from model.compare import comparison_panels, save_comparison
-    from model.dataset import Dataset
+    from model.evaluation.compare import comparison_panels, save_comparison
+    from model.io.dataset import Dataset
 
     dataset = Dataset(args.data)
     if args.sequence not in dataset.names():

@@ -1,4 +1,4 @@
-"""`denoiser export`: a trained model's per-frame step as an ONNX file for engines (model/export.py)."""
+"""`denoiser export`: a trained model's per-frame step as an ONNX file for engines (model/deployment/export.py)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def add_commands(commands) -> None:
                         help="a checkpoint file, a pretrained model's name (denoiser pretrained), or a registered "
                              "model (models:/NAME@ALIAS, models:/NAME/VERSION) in the service's registry")
     parser.add_argument("--format", choices=("onnx", "torchscript"), default="onnx",
-                        help="onnx (torchscript is refused: see model/export.py)")
+                        help="onnx (torchscript is refused: see model/deployment/export.py)")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE", help="the file to write, e.g. model.onnx")
     parser.add_argument("--size", type=size_option, default=(128, 128), metavar="N|WxH",
                         help="render resolution the graph is exported for (default 128x128)")
@@ -35,8 +35,8 @@ def add_commands(commands) -> None:
 def load_model(text: str):
     """The trained method MODEL names (checkpoint file, pretrained name, models:/ reference, or a registry name to
     say why it cannot be exported)."""
-    from model.checkpoint import load_method
-    from model.pretrained import is_pretrained, load_pretrained
+    from model.training.checkpoint import load_method
+    from model.deployment.pretrained import is_pretrained, load_pretrained
 
     if Path(text).is_file():
         return load_method(text)
@@ -59,7 +59,7 @@ def load_model(text: str):
 
 
 def _run_export(args) -> int:
-    from model.export import ExportError, TOLERANCE, check_export, export_step
+    from model.deployment.export import ExportError, TOLERANCE, check_export, export_step
 
     if args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give a file name such as model.onnx")

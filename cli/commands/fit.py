@@ -10,7 +10,7 @@ from pathlib import Path
 from cli.main import HelpFormatter, EXIT_FAILURE, UsageError, positive_int, registered_name
 from cli.options import add_model_options, settings_from_args
 from model.names import TRAIN_DEVICES
-from model.training_settings import FitTrainingSettings
+from model.training.training_settings import FitTrainingSettings
 
 
 
@@ -34,7 +34,7 @@ def add_commands(commands) -> None:
                         help="presets on the ladder (default: the family's presets without a variant suffix)")
     parser.add_argument("--target", required=True, metavar="psnr=DB|flip=E|ms=MS[@WxH]|within=DB",
                         help="what the chosen preset must achieve")
-    # The training options of every preset: the fields of model.training_settings.FitTrainingSettings.
+    # The training options of every preset: the fields of model.training.training_settings.FitTrainingSettings.
     add_model_options(parser, FitTrainingSettings, exclusive=[("steps", "epochs")],
                       aliases={"warmup_steps": ("--warmup",)},
                       overrides={"register_as": {"type": registered_name, "metavar": "NAME",

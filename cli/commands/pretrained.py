@@ -8,7 +8,7 @@ from cli.main import UsageError
 def add_commands(commands) -> None:
     parser = commands.add_parser(
         "pretrained", help="list the pretrained models shipped with the project (held-out scores); --register them",
-        description="List the pretrained models in pretrained/ (model/pretrained.py): method, scale, training "
+        description="List the pretrained models in pretrained/ (model/deployment/pretrained.py): method, scale, training "
                     "steps, the held-out PSNR and FLIP next to OIDN-high and OIDN + TAA (high) of the same "
                     "evaluation run, and whether the weights pass their sha256 check. --register registers each "
                     "one in the MLflow registry under its name with an alias (default 'pretrained'), once: "
@@ -60,7 +60,7 @@ def markdown_table(models) -> str:
 
 
 def _run_pretrained(args) -> int:
-    from model.pretrained import PretrainedError, get_pretrained, pretrained_names, verify
+    from model.deployment.pretrained import PretrainedError, get_pretrained, pretrained_names, verify
     from cli.commands.client import _print_table
 
     if args.markdown:

@@ -1,6 +1,6 @@
 """`denoiser serve`, `denoiser worker` and `denoiser mlflow-ui`: the processes of a deployment.
 
-docker-compose.yml runs the same programs (uvicorn api.main:app, the Celery worker with the solo pool,
+docker-compose.yml runs the same programs (uvicorn service.http.app:app, the Celery worker with the solo pool,
 an MLflow server); these commands are the one-line way to run them on a workstation.
 """
 
@@ -35,7 +35,7 @@ def _port(text: str) -> int:
 
 def _add_serve(commands) -> None:
     parser = commands.add_parser(
-        "serve", help="run the REST API (uvicorn api.main:app)",
+        "serve", help="run the REST API (uvicorn service.http.app:app)",
         description="Run the REST API in one uvicorn process. Settings come from DENOISER_* variables "
                     "(DENOISER_DATA_DIR, DENOISER_REDIS_URL, DENOISER_API_KEY, DENOISER_TRACKING_URI, ...). One "
                     "process on purpose: inference sessions keep their model and history in its memory (mirrored "
@@ -61,7 +61,7 @@ def _run_serve(args) -> int:
         raise UsageError(str(error)) from None
 
     # A session stream's frame is one WebSocket message: let it be as large as a POSTed frame may be.
-    uvicorn.run("api.main:app", host=args.host, port=args.port, log_level=args.log_level, reload=args.reload,
+    uvicorn.run("service.http.app:app", host=args.host, port=args.port, log_level=args.log_level, reload=args.reload,
                 ws_max_size=settings.max_frame_bytes)
     return 0
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from cli.main import UsageError, device_option, positive_int, size_option
 
-# As model.stability.SCENARIOS; repeated so --help stays import-light (a test checks they agree).
+# As model.evaluation.stability.SCENARIOS; repeated so --help stays import-light (a test checks they agree).
 SCENARIOS = ("moving_object", "moving_light", "camera_cut", "fast_camera", "metals", "glass", "dark_fireflies",
              "visible_emitter", "orbiting_light", "sliding_over_texture", "clean", "first_frames", "exposure_bright", "exposure_dark", "nan_inf_color", "nan_inf_guides",
              "zero_motion", "garbage_motion", "missing_buffers")
@@ -60,8 +60,8 @@ def add_commands(commands) -> None:
 
 
 def _run_stability(args) -> int:
-    from model.stability import build_scenarios, generate_scenarios, run_suite
-    from model.stability_report import write_report
+    from model.evaluation.stability import build_scenarios, generate_scenarios, run_suite
+    from model.evaluation.stability_report import write_report
 
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder for the report")

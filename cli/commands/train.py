@@ -8,7 +8,7 @@ from pathlib import Path
 
 from cli.main import EXIT_FAILURE, HelpFormatter, UsageError, registered_name
 from cli.options import add_model_options, settings_from_args
-from model.training_settings import TrainConfig
+from model.training.training_settings import TrainConfig
 
 
 def add_commands(commands) -> None:
@@ -21,7 +21,7 @@ def add_commands(commands) -> None:
                     "and OUT/best.pt, resumes exactly from OUT/last.pt, logs to MLflow and registers the final "
                     "model. With --world-size N > 1, N DistributedDataParallel ranks share the global batch.",
         formatter_class=HelpFormatter)
-    # Every training option is a field of model.training_settings.TrainConfig: name, default, help and checks.
+    # Every training option is a field of model.training.training_settings.TrainConfig: name, default, help and checks.
     add_model_options(parser, TrainConfig, exclusive=[("steps", "epochs")], aliases={"warmup_steps": ("--warmup",)},
                       overrides={"method": {"metavar": "NAME[:PRESET]"}, "data": {"metavar": "DIR"},
                                  "out": {"metavar": "DIR", "help": "output folder of the checkpoints (default: "
@@ -39,7 +39,7 @@ def _default_out(method: str) -> Path:
 
 
 def _run_train(args) -> int:
-    from model.train import LAST_CHECKPOINT, prepare, resolve_device, resumable_checkpoint
+    from model.training.train import LAST_CHECKPOINT, prepare, resolve_device, resumable_checkpoint
     from workers.ddp import RankError
 
     config = settings_from_args(TrainConfig, args, out=getattr(args, "out", None) or str(_default_out(args.method)))
@@ -73,7 +73,7 @@ def _train(config, track: bool, progress) -> dict:
         from workers.ddp import launch
 
         return launch(config, track=track, progress=progress)
-    from model.train import train
+    from model.training.train import train
 
     tracker = None
     if track:
@@ -124,7 +124,7 @@ def _print_result(result: dict) -> None:
 
 def _initial_weights(text: str | None) -> str | None:
     """--init-from: a checkpoint file, or a pretrained model's name (its verified weights file)."""
-    from model.pretrained import PretrainedError, get_pretrained, is_pretrained, verify
+    from model.deployment.pretrained import PretrainedError, get_pretrained, is_pretrained, verify
 
     if text is None or Path(text).is_file() or not is_pretrained(text):
         return text

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from model.dataset import MANIFEST, Dataset, DatasetError, Sequence
+from model.io.dataset import MANIFEST, Dataset, DatasetError, Sequence
 from core.errors import Invalid, NotFound
 from core.names import SPLITS
 from core.storage import Storage, checked_id

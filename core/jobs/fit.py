@@ -12,7 +12,7 @@ from core.jobs.checks import invalid, open_dataset, split_sequences
 from core.jobs.specs import FitParams, TrainParams
 from core.settings import Settings
 from core.storage import Storage
-from model.training_settings import FitTrainingSettings
+from model.training.training_settings import FitTrainingSettings
 
 
 def fit_config(params: FitParams, storage: Storage, settings: Settings, out: Path, device: str):

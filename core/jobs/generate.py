@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from model.dataset import MANIFEST, Dataset
+from model.io.dataset import MANIFEST, Dataset
 from core.errors import Conflict, Invalid
 from core.jobs.checks import dataset_root
 from core.jobs.specs import GenerateParams

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from model.dataset import Sequence
+from model.io.dataset import Sequence
 from core.errors import Invalid, NotFound
 from core.jobs.checks import open_dataset, split_sequences
 from core.jobs.methods import check_registry_method, check_rescalable, checkpoint_method, checkpoint_source

@@ -67,7 +67,7 @@ def checkpoint_in_storage(text: str, storage: Storage) -> Path:
 
 def pretrained_checkpoint(name: str) -> Path:
     """The verified weights file of a pretrained model, or Invalid when it fails its check."""
-    from model.pretrained import PretrainedError, get_pretrained, verify
+    from model.deployment.pretrained import PretrainedError, get_pretrained, verify
 
     try:
         return verify(get_pretrained(name))
@@ -77,7 +77,7 @@ def pretrained_checkpoint(name: str) -> Path:
 
 def checkpoint_source(text: str, storage: Storage) -> Path | None:
     """The checkpoint file ``text`` stands for, or None when it names a registry method."""
-    from model.pretrained import is_pretrained
+    from model.deployment.pretrained import is_pretrained
 
     if is_model_ref(text):
         return registered_checkpoint(text)
@@ -90,7 +90,7 @@ def checkpoint_source(text: str, storage: Storage) -> Path | None:
 
 def checkpoint_method(path: Path, label: str) -> dict:
     """The method config stored in a checkpoint (method, preset, scale), or Invalid for an unreadable one."""
-    from model.checkpoint import load_checkpoint
+    from model.training.checkpoint import load_checkpoint
 
     try:
         return load_checkpoint(path)["method"]
@@ -152,7 +152,7 @@ def runnable(text: str, storage: Storage) -> str:
 
 def build_for_inference(text: str, scale: int | None, storage: Storage):
     """The method ``text`` names, ready for ``step`` in inference (``scale`` None: a checkpoint's own, else 1)."""
-    from model.checkpoint import load_method
+    from model.training.checkpoint import load_method
     from model.methods.registry import build_method
 
     path = checkpoint_source(text, storage)

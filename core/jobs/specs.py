@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from core.names import AUTO_MODEL, AUTO_MODEL_RESERVED, DEVICES, JOB_KINDS, JOB_STATES, SPLITS
-from model.training_settings import FitTrainingSettings, TrainingSettings
+from model.training.training_settings import FitTrainingSettings, TrainingSettings
 
 
 JobKind = Literal[JOB_KINDS]
@@ -67,7 +67,7 @@ class GenerateParams(BaseModel):
 class TrainParams(TrainingSettings):
     """Train a learned method on a stored dataset; checkpoints under the job folder, MLflow run, registered model.
 
-    Every training option is ``model.training_settings.TrainingSettings``' (the CLI's ``denoiser train`` options
+    Every training option is ``model.training.training_settings.TrainingSettings``' (the CLI's ``denoiser train`` options
     too); the fields a client must not set (data and output paths, device, resume, tracking server) are left out
     there, in ``RUN_FIELDS``, and the worker sets them (``core.jobs.train.train_config``)."""
 
@@ -85,7 +85,7 @@ class TrainParams(TrainingSettings):
 
 
 class EvaluateParams(BaseModel):
-    """The benchmark protocol (model.evaluate) for the given methods on one split of a stored dataset."""
+    """The benchmark protocol (model.evaluation.evaluate) for the given methods on one split of a stored dataset."""
 
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "split": "test", "scale": 1,
@@ -142,7 +142,7 @@ class FitParams(FitTrainingSettings):
     """Train (or reuse) a ladder of a learned family's presets, measure each on the validation split and in ms per
     frame, and register the smallest that meets the target with an alias (see README, Right-sizing).
 
-    The training options are ``model.training_settings.FitTrainingSettings``' (those of a train job but the
+    The training options are ``model.training.training_settings.FitTrainingSettings``' (those of a train job but the
     method, world_size, validate_every and init_from), as the CLI's ``denoiser fit``."""
 
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [

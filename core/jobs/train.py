@@ -1,11 +1,11 @@
-"""The ``train`` job's check and its ``model.train`` configuration (shared by the check and the worker)."""
+"""The ``train`` job's check and its ``model.training.train`` configuration (shared by the check and the worker)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
-from model.dataset import Dataset
+from model.io.dataset import Dataset
 from core.errors import Invalid, NotFound
 from core.jobs.checks import invalid, open_dataset, split_sequences
 from core.jobs.methods import check_registry_method, checkpoint_method, checkpoint_source
@@ -17,8 +17,8 @@ from core.storage import Storage
 def train_config(params: TrainParams, storage: Storage, settings: Settings, out: Path, device: str,
                  init_from: Path | None = None):
     """``init_from``: the local checkpoint ``params.init_from`` stands for (``initial_weights``)."""
-    from model.train import TrainConfig
-    from model.training_settings import TrainingSettings
+    from model.training.train import TrainConfig
+    from model.training.training_settings import TrainingSettings
 
     training = params.model_dump(include=set(TrainingSettings.model_fields))
     training.update(data=str(storage.dataset(params.dataset)), out=str(out), resume=True, device=device,
@@ -34,7 +34,7 @@ def initial_weights(params: TrainParams, storage: Storage) -> Path | None:
         return None
     path = checkpoint_source(params.init_from, storage)
     if path is None:
-        from model.pretrained import pretrained_names
+        from model.deployment.pretrained import pretrained_names
 
         raise NotFound("init_from_not_found", f"init_from {params.init_from!r} is no registered model "
                   f"(models:/NAME@ALIAS), pretrained model or checkpoint (a method name has no weights); "
@@ -56,7 +56,7 @@ def rank_threads(settings: Settings, world_size: int) -> int | None:
 
 
 def check(params: TrainParams, storage: Storage, settings: Settings) -> dict[str, Any]:
-    """Everything ``model.train.prepare`` would refuse, found from manifests alone (no frame is decoded)."""
+    """Everything ``model.training.train.prepare`` would refuse, found from manifests alone (no frame is decoded)."""
     from model.data.crops import sample_windows
 
     dataset = open_dataset(storage, params.dataset)

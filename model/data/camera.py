@@ -2,7 +2,7 @@
 
 Pure NumPy so that motion vectors can be computed (and tested) without the renderer. The camera frame is
 Mitsuba's `look_at` (columns: left, up, forward, origin), the field of view is horizontal, and image positions
-follow `model.frames`: continuous pixels, origin at the top-left corner, x right, y down.
+follow `model.io.frames`: continuous pixels, origin at the top-left corner, x right, y down.
 """
 
 from __future__ import annotations

@@ -28,10 +28,10 @@ from dataclasses import fields
 import numpy as np
 import torch
 
-from model.dataset import Dataset, Sequence
-from model.frames import TARGET_FIELDS
+from model.io.dataset import Dataset, Sequence
+from model.io.frames import TARGET_FIELDS
 from model.methods.base import FrameBatch
-from model.spatial_cache import SpatialEstimateCache
+from model.training.spatial_cache import SpatialEstimateCache
 
 # Radiance buffers scaled by the brightness augmentation. Albedos (the reference albedos too) are reflectances in
 # [0, 1] and do not change with the light's strength; motion, depth and normals are geometry.

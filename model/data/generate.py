@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from model.data.render import RenderSettings, SceneRenderer
 from model.data.scenes import SCENES, build_scene
-from model.dataset import SPLITS, Dataset, SequenceWriter
+from model.io.dataset import SPLITS, Dataset, SequenceWriter
 
 ProgressCallback = Callable[[int, int, str], None]
 

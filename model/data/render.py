@@ -21,7 +21,7 @@ from model.data.camera import Camera, frame_jitter
 from model.data.mitsuba_backend import load_mitsuba
 from model.data.scenes import AnimatedScene, ImageTexture, Material
 from model.data.transforms import apply_to_points
-from model.frames import FrameBundle, box_downsample
+from model.io.frames import FrameBundle, box_downsample
 
 # Sky pixels have no surface point; their motion is that of a point this far along the view ray.
 SKY_DISTANCE = 1.0e4

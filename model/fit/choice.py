@@ -12,7 +12,7 @@ from typing import Any, Protocol
 
 from model.fit.target import Target
 
-Progress = Callable[[int, int, str], None]  # (current, total, message), as model.train's
+Progress = Callable[[int, int, str], None]  # (current, total, message), as model.training.train's
 Say = Callable[[str], None]
 
 # Rung statuses

@@ -17,22 +17,22 @@ from pydantic import Field
 from model.fit.choice import Candidate
 from model.fit.target import DEFAULT_TIMING_RESOLUTION, Target
 from model.names import TRAIN_DEVICES
-from model.timing import TIMING_FRAMES, TIMING_WARMUP
-from model.training_settings import FitTrainingSettings
+from model.evaluation.timing import TIMING_FRAMES, TIMING_WARMUP
+from model.training.training_settings import FitTrainingSettings
 
 DEFAULT_ALIAS = "fitted"
 # Settings that do not change the trained weights (or are the preset itself) stay out of the fit key.
 KEY_EXCLUDED = ("method", "data", "out", "resume", "device", "world_size", "checkpoint_every", "validate_every",
                 "validation_frames", "threads", "tracking_uri", "experiment", "register_as")
 # The key hashes these settings under the names they had before the options were declared once
-# (model.training_settings), so the presets trained by earlier fits are still found.
+# (model.training.training_settings), so the presets trained by earlier fits are still found.
 KEY_NAMES = {"crop": "crop_size", "batch": "batch_size"}
 ALIAS_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]{0,254}$")
 
 
 def dataset_fingerprint(root: str | Path, splits: tuple[str, ...]) -> str:
     """A hash of the manifests of the dataset and of its sequences in ``splits`` (names, frames, cuts, sizes)."""
-    from model.dataset import MANIFEST, Dataset
+    from model.io.dataset import MANIFEST, Dataset
 
     dataset = Dataset(root)
     digest = hashlib.sha256()
@@ -52,7 +52,7 @@ def training_key(train_config: dict[str, Any], family: str, fingerprint: str) ->
 
 class FitConfig(FitTrainingSettings):
     """A fit's settings: the training options of every preset (``FitTrainingSettings``, declared once in
-    ``model.training_settings``), the ladder, the target, and where the fit runs."""
+    ``model.training.training_settings``), the ladder, the target, and where the fit runs."""
 
     family: str = Field(min_length=1, description="a learned registry method, without a preset")
     data: str = Field(min_length=1, description="dataset folder")
@@ -72,7 +72,7 @@ class FitConfig(FitTrainingSettings):
         return self.register_as or f"{self.family}-fit-x{self.scale}"
 
     def train_config(self, preset: str, out: Path | str, register: bool):
-        from model.train import TrainConfig
+        from model.training.train import TrainConfig
 
         training = self.model_dump(include=set(FitTrainingSettings.model_fields))
         training.update(method=f"{self.family}:{preset}", data=self.data, out=str(out), resume=True,
@@ -101,9 +101,9 @@ class FitPlan:
 def plan_fit(config: FitConfig) -> FitPlan:
     """Check the fit (family, presets, target, data, training settings) and cost its presets, or raise
     ValueError / KeyError naming the problem. Reads manifests and one frame per training sequence."""
-    from model.dataset import Dataset
+    from model.io.dataset import Dataset
     from model.methods.registry import build_method, inference_cost, method_spec, parse_method_name
-    from model.train import prepare, resolve_device
+    from model.training.train import prepare, resolve_device
 
     name, preset = parse_method_name(config.family)
     if preset is not None:

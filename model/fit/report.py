@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from model.fit.choice import LadderResult
-from model.tables import cell, compact, table_row, table_rule
+from model.evaluation.tables import cell, compact, table_row, table_rule
 
 LADDER_JSON = "ladder.json"
 LADDER_MARKDOWN = "ladder.md"

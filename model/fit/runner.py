@@ -30,7 +30,7 @@ from model.fit.choice import (
 )
 from model.fit.plan import FitConfig, FitPlan, plan_fit
 from model.fit.report import LADDER_JSON, LADDER_MARKDOWN, format_ladder, write_ladder
-from model.timing import time_method, torch_threads
+from model.evaluation.timing import time_method, torch_threads
 
 
 class ModelStore(Protocol):
@@ -94,8 +94,8 @@ class _Fit:
         return self._train(preset, progress, started)
 
     def _from_checkpoint(self, preset: str) -> Obtained | None:
-        from model.checkpoint import load_checkpoint
-        from model.train import LAST_CHECKPOINT
+        from model.training.checkpoint import load_checkpoint
+        from model.training.train import LAST_CHECKPOINT
 
         last = self.folder(preset) / LAST_CHECKPOINT
         if not last.is_file():
@@ -126,7 +126,7 @@ class _Fit:
         return Obtained(path, REUSED_REGISTRY, version, detail=f"registered {version['uri']}")
 
     def _train(self, preset: str, progress: Progress, started: float) -> Obtained:
-        from model.train import LAST_CHECKPOINT, train
+        from model.training.train import LAST_CHECKPOINT, train
 
         folder = self.folder(preset)
         resuming = (folder / LAST_CHECKPOINT).is_file()
@@ -141,7 +141,7 @@ class _Fit:
                         detail=f"{result['steps']} steps" + (", resumed" if resuming else ""))
 
     def _train_tags(self, preset: str, checkpoint: Path) -> dict[str, str]:
-        from model.checkpoint import load_checkpoint, load_method
+        from model.training.checkpoint import load_checkpoint, load_method
         from model.methods.registry import inference_cost
 
         method = load_method(checkpoint)
@@ -153,7 +153,7 @@ class _Fit:
     # -- measuring
     def sequences(self):
         if self._sequences is None:
-            from model.evaluate import EvaluationSequence, load_split
+            from model.evaluation.evaluate import EvaluationSequence, load_split
 
             folders = load_split(self.config.data, self.config.validation_split, self.config.scale)
             self._sequences = [EvaluationSequence.from_sequence(s, self.config.scale, self.config.validation_frames)
@@ -161,8 +161,8 @@ class _Fit:
         return self._sequences
 
     def measure(self, preset: str, obtained: Obtained) -> Measurement:
-        from model.checkpoint import load_method
-        from model.evaluate import evaluate_method
+        from model.training.checkpoint import load_method
+        from model.evaluation.evaluate import evaluate_method
 
         with torch_threads(self.config.threads):
             method = load_method(obtained.checkpoint, scale=self.config.scale)

@@ -1,4 +1,4 @@
-"""Layouts: how another renderer's EXR files map to frame bundles (``model.frames``).
+"""Layouts: how another renderer's EXR files map to frame bundles (``model.io.frames``).
 
 ``layout.py`` the mapping and its file format, ``builtin.py`` the built-in layouts, ``convert.py`` the conventions'
 conversions, ``read.py`` reading one frame in a layout, ``checks.py`` warnings when imported data looks wrong.

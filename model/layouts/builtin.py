@@ -1,6 +1,6 @@
 """The built-in layouts, written in the layout file format (``model.layouts.layout``).
 
-- ``denoiser``: the frame bundle itself (``model.frames``): channels ``<buffer>.<component>``, reference parts
+- ``denoiser``: the frame bundle itself (``model.io.frames``): channels ``<buffer>.<component>``, reference parts
   ``reference_x{s}``, the 'jitter' attribute.
 - ``blender-cycles``: a multilayer EXR as Blender 5 writes it from Cycles (one part per pass, channels
   ``ViewLayer.<Pass>.<component>``). Conventions measured on Cycles output (tests/model/layouts/
@@ -20,7 +20,7 @@
 
 from __future__ import annotations
 
-from model.frames import BUFFERS
+from model.io.frames import BUFFERS
 from model.layouts.layout import Layout, parse_layout
 
 

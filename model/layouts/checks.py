@@ -26,7 +26,7 @@ import numpy as np
 import scipy.ndimage
 import torch
 
-from model.frames import FrameBundle
+from model.io.frames import FrameBundle
 from model.ops.warp import backward_warp
 
 MIN_MOTION_PIXELS = 0.25  # mean |motion| below this: too little movement to judge the motion's convention

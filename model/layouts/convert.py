@@ -1,4 +1,4 @@
-"""Conversions from a renderer's conventions to the frame bundle's (``model.frames``), one per buffer.
+"""Conversions from a renderer's conventions to the frame bundle's (``model.io.frames``), one per buffer.
 
 Pure NumPy; every function takes the renderer's array and the layout's convention and returns the frame bundle's.
 """
@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from model.frames import NORMAL_LENGTH_TOLERANCE, normal_lengths
+from model.io.frames import NORMAL_LENGTH_TOLERANCE, normal_lengths
 from model.layouts.layout import DepthConvention, MotionConvention
 
 # Lossy EXR compression (DWAA, B44) and half storage move unit normals off unit length by up to a few percent;

@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from model.frames import BUFFERS
+from model.io.frames import BUFFERS
 
 
 class LayoutError(ValueError):

@@ -6,7 +6,7 @@ Three modes, for three kinds of input:
 - ``import`` (``denoiser import``, a conversion that writes new files): normals off unit length by lossy
   compression (DWAA, B44) are renormalised, and reported.
 - ``live`` (inference sessions): as ``import``, plus NaN, Inf and out-of-range values pass (the session repairs
-  them, ``model.sanitize``) and a missing jitter attribute reads as 0 (the pixel centre), reported.
+  them, ``model.io.sanitize``) and a missing jitter attribute reads as 0 (the pixel centre), reported.
 
 Whatever the mode, channels the layout does not use are ignored and listed in ``LayoutFrame.ignored_channels``
 (less those the layout's ``ignore`` patterns expect), and a missing frame-index attribute leaves
@@ -24,8 +24,8 @@ from typing import Literal
 import numpy as np
 import OpenEXR
 
-from model.exr import REFERENCE_PART_PATTERN, FrameFormatError, open_exr, open_exr_bytes, part_planes
-from model.frames import BUFFERS, RENDER_BUFFERS, TARGET_FIELDS, FrameBundle, FrameValidationError, validate_frame
+from model.io.exr import REFERENCE_PART_PATTERN, FrameFormatError, open_exr, open_exr_bytes, part_planes
+from model.io.frames import BUFFERS, RENDER_BUFFERS, TARGET_FIELDS, FrameBundle, FrameValidationError, validate_frame
 from model.layouts.convert import depth_to_bundle, motion_to_bundle, normals_to_world, renormalise_normals
 from model.layouts.layout import Layout
 
@@ -61,7 +61,7 @@ def read_layout_frame(path: str | os.PathLike, layout: Layout, *, mode: Mode = "
     """Read the EXR at ``path`` in ``layout``; FrameError naming the file on any problem.
 
     ``fov_y_degrees`` (planar depth only) overrides the layout's field of view and the header's. ``max_pixels``:
-    FrameTooLarge (a FrameError) when the headers declare more (``model.exr.check_declared_pixels``), before any
+    FrameTooLarge (a FrameError) when the headers declare more (``model.io.exr.check_declared_pixels``), before any
     pixel is decoded."""
     return _read(open_exr(path, max_pixels=max_pixels), str(path), layout, mode, fov_y_degrees)
 

@@ -16,14 +16,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from model.frames import FrameBundle
+from model.io.frames import FrameBundle
 
 State = dict[str, torch.Tensor]
 
 
 @dataclass
 class FrameBatch:
-    """A batch of frames as NCHW float32 tensors on one device (see `model.frames` for the conventions).
+    """A batch of frames as NCHW float32 tensors on one device (see `model.io.frames` for the conventions).
 
     `reference` is the target at the method's output scale, and `reference_albedo` /
     `reference_specular_albedo` the box-filtered albedos at that resolution (for auxiliary losses such as
@@ -46,7 +46,7 @@ class FrameBatch:
     reference_albedo: torch.Tensor | None = None  # (N, 3, H*s, W*s)
     reference_specular_albedo: torch.Tensor | None = None  # (N, 3, H*s, W*s)
     # A per-frame spatial denoiser's output at render resolution, precomputed: training caches OIDN's per stored
-    # frame (model.spatial_cache) for methods built on it. Methods compute it themselves when it is None, which
+    # frame (model.training.spatial_cache) for methods built on it. Methods compute it themselves when it is None, which
     # is always the case in evaluation and sessions, so their timings include it.
     spatial_estimate: torch.Tensor | None = None  # (N, 3, H, W)
 
@@ -120,7 +120,7 @@ def drop_history(state: State | None, frame: FrameBatch) -> State | None:
     Methods keep a per-pixel history sample count in their state; zeroed, it marks the history invalid.
     Returns None when every sample restarts, so a method can take its `state is None` path.
     """
-    # Exported steps (model/export.py) take the state as an input: there a cut is the caller's, who passes zeros.
+    # Exported steps (model/deployment/export.py) take the state as an input: there a cut is the caller's, who passes zeros.
     if state is None or torch.compiler.is_exporting() or not bool(frame.camera_cut.any()):
         return state
     if bool(frame.camera_cut.all()):
@@ -201,10 +201,10 @@ class Method(nn.Module, abc.ABC):
 
 
 def inference_outputs(method: Method, frames: Iterable[FrameBundle], inference_forms="measured") -> list[np.ndarray]:
-    """The method's inference form (its networks in the measured form of ``model.inference_forms``, as sessions
+    """The method's inference form (its networks in the measured form of ``model.deployment.inference_forms``, as sessions
     run them) stepped over ``frames`` from a new history, outputs as (H, W, 3) arrays: what a session on this
     method must answer for the same frames, to compare a server's outputs against."""
-    from model.inference_forms import load_form_table, with_inference_forms
+    from model.deployment.inference_forms import load_form_table, with_inference_forms
 
     method = with_inference_forms(method.for_inference(), load_form_table(inference_forms))
     outputs, state = [], None

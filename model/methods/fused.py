@@ -7,7 +7,7 @@ spatial part and learns the temporal part, in the spirit of AFN's fusion of a pe
 accumulated branch. Per frame:
 
 1. ``s`` = OIDN's output (the preset is OIDN's quality), tone-mapped with x / (1 + x); training passes it
-   precomputed (``FrameBatch.spatial_estimate``, ``model.spatial_cache``); at scale 2 it is resampled to the
+   precomputed (``FrameBatch.spatial_estimate``, ``model.training.spatial_cache``); at scale 2 it is resampled to the
    target grid at the frame's *unjittered* positions (bicubic), so frames with different jitter add detail at
    their own sub-pixel phase instead of smearing it (TAAU-style temporal upsampling); at scale 1 a model with
    ``unjitter_estimate`` reads it back at the pixel centres the same way, since a jittered frame's estimate is the

@@ -74,7 +74,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.ao.quantization import DeQuantStub, QuantStub
 
-from model.losses import SequenceLoss
+from model.training.losses import SequenceLoss
 from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.history_rectification import RectifiableHistory
 from model.methods.quantization import (

@@ -14,7 +14,7 @@ from typing import Callable
 
 import torch
 
-from model.frames import BUFFERS, RENDER_BUFFERS
+from model.io.frames import BUFFERS, RENDER_BUFFERS
 from model.methods.base import FrameBatch, Method
 
 METHOD_MODULES = (

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from model.checkpoint import save_checkpoint
+from model.training.checkpoint import save_checkpoint
 from model.methods.registry import build_method
 from cli.main import main
 from tests.builders import write_gradient_dataset

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from model.dataset import Dataset
-from model.exr import read_frame
+from model.io.dataset import Dataset
+from model.io.exr import read_frame
 from cli.main import build_parser, main
 from tests.model.data.conftest import requires_llvm
 

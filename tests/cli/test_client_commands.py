@@ -254,7 +254,7 @@ def test_stream_prints_timings_and_writes_exrs(api, tmp_path, capsys):
     assert out[4].startswith("3 frames in") and "median inference    1.50 ms" in out[4]
     assert "history: started 1, continued 2" in out[4]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [f"frame_000{i}.exr" for i in range(3)]
-    assert api.sessions == {}  # deleted at the end
+    assert service.sessions.store == {}  # deleted at the end
 
 
 def test_stream_takes_a_plain_folder_of_a_renderers_frames_with_its_layout(api, tmp_path, capsys):
@@ -274,7 +274,7 @@ def test_stream_takes_a_plain_folder_of_a_renderers_frames_with_its_layout(api, 
     layout.write_text(json.dumps(dict(BLENDER_CYCLES, name="mine")))
     assert main(["stream", str(BLENDER_ORBIT), "--layout", str(layout), "--model", "wskpn-xs", "--out",
                  str(tmp_path / "out2"), "--keep-session", "--transport", "http"]) == 0
-    assert next(iter(api.sessions.values())).layout["name"] == "mine"
+    assert next(iter(service.sessions.store.values())).layout["name"] == "mine"
     assert main(["stream", str(BLENDER_ORBIT), "--layout", "arnold", "--model", "wskpn-xs", "--out",
                  str(tmp_path / "out3")]) == 2
     assert "not a built-in layout" in capsys.readouterr().err
@@ -323,7 +323,7 @@ def test_serve_runs_uvicorn_on_the_app(monkeypatch):
     get_settings.cache_clear()
     try:
         assert main(["serve", "--host", "0.0.0.0", "--port", "8080"]) == 0
-        assert calls == [("api.main:app", {"host": "0.0.0.0", "port": 8080, "log_level": "info",
+        assert calls == [("service.http.app:app", {"host": "0.0.0.0", "port": 8080, "log_level": "info",
                                            "reload": False, "ws_max_size": 256 * 1024**2})]
         with pytest.raises(SystemExit):
             main(["serve", "--port", "70000"])

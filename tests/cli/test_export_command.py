@@ -7,7 +7,7 @@ import torch
 
 pytest.importorskip("onnxruntime")
 
-from model.checkpoint import save_checkpoint  # noqa: E402
+from model.training.checkpoint import save_checkpoint  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 from cli.main import main  # noqa: E402
 

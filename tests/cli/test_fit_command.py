@@ -12,7 +12,7 @@ from cli.main import main
 from core.registry import Registry, choose_auto
 from core.storage import Storage
 from tests.builders import write_tiny_dataset
-from tests.api.session_fixtures import shared_registry
+from tests.service.session_fixtures import shared_registry
 
 
 @pytest.fixture(scope="module")

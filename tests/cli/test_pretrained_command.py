@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-import model.pretrained as pretrained
+import model.deployment.pretrained as pretrained
 from cli.main import main
 from tests.builders import report_for, ship_tiny
 
@@ -25,9 +25,9 @@ def test_the_listing_shows_held_out_scores_next_to_oidn(shipped, capsys):
 
 
 def test_a_fused_model_is_listed_beside_oidn_taa_at_its_own_quality(tmp_path, monkeypatch, capsys):
-    from model.checkpoint import save_checkpoint
+    from model.training.checkpoint import save_checkpoint
     from model.methods.registry import build_method
-    from model.pretrained import ship_checkpoint
+    from model.deployment.pretrained import ship_checkpoint
 
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
     report = report_for()

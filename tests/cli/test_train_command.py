@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from model.checkpoint import load_checkpoint, load_method
+from model.training.checkpoint import load_checkpoint, load_method
 from cli.main import main
 from tests.builders import write_tiny_dataset
 from tests.model.training_fixtures import TINY_METHOD
@@ -42,8 +42,8 @@ def test_train_runs_resumes_and_refuses_to_redo_a_finished_run(data, tmp_path, c
 
 
 def test_sequences_too_short_for_a_sample_are_named_and_not_trained_on(data, tmp_path, capsys, monkeypatch):
-    from model.train import train
-    from model.training_settings import TrainConfig
+    from model.training.train import train
+    from model.training.training_settings import TrainConfig
 
     monkeypatch.chdir(tmp_path)
     # alpha's longest run without a cut is 3 frames (6 frames, a cut at 3): 4 frames per sample leave it out.

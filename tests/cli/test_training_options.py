@@ -1,4 +1,4 @@
-"""The training options are declared once (model.training_settings): the denoiser train and fit options, the REST
+"""The training options are declared once (model.training.training_settings): the denoiser train and fit options, the REST
 job parameters and the library's configs have the same names, defaults and checks."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from cli.main import build_parser, main
 from cli.options import option_name
 from core.jobs.specs import FitParams, TrainParams
 from model.fit.plan import FitConfig
-from model.training_settings import (
+from model.training.training_settings import (
     NOT_FIT_OPTIONS,
     RUN_FIELDS,
     FitTrainingSettings,

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import httpx
 import numpy as np
 
-from model.exr import encode_image_exr
+from model.io.exr import encode_image_exr
 from model.layouts import layout_from_value, read_layout_frame_bytes
 from client.rest import DenoiserClient
 from core.names import JOB_KINDS

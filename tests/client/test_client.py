@@ -10,8 +10,8 @@ import httpx
 import numpy as np
 import pytest
 
-from model.dataset import Dataset
-from model.exr import read_frame, write_frame
+from model.io.dataset import Dataset
+from model.io.exr import read_frame, write_frame
 from client.rest import (
     ApiClientError,
     DenoiserClient,
@@ -409,8 +409,8 @@ def test_a_stored_frame_with_nan_is_sent_for_the_session_to_repair(tmp_path):
     # A renderer's file with a stray NaN: the strict reader refuses it, the client sends it (the session repairs).
     import OpenEXR
 
-    from model.exr import _frame_parts, read_frame_bytes
-    from model.frames import FrameError
+    from model.io.exr import _frame_parts, read_frame_bytes
+    from model.io.frames import FrameError
     from client.rest import frame_bytes
 
     frame = make_frame()

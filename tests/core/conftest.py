@@ -1,7 +1,7 @@
 """Fixtures of the core tests: the API tests' settings (temporary data folder, the test Redis database) and
 registry_settings (those settings with the shared tracking store)."""
 
-from tests.api.conftest import settings
-from tests.api.session_fixtures import registry_settings
+from tests.service.conftest import settings
+from tests.service.session_fixtures import registry_settings
 
 __all__ = ["registry_settings", "settings"]

@@ -6,7 +6,7 @@ import typing
 
 from core import names
 from core.jobs.specs import JOB_PARAMS, JobDevice, JobKind, JobState, JobSplit
-from model.dataset import SPLITS
+from model.io.dataset import SPLITS
 
 
 def test_the_splits_are_the_libraries():

@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.checkpoint import load_checkpoint
+from model.training.checkpoint import load_checkpoint
 from core import registry as registry_module
 from core.registry import ModelRef, UnknownModelError, get_registry, resolve_checkpoint
-from tests.api.session_fixtures import MODEL_NAME, register_model, registry_settings, shared_registry, unique_name
+from tests.service.session_fixtures import MODEL_NAME, register_model, registry_settings, shared_registry, unique_name
 
 __all__ = ["registry_settings"]  # fixture used by name
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from model.checkpoint import load_checkpoint, load_method
-from model.train import TrainConfig, train
+from model.training.checkpoint import load_checkpoint, load_method
+from model.training.train import TrainConfig, train
 from tests.builders import write_tiny_dataset
 from tests.model.training_fixtures import TINY_METHOD
 from core.tracking import (
@@ -80,7 +80,7 @@ def test_a_training_run_is_tracked_and_its_model_registered(tmp_path, monkeypatc
     assert float(version.tags["validation_psnr"]) == pytest.approx(result["validation"]["psnr"], abs=1e-4)
 
     # Lineage: the code version and the dataset, by its manifests' digest.
-    from model.dataset import dataset_digest
+    from model.io.dataset import dataset_digest
 
     assert run.data.tags["code_version"] and run.data.tags["code_version"] != "unknown"
     inputs = run.inputs.dataset_inputs
@@ -152,7 +152,7 @@ def test_a_registered_model_loads_through_mlflow_pyfunc_and_denoises_a_sequence(
 
     import mlflow
 
-    from model.checkpoint import save_checkpoint
+    from model.training.checkpoint import save_checkpoint
     from model.methods.base import FrameBatch
     from model.methods.registry import build_method
     from tests.builders import synthetic_frame

@@ -268,7 +268,7 @@ def test_presets_are_reused_from_the_output_folder_and_from_the_registry(tiny_da
     def no_training(*args, **kwargs):
         raise AssertionError("trained again")
 
-    monkeypatch.setattr("model.train.train", no_training)
+    monkeypatch.setattr("model.training.train.train", no_training)
     again = fit(tiny_config(tiny_data, tmp_path / "fit"), store=store)
     assert statuses(again) == {"default": REUSED_CHECKPOINT, "dropout": REUSED_CHECKPOINT}
     assert [rung.psnr for rung in again.rungs] == [rung.psnr for rung in first.rungs]  # the same weights
@@ -287,7 +287,7 @@ def test_presets_are_reused_from_the_output_folder_and_from_the_registry(tiny_da
 
 
 def test_a_fit_stops_before_training_what_the_target_does_not_need(tiny_data, tmp_path, monkeypatch):
-    import model.train as train_module  # model.fit imports train when it trains: patched here, seen there
+    import model.training.train as train_module  # model.fit imports train when it trains: patched here, seen there
 
     trained, original = [], train_module.train
 

@@ -8,8 +8,8 @@ import socket
 import pytest
 import torch
 
-from model.checkpoint import load_checkpoint
-from model.train import TrainConfig, prepare, train
+from model.training.checkpoint import load_checkpoint
+from model.training.train import TrainConfig, prepare, train
 from tests.builders import write_tiny_dataset
 from tests.model.training_fixtures import TINY_METHOD
 from workers.ddp import RankError, TrainingJob, free_port, launch

@@ -1,9 +1,9 @@
-"""The ``evaluate`` and ``benchmark`` jobs: model.evaluate's protocol on a stored dataset split.
+"""The ``evaluate`` and ``benchmark`` jobs: model.evaluation.evaluate's protocol on a stored dataset split.
 
 Both write ``report.json`` (the full report) and ``report.md`` (its table) into the job folder and summarize the
 methods in the job result; ``benchmark`` defaults its method list to the non-learned baselines and OIDN's three
 presets, refuses learned registry presets (untrained weights: learned methods come only as model references or
-checkpoints), and also draws ``quality_speed.png`` with ``model.benchmark`` (PSNR and FLIP against time per
+checkpoints), and also draws ``quality_speed.png`` with ``model.evaluation.benchmark`` (PSNR and FLIP against time per
 frame, log scale, Pareto front; the chart ``denoiser benchmark`` draws, served at GET /jobs/{id}/chart.png). With
 ``track`` the run goes to MLflow (experiment ``denoiser-evaluation``): parameters, one metric per method and
 measure, the files as artifacts; and a registered model version that was evaluated gets its measurements as
@@ -31,7 +31,7 @@ SUMMARY_KEYS = ("label", "source", "method", "preset", "scale", "params", "flops
 
 
 def run(context: JobContext) -> dict[str, Any]:
-    from model.evaluate import TIMING_REFERENCE, evaluate, format_table
+    from model.evaluation.evaluate import TIMING_REFERENCE, evaluate, format_table
 
     model = BenchmarkParams if context.record["kind"] == "benchmark" else EvaluateParams
     params = model.model_validate(context.params)
@@ -102,9 +102,9 @@ def _write_files(folder: Path, report: dict, table: str, chart: bool) -> dict[st
 
 
 def quality_speed_chart(report: dict, path: Path) -> Path | None:
-    """PSNR and FLIP against ms per frame (log scale), Pareto front, every point labelled (model.benchmark);
+    """PSNR and FLIP against ms per frame (log scale), Pareto front, every point labelled (model.evaluation.benchmark);
     None when no method was both timed and scored."""
-    from model.benchmark import benchmark_rows, write_quality_speed_chart
+    from model.evaluation.benchmark import benchmark_rows, write_quality_speed_chart
 
     title = f"{report['dataset']} / {report['split']}, scale {report['scale']}"
     return write_quality_speed_chart(benchmark_rows([report]), path, title)

@@ -15,7 +15,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from model.dataset import MANIFEST, Dataset
+from model.io.dataset import MANIFEST, Dataset
 from core.jobs.specs import GenerateParams
 from core.storage import Storage
 from workers.tasks.context import JobContext

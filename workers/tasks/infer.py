@@ -14,7 +14,7 @@ import statistics
 import time
 from typing import Any
 
-from model.dataset import frame_file_name
+from model.io.dataset import frame_file_name
 from core.jobs.infer import selected_sequences
 from core.jobs.specs import InferParams
 from workers.tasks.context import JobContext
@@ -23,7 +23,7 @@ from workers.tasks.context import JobContext
 def run(context: JobContext) -> dict[str, Any]:
     import torch
 
-    from model.exr import write_image
+    from model.io.exr import write_image
     from model.methods.base import FrameBatch
     from core.jobs.methods import build_for_inference
 

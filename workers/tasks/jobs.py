@@ -126,7 +126,7 @@ def _run(context: JobContext) -> dict[str, Any]:
 
 
 def _error_code(error: Exception) -> str:
-    from model.frames import FrameError
+    from model.io.frames import FrameError
     from workers.ddp import RankError
 
     if isinstance(error, RankError):

@@ -1,4 +1,4 @@
-"""The ``train`` job: model.train in this process, or in ``world_size`` DDP ranks (workers.ddp), tracked in MLflow.
+"""The ``train`` job: model.training.train in this process, or in ``world_size`` DDP ranks (workers.ddp), tracked in MLflow.
 
 Checkpoints go to ``jobs/<id>/checkpoints`` with ``resume=True``, so an execution that follows a lost worker
 continues from the last checkpoint (and the same MLflow run, whose id the checkpoint carries). When the lost
@@ -25,8 +25,8 @@ from workers.tasks.context import JobContext
 
 
 def run(context: JobContext) -> dict[str, Any]:
-    from model.checkpoint import load_checkpoint
-    from model.train import LAST_CHECKPOINT
+    from model.training.checkpoint import load_checkpoint
+    from model.training.train import LAST_CHECKPOINT
 
     params = TrainParams.model_validate(context.params)
     out = context.folder / CHECKPOINT_FOLDER
@@ -124,7 +124,7 @@ def _parked_progress(context: JobContext, params: TrainParams, progress):
 
 
 def _train_here(context: JobContext, config, track: bool, params: TrainParams) -> dict[str, Any]:
-    from model.train import train
+    from model.training.train import train
 
     return train(config, tracker=_tracker(context, config, track),
                  progress=_parked_progress(context, params, context.progress))
@@ -181,9 +181,9 @@ def _completed(context: JobContext, params: TrainParams, checkpoint: dict, last:
 
 def _register_once(context: JobContext, params: TrainParams, checkpoint: dict, last: Path,
                    run_id: str | None) -> dict[str, Any] | None:
-    from model.checkpoint import load_method
+    from model.training.checkpoint import load_method
     from model.methods.registry import inference_cost
-    from model.train import default_registered_name
+    from model.training.train import default_registered_name
     from core.tracking import MLflowTracker
 
     tracker = MLflowTracker(context.settings.resolved_tracking_uri(), params.experiment)

@@ -12,8 +12,8 @@ import torch
 
 from model.data.crops import (BRIGHTNESS_RANGE, SequenceCrops, collate_crops, longest_run, random_rotation,
                               sample_windows)
-from model.dataset import Dataset, SequenceWriter
-from model.frames import box_downsample
+from model.io.dataset import Dataset, SequenceWriter
+from model.io.frames import box_downsample
 from model.ops.warp import backward_warp
 from tests.builders import synthetic_frame, write_sequence, write_tiny_dataset
 
@@ -277,7 +277,7 @@ def test_reference_albedos_are_left_out_when_a_sequence_lacks_them(albedo_datase
 
 def test_a_cached_spatial_estimate_is_cropped_flipped_and_brightened_like_the_color(dataset_root):
     from model.methods.oidn import oidn_denoise
-    from model.spatial_cache import SpatialEstimateCache
+    from model.training.spatial_cache import SpatialEstimateCache
 
     spatial = SpatialEstimateCache("fast")
     plain = SequenceCrops(dataset_root, "train", crop_size=8, frames=2, seed=3, augment=False, spatial=spatial)

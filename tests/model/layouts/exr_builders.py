@@ -9,7 +9,7 @@ import numpy as np
 import OpenEXR
 
 from model.data.camera import Camera
-from model.frames import BUFFERS, FrameBundle
+from model.io.frames import BUFFERS, FrameBundle
 
 FIXTURES = Path(__file__).parent / "data"
 BLENDER_ORBIT = FIXTURES / "blender_orbit"  # 4 frames, 32x32, rendered by scripts/render_blender.py --seed 0

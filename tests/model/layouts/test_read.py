@@ -9,8 +9,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from model.exr import FrameFormatError
-from model.frames import FrameValidationError
+from model.io.exr import FrameFormatError
+from model.io.frames import FrameValidationError
 from model.layouts import BUILTIN_LAYOUTS, load_layout, read_layout_frame, read_layout_frame_bytes
 from tests.builders import synthetic_frame
 from tests.model.layouts.exr_builders import bundle_channels, write_channels, write_parts
@@ -239,7 +239,7 @@ def test_partial_buffers_and_non_float_channels_are_refused(tmp_path, frame):
 
 
 def test_bytes_and_files_read_the_same_and_references_parts_come_along(tmp_path, frame):
-    from model.exr import write_frame
+    from model.io.exr import write_frame
 
     with_references = synthetic_frame(np.random.default_rng(1), 2, 8, 6, scales=(1, 2))
     path = write_frame(tmp_path / "f.exr", with_references)
@@ -252,12 +252,12 @@ def test_bytes_and_files_read_the_same_and_references_parts_come_along(tmp_path,
 
 @pytest.mark.parametrize("name", ["blender-cycles", "generic"])
 def test_the_pixel_limit_is_checked_from_the_headers_before_decoding_in_any_layout(monkeypatch, name):
-    import model.exr
-    from model.exr import FrameTooLarge
+    import model.io.exr
+    from model.io.exr import FrameTooLarge
     from tests.model.layouts.exr_builders import blender_like_bomb
 
     decoded = []
-    monkeypatch.setattr(model.exr, "_read_coalesced", lambda *args: decoded.append(args))
+    monkeypatch.setattr(model.io.exr, "_read_coalesced", lambda *args: decoded.append(args))
     bomb = blender_like_bomb(1024, 1024)
     assert len(bomb) < 100_000
     with pytest.raises(FrameTooLarge, match=r"bomb.exr: declares 1024x1024 = 1048576 pixels; the limit is 1000000"):
@@ -266,7 +266,7 @@ def test_the_pixel_limit_is_checked_from_the_headers_before_decoding_in_any_layo
 
 
 def test_a_reference_render_may_declare_a_2x_render_of_the_limit(tmp_path):
-    from model.exr import FrameTooLarge
+    from model.io.exr import FrameTooLarge
     from model.layouts.read import read_layout_reference
     from tests.model.layouts.exr_builders import BLENDER_ORBIT, upscaled_copy
 

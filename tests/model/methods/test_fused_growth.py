@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from model.losses import SequenceLoss
+from model.training.losses import SequenceLoss
 from model.methods.fused import LEGACY_CANDIDATES, Fused
 from model.methods.fused_growth import widened_state_dict
 from model.methods.registry import build_method, example_batch

@@ -8,7 +8,7 @@ import dataclasses
 import pytest
 import torch
 
-from model.checkpoint import load_method, save_checkpoint
+from model.training.checkpoint import load_method, save_checkpoint
 from model.methods.afn import temporal_accumulate
 from model.methods.history_rectification import RECTIFY_KEY
 from model.methods.registry import build_method

@@ -69,7 +69,7 @@ def test_a_method_may_declare_only_optional_render_buffers():
 
 @pytest.mark.parametrize("name, scale", _every_method())
 def test_a_step_leaves_the_state_it_is_given_as_it_was(name, scale):
-    # A session serializes frame t's history for Redis while frame t + 1 already steps on it (api.sessions).
+    # A session serializes frame t's history for Redis while frame t + 1 already steps on it (service.sessions.store).
     torch.manual_seed(0)
     method = build_method(name, scale=scale).for_inference()
     frames = [example_batch(16, 16, seed=seed) for seed in range(3)]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from model.dataset import Dataset
+from model.io.dataset import Dataset
 from core.storage import Storage
 from tests.builders import write_sequence, write_tiny_dataset
 

@@ -11,7 +11,7 @@ import OpenEXR
 import pytest
 import torch
 
-from model.dataset import Dataset
+from model.io.dataset import Dataset
 from model.methods.base import FrameBatch
 from model.methods.registry import build_method
 from core.jobs.specs import JOB_PARAMS
@@ -124,8 +124,8 @@ def test_train_tracks_registers_and_links_the_mlflow_run(store, storage, setting
 
 def _shipped_tiny(tmp_path, monkeypatch, name="tiny-x1"):
     """A seeded tiny_test checkpoint shipped as a pretrained model in a tmp pretrained folder."""
-    import model.pretrained as pretrained
-    from model.checkpoint import save_checkpoint
+    import model.deployment.pretrained as pretrained
+    from model.training.checkpoint import save_checkpoint
 
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "pretrained")
     torch.manual_seed(11)
@@ -136,7 +136,7 @@ def _shipped_tiny(tmp_path, monkeypatch, name="tiny-x1"):
 
 def test_a_training_starts_from_a_pretrained_model_or_a_registered_one(store, storage, settings, dataset, tmp_path,
                                                                        monkeypatch):
-    from model.checkpoint import load_checkpoint
+    from model.training.checkpoint import load_checkpoint
 
     shipped = _shipped_tiny(tmp_path, monkeypatch)
     initial = load_checkpoint(shipped.path)["model"]
@@ -169,7 +169,7 @@ def test_a_training_starts_from_a_pretrained_model_or_a_registered_one(store, st
 def test_int8_jnds_trains_from_a_float_checkpoint_with_every_training_option(store, storage, settings, dataset):
     """Quantization-aware training of jnds:xs-int8 from a float32 jnds:xs job's checkpoint, through the job code
     with the options only the CLI used to have (epochs, loss weights, tone map, skipped frames, schedule)."""
-    from model.checkpoint import load_checkpoint
+    from model.training.checkpoint import load_checkpoint
 
     float_job = run(store, storage, settings, submit(store, storage, settings, "train",
                                                      **train_params(method="jnds:xs", crop=16, steps=1)))
@@ -197,7 +197,7 @@ def test_int8_jnds_trains_from_a_float_checkpoint_with_every_training_option(sto
 @pytest.mark.parametrize("shipped", [True, False])
 def test_a_fused_training_job_from_nothing_takes_the_shipped_settings_unless_told_not_to(store, storage, settings,
                                                                                          dataset, shipped):
-    from model.checkpoint import load_method
+    from model.training.checkpoint import load_method
     from model.methods.fused import SHIPPED_SETTINGS
 
     record = run(store, storage, settings, submit(store, storage, settings, "train", **train_params(
@@ -220,8 +220,8 @@ def test_a_bad_init_from_is_refused_before_queueing(store, storage, settings, da
 
     _shipped_tiny(tmp_path, monkeypatch)
     if init_from == "wskpn-xs-x1":  # another family
-        import model.pretrained as pretrained
-        from model.checkpoint import save_checkpoint
+        import model.deployment.pretrained as pretrained
+        from model.training.checkpoint import save_checkpoint
 
         pretrained.ship_checkpoint(save_checkpoint(tmp_path / "w.pt", method=build_method("wskpn:xs", 1)), init_from)
     with pytest.raises(DomainError) as caught:
@@ -239,7 +239,7 @@ def test_a_cancelled_training_resumes_from_its_checkpoint_when_run_again(store, 
 
     record = run(store, storage, settings, job_id, reports=_Calls(cancel_once_started))
     assert record["state"] == "cancelled" and record["progress"]["current"] >= 1
-    from model.checkpoint import load_checkpoint
+    from model.training.checkpoint import load_checkpoint
 
     stopped_at = load_checkpoint(storage.job(job_id) / "checkpoints" / "last.pt")["step"]
     assert stopped_at >= 1
@@ -358,7 +358,7 @@ def test_infer_writes_one_exr_per_frame_with_history_carried(store, storage, set
 def fake_generate_sequence(scene, out, *, frames, settings, seed, split, name, half, overwrite, progress,
                            on_frame):
     """Writes synthetic frames where Mitsuba would render (the job's plumbing is what is tested here)."""
-    from model.dataset import Dataset
+    from model.io.dataset import Dataset
 
     dataset = Dataset.open_or_create(out)
     write_sequence(out, name, frames, size=(settings.width, settings.height), seed=seed)

@@ -21,15 +21,15 @@ from celery import Celery
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from api.errors import install_error_handlers
-from api.routes import jobs as jobs_routes
+from service.http.errors import install_error_handlers
+from service.http.routes import jobs as jobs_routes
 from core.settings import Settings, get_settings
 from core.storage import Storage, get_storage
 from tests.model.training_fixtures import TINY_METHOD
 from tests.workers.tasks.datasets import store_dataset
 from tests.workers.tasks.fixtures import TEST_REDIS_URL, redis_client
 from core.job_store import DEFAULT_PREFIX, JobStore
-from api.dispatch import get_dispatcher
+from service.http.dispatch import get_dispatcher
 from core.jobs.dispatch import CeleryDispatcher
 
 REPOSITORY = Path(__file__).resolve().parents[3]

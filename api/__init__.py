@@ -1,1 +1,0 @@
-"""The REST API (FastAPI): app, routes, HTTP schemas, errors, auth, request limits and inference sessions."""
