@@ -254,7 +254,7 @@ def test_stream_prints_timings_and_writes_exrs(api, tmp_path, capsys):
     assert out[4].startswith("3 frames in") and "median inference    1.50 ms" in out[4]
     assert "history: started 1, continued 2" in out[4]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [f"frame_000{i}.exr" for i in range(3)]
-    assert service.sessions.store == {}  # deleted at the end
+    assert api.sessions == {}  # deleted at the end
 
 
 def test_stream_takes_a_plain_folder_of_a_renderers_frames_with_its_layout(api, tmp_path, capsys):
