@@ -331,5 +331,5 @@ for name in fused-balanced-x1 fused-fast-x1 fused-high-x1; do
   .venv/bin/python scripts/ship_pretrained.py "pretrained/$name/model.pt" --name "$name" --after-shipped "$name" \
     --unjitter-estimate --report docs/results/reuse_x1_unjittered.json --report-source "runs/unjitter/$name.pt"
 done
-.venv/bin/python scripts/measure_unjittered_peers.py --data "$DATA" --split test \
+.venv/bin/python experiments/measure_unjittered_peers.py --data "$DATA" --split test \
   --out docs/results/reuse_x1_unjittered_peers.json

@@ -291,9 +291,10 @@ def randomize_batch_norms(module: nn.Module, seed: int = 1) -> None:
 
 # -------------------------------------------------------------------------------------- files and models
 
-def load_script(name: str):
-    """A module of ``scripts/`` by its file name without ``.py`` (the scripts are files, not a package)."""
-    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+def load_script(name: str, folder: str = "scripts"):
+    """A module of ``scripts/`` (or of another top-level folder of files, such as ``experiments/``) by its file
+    name without ``.py`` (these folders hold files, not packages)."""
+    path = Path(__file__).resolve().parents[1] / folder / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -1,7 +1,7 @@
 """Widen a trained fused model's network, computing the same function, for a fine-tune to start from
 (model/methods/fused_growth.py): its layers get more channels, which read and write nothing until trained.
 
-    .venv/bin/python scripts/widen_fused.py pretrained/fused-fast-x1/model.pt --width 24 --out runs/fast-w24.pt
+    .venv/bin/python experiments/widen_fused.py pretrained/fused-fast-x1/model.pt --width 24 --out runs/fast-w24.pt
     .venv/bin/denoiser train --method fused:fast --init-from runs/fast-w24.pt ...
 
 The source is a checkpoint (`denoiser train`'s best.pt or a shipped model.pt); the widened file keeps its method,

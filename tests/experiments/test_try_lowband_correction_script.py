@@ -1,4 +1,4 @@
-"""scripts/try_lowband_correction.py: the low-band correction's arithmetic, its gates, and the experiment end to end
+"""experiments/try_lowband_correction.py: the low-band correction's arithmetic, its gates, and the experiment end to end
 on a tiny dataset."""
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ from model.methods.oidn_taa import reinhard
 from model.methods.registry import build_method
 from tests.builders import load_script, static_frame, write_tiny_dataset
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts" / "try_lowband_correction.py"
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "experiments" / "try_lowband_correction.py"
 
 
-experiment = load_script("try_lowband_correction")
+experiment = load_script("try_lowband_correction", "experiments")
 
 
 def checker(size: int, low: float, high: float) -> torch.Tensor:

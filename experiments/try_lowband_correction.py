@@ -1,7 +1,8 @@
 """Measure a fused model's output with its low band taken from OIDN's estimate of the frame itself, against the model
-as it is (README: "The low band of OIDN's estimate: tried, not shipped").
+as it is (findings: docs/results/findings.md).
 
-    .venv/bin/python scripts/try_lowband_correction.py --data data/reuse --split test --model fused-balanced-x1 --vdp
+    .venv/bin/python experiments/try_lowband_correction.py --data data/reuse --split test --model fused-balanced-x1 \
+        --vdp
 
 Where a light moves, the fused models' history lags behind the shading over whole regions, and FovVideoVDP finds that
 coherent lag more visible than OIDN's error, which changes every frame. OIDN's estimate of this frame does not lag.

@@ -1,4 +1,4 @@
-"""scripts/widen_fused.py writes a wider fused checkpoint that `--init-from` and `--method` load as is."""
+"""experiments/widen_fused.py writes a wider fused checkpoint that `--init-from` and `--method` load as is."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ from pathlib import Path
 from model.training.checkpoint import load_checkpoint, save_checkpoint
 from model.methods.registry import build_method
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def widen(*arguments: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "scripts" / "widen_fused.py"), *arguments],
+    return subprocess.run([sys.executable, str(ROOT / "experiments" / "widen_fused.py"), *arguments],
                           capture_output=True, text=True)
 
 

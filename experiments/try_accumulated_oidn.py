@@ -1,7 +1,7 @@
 """Measure what OIDN gains from a running mean of the 1 spp frames instead of the single frame, with a model's own
-weights (README: "Accumulating samples before OIDN").
+weights (findings: docs/results/findings.md).
 
-    .venv/bin/python scripts/try_accumulated_oidn.py --data data/reuse --split validation --model fused-fast-x1
+    .venv/bin/python experiments/try_accumulated_oidn.py --data data/reuse --split validation --model fused-fast-x1
 
 Evaluates in one run, every method on the same frames (`model.evaluation.evaluate`, 2 threads):
 - the model as given;

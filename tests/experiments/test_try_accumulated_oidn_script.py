@@ -1,4 +1,4 @@
-"""scripts/try_accumulated_oidn.py: OIDN on the running mean of the noisy frames, the model with the sample mean
+"""experiments/try_accumulated_oidn.py: OIDN on the running mean of the noisy frames, the model with the sample mean
 set, and the experiment end to end on a tiny dataset."""
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ from model.methods.fused import frame_samples
 from model.methods.registry import build_method
 from tests.builders import load_script, static_frame, write_tiny_dataset
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts" / "try_accumulated_oidn.py"
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "experiments" / "try_accumulated_oidn.py"
 
 
-experiment = load_script("try_accumulated_oidn")
+experiment = load_script("try_accumulated_oidn", "experiments")
 
 
 def test_oidn_reads_the_mean_of_the_frames_and_a_cut_restarts_it():

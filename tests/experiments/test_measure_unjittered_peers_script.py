@@ -1,4 +1,4 @@
-"""scripts/measure_unjittered_peers.py: the OIDN and OIDN + TAA peers with OIDN's estimate read at the pixel
+"""experiments/measure_unjittered_peers.py: the OIDN and OIDN + TAA peers with OIDN's estimate read at the pixel
 centres, as the 1x fused models read it."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 from model.evaluation.evaluate import evaluate
 from tests.builders import write_gradient_dataset, write_tiny_dataset
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts" / "measure_unjittered_peers.py"
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "experiments" / "measure_unjittered_peers.py"
 PEERS = [f"{name}:{quality}" for name in ("oidn", "oidn-taa") for quality in ("fast", "balanced", "high")]
 
 

@@ -1,5 +1,5 @@
-"""scripts/measure_rejection_oracle.py: where the references changed, the oracle's composite, and the measurement end to
-end on a tiny dataset."""
+"""experiments/measure_rejection_oracle.py: where the references changed, the oracle's composite, and the
+measurement end to end on a tiny dataset."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ from model.training.checkpoint import save_checkpoint
 from model.methods.registry import build_method
 from tests.builders import load_script, write_gradient_dataset
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts" / "measure_rejection_oracle.py"
-oracle = load_script("measure_rejection_oracle")
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "experiments" / "measure_rejection_oracle.py"
+oracle = load_script("measure_rejection_oracle", "experiments")
 
 
 def test_the_change_is_none_where_nothing_changed_a_third_where_light_doubled_and_all_after_a_cut():

@@ -1,7 +1,7 @@
 """How far a perfect stale-history test could take a 1x fused model: its output with its own OIDN estimate put in
-wherever the reference changed from the frame before (README: "The low band of OIDN's estimate: tried, not shipped").
+wherever the reference changed from the frame before (findings: docs/results/findings.md).
 
-    .venv/bin/python scripts/measure_rejection_oracle.py --data data/reuse --split test --sequence moving_light_s4 \
+    .venv/bin/python experiments/measure_rejection_oracle.py --data data/reuse --split test --sequence moving_light_s4 \
         --model fused-fast-x1 --model fused-balanced-x1 --model fused-high-x1 --out docs/results/rejection_oracle.json
 
 A stale-history test can do no better than to send a model to its spatial estimate exactly where the scene changed;

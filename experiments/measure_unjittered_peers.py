@@ -1,9 +1,9 @@
 """Evaluate the OIDN and OIDN + TAA peers with OIDN's estimate read back at the pixel centres, as the 1x fused models
-do (``unjitter_estimate``): what the peers would score if they did the same. The peers as the quality issue defines
-them, and as every table shows them, use the estimate where its samples lie; this measures how much of the fused
-models' lead the read alone is worth (README, "The estimate at the pixel centres").
+do (``unjitter_estimate``): what the peers would score if they did the same. The peers as every table shows them
+use the estimate where its samples lie; this measures how much of the fused models' lead the read alone is worth
+(findings: docs/results/findings.md).
 
-    .venv/bin/python scripts/measure_unjittered_peers.py --data data/reuse --split test \
+    .venv/bin/python experiments/measure_unjittered_peers.py --data data/reuse --split test \
         --out docs/results/reuse_x1_unjittered_peers.json
 
 Writes a ``denoiser evaluate`` report (1x, no timing: the read costs the same for every quality) whose rows are
@@ -50,7 +50,7 @@ def main() -> int:
     except (ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    report["note"] = "OIDN's estimate read back at the pixel centres (scripts/measure_unjittered_peers.py)"
+    report["note"] = "OIDN's estimate read back at the pixel centres (experiments/measure_unjittered_peers.py)"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     print(format_table(report))
