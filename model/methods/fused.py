@@ -1,77 +1,17 @@
 """The fused family: OIDN per frame for the spatial estimate, a small recurrent network for temporal reuse.
 
-OIDN on one 1 spp frame is the strongest spatial denoiser our users have; what it lacks is time (its output
-flickers and its residual blotches change every frame). TAA on its outputs helps, but with one fixed blend
-weight and a hand-set clip box it lags behind moving light and leaves trails. This family keeps OIDN for the
-spatial part and learns the temporal part, in the spirit of AFN's fusion of a per-frame branch and an
-accumulated branch. Per frame:
+OIDN on one 1 spp frame is the strongest spatial denoiser our users have, but it lacks time: its output flickers,
+and TAA on top of it lags behind moving light. This family keeps OIDN for the spatial part and learns the temporal
+part (after AFN's fusion of a per-frame and an accumulated branch): per frame a small U-Net reads OIDN's estimate
+``s``, the noisy frame, the guides, the reprojected history ``h``, its rectified form ``r`` and the clipped running
+mean ``c`` of OIDN's estimates, and predicts softmax fusion weights over (``s``, ``h``, ``r``, ``c``) and a 3 x 3
+output kernel. Where there is no history the output is OIDN's estimate alone, so it cannot ghost there; the fusion
+head starts at TAA's weights, so training starts from OIDN + TAA.
 
-1. ``s`` = OIDN's output (the preset is OIDN's quality), tone-mapped with x / (1 + x); training passes it
-   precomputed (``FrameBatch.spatial_estimate``, ``model.training.spatial_cache``); at scale 2 it is resampled to the
-   target grid at the frame's *unjittered* positions (bicubic), so frames with different jitter add detail at
-   their own sub-pixel phase instead of smearing it (TAAU-style temporal upsampling); at scale 1 a model with
-   ``unjitter_estimate`` reads it back at the pixel centres the same way, since a jittered frame's estimate is the
-   image shifted by the jitter while the history and the reference are centred (the network still reads ``s`` as
-   OIDN made it, as its weights were trained);
-2. the previous output ``h`` (kept at the output resolution, read bicubically) and a few recurrent feature channels are
-   reprojected by the motion vectors; the depth/normal test and camera cuts mark where there is no history,
-   and a history-length counter says how long it has been valid;
-3. ``r`` = ``h`` rectified: clipped to ``s``'s 3 x 3 neighbourhood mean +- 1 sigma in YCoCg (``model.ops.rectify``);
-4. a small U-Net reads ``s``, the noisy frame, the guides (albedo, normal, depth), ``h``, ``r``, ``|h - s|``, the
-   validity and length of the history, the recurrent features (and the jitter at scale 2) at render resolution,
-   and predicts, per output pixel, softmax fusion weights over (``s``, ``h``, ``r``, ``c``) and a 3 x 3 softmax
-   kernel;
-5. blend = w_s s + w_h h + w_r r + w_c c, output = kernel * blend, back to linear radiance; the next frame's
-   history is the output, or the blend before the kernel (``history_before_kernel``).
-
-Which of the two is the history is part of a model: ``recurrence_before_kernel`` in the state dict (absent in
-checkpoints from before the choice: the output). Every model is trained with the output as history (the recipe of
-the shipped weights; fine-tunes with the blend gained no more on held-out scenes than the switch alone), and the
-shipped 1x models run with the blend: the kernel's blur, fed back, compounds frame after frame, and at frame sizes
-above training's it washed the checker behind a moving lamp out (held-out, 512x512: +0.78 dB for the balanced
-model, +0.14 at 256x256, +0.02 at 128x128; the README has the whole comparison and what it costs). ``--init-from``
-keeps the recurrence of the checkpoint it starts from.
-
-A model may also skip its kernel on frames of more than ``kernel_max_pixels`` render pixels (``kernel_limit_pixels``
-in the state dict; absent or 0: every frame filtered): the blend is the output there. The kernel learned at 128x128
-to average texture finer than a pixel (the reference's pixel average); on larger frames the same textures are
-resolved and the averaging erases them (the shipped 1x models, limit 32768: +0.12-0.18 dB held-out at 256x256,
-+0.26-0.56 at 512x512, unchanged at 128x128; README, "The kernel and resolved texture").
-
-``m`` is the running mean of ``s`` over the frames the history has been valid for (weights 1 / n, up to the model's
-``mean_max_frames`` frames, then an exponential average), reprojected with the history; ``c`` is ``m`` clipped like
-``r``, and the network also reads ``m`` and ``|m - s|``. Its own history ``h`` carries its clips (and, with the output
-as history, its kernels' blur) into every later frame; ``m`` is an unbiased average of OIDN's estimates where the
-scene is static (which the network, reading its own output, had not learned to reproduce: an unclipped running mean
-scored 0.4-0.7 dB above it on static held-out recipes). ``m`` itself as a candidate ghosted more (it keeps a moving
-lamp's old positions wherever the depth test passes), so only its clipped form is one. Checkpoints from before the
-running mean load as the three-candidate network they are (``load_state_dict``), with its cost; ``--init-from`` one of
-them starts this network with the new inputs' weights at zero and the new candidate's weight at
-``NEW_CANDIDATE_WEIGHT``.
-
-A model may also test its history against the 1 spp frame (``stale_test_sigmas``, ``STALE_TEST_KEY`` in the state
-dict; absent or 0: no test): where the running mean's 9 x 9 window mean lies more than that many standard errors
-from the noisy frame's (``model.ops.stale_history``), the weights of ``h`` and ``c`` fall off and go to ``s``. The
-network lags behind a moving light over whole regions, since a region of changed shading and one of OIDN's
-blotches look alike in its inputs; the unbiased samples tell them apart. With ``stale_region_pixels``
-(``STALE_REGION_KEY``; absent or 0: none) the test also reads the root mean square of its z's over a wider region,
-where a light that moved a little every frame shows as a whole though no single window is sure; the sample mean
-restarts on it too.
-
-At 2x a model may also give its output the texture of the albedo gathered on the target grid
-(``albedo_detail_frames``, ``ALBEDO_DETAIL_KEY``; absent or 0: none; ``model.ops.jittered_albedo``): each jittered
-frame's noise-free albedo samples land in one sub-pixel, their running mean over frames holds texture finer than a
-render pixel, and its ratio to its own render-pixel mean multiplies the output. OIDN and the network see that
-texture only as its pixel average. The history does not take the factor, so it never compounds.
-
-Where there is no history (disocclusion, a cut, the first frame), ``h`` is ``s`` itself and ``r`` is ``s`` clipped to
-its own neighbourhood, so the output is made of OIDN's estimate alone: the method falls back to the spatial
-estimate by construction and cannot ghost there. The fusion head starts at
-TAA's weights (0.2 s + 0.8 r), so training starts from OIDN + TAA and learns where to trust history more
-(static, well-lit areas: longer accumulation) and where less (moving lights, highlights, disocclusions).
-
-Presets pick OIDN's quality: ``fast``, ``balanced`` (the default: OIDN-balanced plus the network costs less than
-OIDN-high alone at 128x128 on 2 threads), ``high``. The network is the same size for all three.
+The run-time settings recorded with the weights (the recurrence, the kernel limit, the running mean's window, the
+stale-history tests, the sample mean, the albedo detail, the unjittered estimate) are the properties of ``Fused``.
+Presets pick OIDN's quality (``fast``, ``balanced``, ``high``); the network is the same for all three. The steps of
+a frame and why each setting exists: docs/methods.md, "model.methods.fused".
 """
 
 from __future__ import annotations
@@ -149,9 +89,9 @@ RUN_TIME_SETTINGS: dict[str, tuple[bool, str]] = {
 
 # The run-time settings the shipped models of a scale run (``pretrained/fused-*``; a test holds them to the shipped
 # weights), which a model trained from nothing starts with (``use_shipped_settings``). Each was measured on shipped
-# weights and kept where it helped held-out recipes (README, from "The stale-history test" to "Texture detail").
+# weights and kept where it helped held-out recipes (docs/results/findings.md).
 # ``fused-high-x1`` alone keeps its sample mean at power 3: it never trained with the mean, and a model that did needs
-# no higher power (README, "How long the sample mean trusts"); a model trained from nothing trains with it.
+# no higher power; a model trained from nothing trains with it.
 SHIPPED_SETTINGS: dict[int, dict[str, bool | int | float]] = {
     1: {"history_before_kernel": True, "kernel_max_pixels": 32768, "mean_max_frames": 8, "stale_test_sigmas": 0.5,
         "stale_region_pixels": 33, "sample_mean_frames": 8, "sample_mean_trust_power": 2.0, "unjitter_estimate": True},
@@ -169,8 +109,7 @@ def frame_samples(frame: FrameBatch) -> torch.Tensor:
 def frame_of_sample_mean(frame: FrameBatch, samples: torch.Tensor) -> FrameBatch:
     """The frame OIDN denoises from a running mean of ``frame_samples``: the mean colour with the mean guides. OIDN
     asks for guides averaged over the same samples as the colour; over jittered frames a texture finer than a pixel
-    averages to its mean in the colour, and one frame's albedo would still show it at a single sample's position
-    (README, "Accumulating samples before OIDN")."""
+    averages to its mean in the colour, and one frame's albedo would still show it at a single sample's position."""
     return dataclasses.replace(frame, color=samples[:, :3], albedo=samples[:, 3:6], normal=samples[:, 6:9],
                                specular_albedo=None)
 
@@ -255,8 +194,8 @@ class FusionNet(nn.Module):
         out = self.head(self.decoder(torch.cat([top, up], dim=1)))
         per_pixel = self.scale ** 2 * (self.candidates + KERNEL * KERNEL)
         fine = F.pixel_shuffle(out[:, :per_pixel], self.scale) if self.scale > 1 else out[:, :per_pixel]
-        # contiguous first: in channels_last the hidden rows are a strided slice, and tanh over it took 0.35 ms at
-        # 128x128 in bfloat16 against 0.06 (the same values)
+        # contiguous first: in channels_last the hidden rows are a strided slice, and tanh over it is much slower
+        # (the same values)
         return fine[:, :self.candidates], fine[:, self.candidates:], torch.tanh(out[:, per_pixel:].contiguous())
 
 
@@ -323,7 +262,7 @@ class Fused(Method):
         """The running mean's window: 1 / n weights up to this many frames, then an exponential average of that
         length. Training samples hold 12 frames, so training never tells a window of 8 from one of 16; a long stream
         does: the mean is resampled with the history every frame, and over a slow camera's 64 frames a 16-frame
-        window blurred a checker floor's edges frame by frame (README, "Long streams")."""
+        window blurred a checker floor's edges frame by frame."""
         return self._mean_max_frames
 
     def set_mean_max_frames(self, value: int) -> None:
@@ -336,7 +275,7 @@ class Fused(Method):
         errors (``model.ops.stale_history``), the weights of the history and of the clipped mean fall off and go to
         OIDN's estimate (0: no test). The network weighs its candidates per pixel and lags behind a moving light
         over whole regions; the test sees such a change in the unbiased samples, which the network's inputs
-        cannot tell from OIDN's blotches (README, "The stale-history test")."""
+        cannot tell from OIDN's blotches."""
         return self._stale_test_sigmas
 
     def set_stale_test_sigmas(self, value: float) -> None:
@@ -351,8 +290,7 @@ class Fused(Method):
         """The regional stale-history test's window, odd, in render pixels (0: none; ``model.ops.stale_history``):
         where the root mean square of the test's z's over it is past ``REGION_SIGMAS``, the history's weights fall
         off too (``stale_test_sigmas`` > 0) and the sample mean restarts (``sample_mean_frames`` > 0). A light that
-        moves a little every frame is seen by few single windows and by most regions (README, "The regional
-        stale-history test")."""
+        moves a little every frame is seen by few single windows and by most regions."""
         return self._stale_region_pixels
 
     def set_stale_region_pixels(self, value: int) -> None:
@@ -367,8 +305,7 @@ class Fused(Method):
         (0: the single frame; ``model.ops.sample_mean``). The mean keeps the frames' samples only where the network
         trusted its history in the frame before, and restarts where the stale-history test or the geometry test
         fails, so OIDN reads more samples where the scene holds still and one where it changed. At 2x the estimate
-        is resampled where its samples lie on average (``sample_mean_resample``; README, "Accumulating samples
-        before OIDN", "The sample mean at 2x")."""
+        is resampled where its samples lie on average (``sample_mean_resample``)."""
         return self._sample_mean_frames
 
     def set_sample_mean_frames(self, value: int) -> None:
@@ -381,7 +318,7 @@ class Fused(Method):
         """The sample mean keeps its frames in the proportion the network trusted its history in the frame before,
         raised to this power (``_history_share``): a higher one restarts it sooner where the network begins to doubt
         its history, as around a moving light. A model not trained with its sample mean leans on the mean where it
-        lags, and a higher power keeps it nearer the fresh samples (README, "How long the sample mean trusts")."""
+        lags, and a higher power keeps it nearer the fresh samples."""
         return self._sample_mean_trust_power
 
     def set_sample_mean_trust_power(self, value: float) -> None:
@@ -396,8 +333,7 @@ class Fused(Method):
         this many jittered frames (0: none; ``model.ops.jittered_albedo``). OIDN and the network work at the render
         resolution, so texture finer than a render pixel (a brick wall's mortar, a checker floor) comes out at its
         pixel average; the guides are noise-free, and each frame's jittered samples say what lies in one sub-pixel.
-        Only the output takes the detail: the history stays as the network made it, so the detail never compounds
-        (README, "Texture detail from the jittered albedo")."""
+        Only the output takes the detail: the history stays as the network made it, so the detail never compounds."""
         return self._albedo_detail_frames
 
     def set_albedo_detail_frames(self, value: int) -> None:
@@ -413,8 +349,8 @@ class Fused(Method):
         jitter off them (``unjittered_resample``; from a sample mean, ``sample_mean_resample``). At 2x it always is:
         the target grid needs a resample anyway. At 1x a renderer's TAA jitter puts every sample up to half a pixel
         off the pixel it is stored in, so the estimate is the image shifted by the jitter, while the history and the
-        reference are centred; read back, OIDN-high alone gains 1.4 dB on the held-out recipes (README, "The
-        estimate at the pixel centres"). Frames without jitter read it unchanged."""
+        reference are centred, and reading it back at the centres helps even OIDN alone. Frames without jitter read
+        it unchanged."""
         return self._unjitter_estimate
 
     def set_unjitter_estimate(self, value: bool) -> None:
@@ -528,8 +464,8 @@ class Fused(Method):
         self.load_state_dict(expanded)
 
     def for_inference(self) -> Fused:
-        """Eval mode with the network in channels_last: 2.5x faster convolutions on this CPU at 128x128 (6.3 against
-        15.8 ms, 2 threads), the same arithmetic (tests compare it with the training form)."""
+        """Eval mode with the network in channels_last: faster convolutions on the CPU, the same arithmetic (tests
+        compare it with the training form)."""
         self.eval()
         self.net.to(memory_format=torch.channels_last)
         return self
@@ -625,8 +561,8 @@ class Fused(Method):
                         valid_out: torch.Tensor | None) -> tuple[torch.Tensor, State]:
         """The output's factor of texture detail (``model.ops.jittered_albedo``) and the gathered albedo's state:
         the albedo OIDN reads (diffuse + specular), this frame's samples added to the sums warped from the frame
-        before where the geometry test holds. Bilinear: on the validation scenes a nearest read, which puts samples
-        up to half a target pixel off under camera motion, gained 0.05 dB where bilinear gained 0.28 (README)."""
+        before where the geometry test holds. Bilinear: a nearest read puts samples up to half a target pixel off
+        under camera motion, and gained less on the validation scenes."""
         albedo = oidn_albedo(frame).contiguous()  # frames stack channels_last, and mixed layouts are slow here
         # nearest: each sample on every sub-pixel of its render pixel, kept in the one it lies in (splat_at_jitter's
         # arithmetic), and the fallback where nothing was gathered
@@ -688,7 +624,7 @@ class Fused(Method):
         ``motion_out``: the motion on the output grid."""
         with_mean = self.has_mean and "mean" in state
         # Bicubic: a bilinear read blurs the history a little every frame under camera motion, which adds up over
-        # a long history (measured on held-out glass with OIDN + TAA: 29.97 dB bicubic against 29.25 bilinear).
+        # a long history.
         # Its overshoot is clamped: the values are x / (1 + x) in [0, 1). The running mean is read with it.
         images = torch.cat([state["history"], state["mean"]], dim=1) if with_mean else state["history"]
         images, _ = backward_warp(images, motion_out, mode="bicubic")
@@ -710,8 +646,8 @@ class Fused(Method):
 
 def _features(parts: list[torch.Tensor], channels_last: bool) -> torch.Tensor:
     """The network's input: ``parts`` concatenated along the channels, in channels_last for a network in it.
-    Without gradients the parts are written straight into a channels_last tensor (37 channels at 128x128: 0.19
-    against 0.50 ms for the concatenation and its copy); ``out=`` takes no gradient, so training concatenates."""
+    Without gradients the parts are written straight into a channels_last tensor (cheaper than the concatenation
+    and its copy); ``out=`` takes no gradient, so training concatenates."""
     if not channels_last:
         return torch.cat(parts, dim=1)
     if torch.is_grad_enabled():

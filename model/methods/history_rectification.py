@@ -8,8 +8,7 @@ and the network, trained on few moving lights, filters it as it is. ``rectify_hi
 the current frame's 1 spp neighbourhood first, as the ``rectified`` presets of ``accumulation`` and ``svgf`` do
 (``model.ops.rectify.rectify_accumulated``; JNDS: each lobe against this frame's; MUNet: the accumulated radiance
 against this frame's upscaled samples). The weights are unchanged: it runs on models trained without it, and
-on the held-out recipes it gains most where lights move (README, "History rectification for the learned seed
-methods").
+on the held-out recipes it gains most where lights move (docs/results/findings.md).
 
 A checkpoint without the entry loads with it off, as it ran when it was saved.
 """

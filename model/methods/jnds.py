@@ -1,66 +1,14 @@
 """JNDS: joint neural denoising and supersampling (seed paper 001), with an int8 variant.
 
-One frame, render ("native") resolution H x W in, target resolution sH x sW out (s = 1 or 2); paper Fig. 3:
-
-1. Input block (Sec. 3.2.1). The previous frame's filtered signals (demodulated diffuse, specular, supersampled
-   albedo and normal) are warped with bicubic filtering and concatenated with the current noisy diffuse
-   (demodulated by the albedo, ``model.ops.demodulate``), specular, albedo, normal, roughness and the frame's
-   jitter. Radiance is clamped to [0, 65535] and compressed by Eq. 1, ``(log(1 + x)) ** (1 / 2.2)``
-   (``log_tonemap`` plus the paper's gamma). A 1x1 projection and a 3x3 convolution give native-resolution
-   features, kept as a skip, then 2x2 average pooling.
-2. Feature extractor (Sec. 3.2.2): a U-Net at half native resolution; encoder blocks of two 3x3 convolutions +
-   ReLU and max pooling, decoder blocks of bilinear upsampling, skip concatenation and two 3x3 convolutions.
-   At each decoder level and at the bottleneck a 1x1 convolution predicts that level's filter kernels for the
-   diffuse and the specular path (one conv with both paths' channels = the paper's two 1x1 convs per block).
-3. Output block (Sec. 3.2.3), native resolution: the input block's skip features and the upsampled decoder
-   output give, per pixel, the diffuse / specular 3x3 spatial and temporal kernels, their temporal blend weight
-   and the last upsampling filter of each path; a 3x3 spatial and temporal kernel (shared by albedo and normal)
-   with its blend weight for the auxiliary buffers.
-4. Filter paths (Sec. 3.2.4), no parameters: for diffuse and specular a spatiotemporal filter (different 3x3
-   kernels on the current frame and on the warped history, blended linearly), then per level 2x2 average
-   pooling + a 3x3 kernel down to the bottleneck's resolution, and back up with bilinear upsampling + a 3x3
-   kernel, blended with the same level's skip image. Diffuse / specular kernels are linear weights clamped to
-   [-1, 1] (sharper than normalized ones); the albedo / normal supersampling filter's weights are normalized
-   (softmax). Every filter output goes through a ReLU. All filtering is ``model.ops.kernels.apply_pixel_kernels``.
-5. Composite (Eq. 2): ``albedo * diffuse + specular`` with the supersampled albedo (its demodulation divisor).
-6. Upsample block (Sec. 3.2.5): the composite is upsampled bilinearly (linear and tone-mapped versions); the
-   tone-mapped one and the previous output, warped on the target grid with bicubic filtering, together with the
-   output block's features, predict per target pixel a 3x3 kernel for the composite, a 3x3 kernel for the warped
-   previous output and the per-pixel temporal blend weight between the two (the paper's "temporal filter for
-   warped previous output" and "temporal blend weight"); both kernels are linear, clamped to [-1, 1]. The
-   prediction convolves the target grid packed into render pixels (pixel_unshuffle / pixel_shuffle, see
-   ``JNDSNetwork.predict_upsample``) rather than at every target pixel: the same per-target-pixel kernels, a
-   quarter of the convolution positions, and no upsampled feature maps.
-
-Warping. Histories are pixel-centred images (filter outputs at the pixel grid), so they are read where the
-surface now at a pixel centre was in the previous frame: ``centre + motion`` (render pixels) or
-``centre + s * motion`` on the target grid (``upscale_motion``). The frame's jitter is deliberately not added:
-motion is measured from the jittered sample position to the previous unjittered projection, so for a static
-camera it is 0 whatever the jitter, and ``centre + jitter + motion`` would shift a static history by the jitter
-every frame. The jitter is where the *current* samples lie, which the network learns to place: it is an input.
-There is no geometric disocclusion test (the paper relies on the network for that); history is off only where
-the previous position leaves the image, on the first frame and after a camera cut (``drop_history``).
-
-Signals. ``frame.diffuse`` / ``frame.specular`` are the lobe split of the 1spp color. Data from renderers that
-do not write them fall back to diffuse = color, specular = 0 (the specular path then filters zeros).
-``frame.roughness`` falls back to 1 (purely diffuse). Depth is not an input (the paper found it does not help).
-
-Loss. ``loss_weights = (0.2, 0.8)``: the paper's w_spatial = 0.2, w_temporal = 1 - 0.2 for every task (the
-engine's spatial term is SMAPE: the paper's perceptual loss needs a network trained on Hypersim, not
-available here). The paper supervises the diffuse, specular, albedo and upsample tasks separately; the data has
-only a combined reference, so ``auxiliary_loss`` supervises the one intermediate that has a reference: the
-native-resolution composite (before the upsample block) against the reference box-filtered to native
-resolution, with the same 0.2 / 0.8 weights and task weight 1 (the paper's). This keeps the composite
-denoised on its own, as the paper's separate diffuse / specular losses do (its Fig. 14, left).
-
-Int8 (Sec. 3.2.6, ``model.methods.quantization``). Presets ending in ``-int8`` (``jnds:s-int8``) are the same
-network prepared for quantization-aware training: every convolution of the input block, U-Net, output block and
-upsample block computes with fake-quantized int8 weights and activations. The 1x1 heads that emit kernel weights
-and the filters stay float32 (the paper keeps its filters in fp16). ``for_inference()`` converts the network to
-real int8 modules on the CPU; elsewhere (CUDA has no int8 eager kernels) it stays the fake-quantized model,
-the same up to rounding (the measured difference is in ``tests/model/methods/test_jnds.py``). Training an int8
-preset from scratch works; the paper trains float32 first, then QAT: ``load_float_weights`` starts a QAT model
-from a float32 one. Speed: ``scripts/bench_int8.py``.
+One frame, render resolution H x W in, target resolution sH x sW out (s = 1 or 2), after the paper's Fig. 3: an
+input block on the noisy lobes (diffuse demodulated by the albedo, specular), the guides and the warped history; a
+U-Net at half resolution whose levels predict filter kernels; parameter-free spatiotemporal filter paths for the
+diffuse and the specular lobe; the composite ``albedo * diffuse + specular``; and an upsample block that predicts,
+per target pixel, kernels for the composite and the warped previous output and the blend weight between them.
+Histories are read at ``centre + motion`` (the jitter is an input, not a warp offset); as in the paper there is no
+geometric disocclusion test. Presets ending in ``-int8`` are the same network prepared for quantization-aware
+training (``model.methods.quantization``). The blocks, the warping, the signals, the loss and the int8 path in
+detail: docs/methods.md, "model.methods.jnds". Speed: ``scripts/bench_int8.py``.
 """
 
 from __future__ import annotations
@@ -185,8 +133,8 @@ def linear_kernel_weights(raw: torch.Tensor) -> torch.Tensor:
 
 def pack_pixels(image: torch.Tensor, scale: int, channels_last: bool = False) -> torch.Tensor:
     """(N, C, sH, sW) -> (N, C s^2, H, W): each s x s block as channels, ``pixel_unshuffle``'s layout (channel
-    c * s^2 + dy * s + dx), stored channels-last if asked. One copy: on this CPU 3x faster than torch's
-    pixel_unshuffle, which also leaves the layout conversion to a second copy."""
+    c * s^2 + dy * s + dx), stored channels-last if asked. One copy, where torch's pixel_unshuffle leaves the
+    layout conversion to a second one."""
     if scale == 1:
         return image.contiguous(memory_format=torch.channels_last) if channels_last else image
     n, c, h, w = image.shape
@@ -198,7 +146,7 @@ def pack_pixels(image: torch.Tensor, scale: int, channels_last: bool = False) ->
 
 
 def unpack_pixels(packed: torch.Tensor, scale: int) -> torch.Tensor:
-    """Inverse of ``pack_pixels`` (``pixel_shuffle``'s layout); 4-6x faster than torch's pixel_shuffle here."""
+    """Inverse of ``pack_pixels`` (``pixel_shuffle``'s layout), faster than torch's pixel_shuffle on the CPU."""
     if scale == 1:
         return packed
     n, c, h, w = packed.shape
@@ -439,8 +387,8 @@ class JNDS(RectifiableHistory, Method):
 
         An int8 preset stays the fake-quantized model on other devices (no int8 kernels there) and, with a
         warning, when it has never seen data (untrained: its activation ranges are unset). Float32 presets stay
-        in the standard layout: channels_last convolutions measured 20-40% slower for the whole step here (the
-        filters read the heads' outputs channel by channel), see ``scripts/bench_int8.py``.
+        in the standard layout: channels_last convolutions make the whole step slower (the filters read the
+        heads' outputs channel by channel), see ``scripts/bench_int8.py``.
         """
         self.eval()
         if not self.quantized or self.is_int8 or any(p.device.type != "cpu" for p in self.parameters()):

@@ -1,54 +1,13 @@
 """MUNet: joint denoising and upscaling with a multi-branch, multi-scale feature network (Kazmierczyk et al.
 2025, seed paper 000). Scale 2 denoises a 1spp frame and upscales it 2x; scale 1 is the paper's denoise-only mode.
 
-Per frame (paper Fig. 3, Sec. 3.2-3.4), everything after step 1 at the target resolution (s x render):
-
-1. Pre-processing. The noisy colour and the guides (diffuse / specular albedo, normal, roughness) are *unjittered*
-   onto the target grid (:func:`unjitter`): the frame's sample of render pixel (x, y) lies at
-   ``(x + 0.5 + jitter) * s`` in target pixels, and every target pixel takes the sample nearest its centre, i.e.
-   the nearest-neighbour upscale shifted by ``s * jitter`` target pixels (the paper: "unjittered by the camera jitter
-   values ... scaled by 2x"; "upscaling with nearest neighbor interpolation"). The motion vectors are dilated 3x3
-   by nearest depth and upscaled (``model.ops.warp``); the history is warped with them on the target grid, read
-   at ``centre + s * motion`` (no jitter term: the history and the unjittered inputs sit at pixel centres, see
-   :func:`reproject_history`). The network sees the colour mu-law tone-mapped.
-2. Multi-branch U-Net (:class:`model.methods.munet_blocks.MUNetFeatures`): radiance branch on (current colour,
-   warped history radiance and output, the sinusoidal encoding of the radiance sample count), guiding branch on
-   (guides, warped history albedos, the encoding of the albedo sample count); three scales of features. The input
-   layer downsamples, so at scale 2 the network's finest level is the render resolution.
-3. Filtering (Sec. 3.4). Target-resolution per-pixel feature vectors (1x1 convolution of the finest features,
-   resized 2x) give 3x3 Gaussian (feature-affinity) kernels that upscale-filter the unjittered colour and, with
-   kernels from the guiding features, the albedos; predicted accumulation weights blend them with their histories
-   (:math:`\\bar I_{r^h}, \\bar I_{g_d^h}, \\bar I_{g_s^h}`), and the accumulated sample counts are blended the same
-   way, ``n = 1 + (1 - alpha) n_prev``. The accumulated radiance is demodulated by both accumulated albedos,
-   ``[I/A_d, I/A_s, I]`` (implicit decomposition), and denoised by a 4-level partitioning pyramid (target level
-   plus the three feature scales). Composition: ``o = rho D[0:3] A_d + sigma D[3:6] A_s + tau D[6:9] + kappa I_rh``
-   and the final history blend ``O = lerp(o, O_prev, omega)``.
-
-Choices the paper leaves open (Fig. 3's channel counts are not in its text), stated once:
-
-- rho, sigma, tau, kappa are one softmax (a convex blend: each term estimates the same radiance, so the output
-  keeps its scale and stays non-negative); the partition weights are a softmax too; alpha and omega are sigmoids.
-- Every 3x3 kernel is ``exp(-a(p) ||f(p) - f(q)||^2 + c(q))`` from a predicted feature vector f, bandwidth a and
-  per-tap confidence c (:func:`affinity_kernel_logits`), softmax-normalized over in-image taps.
-- The target-resolution heads are evaluated at the finest feature level and then resized bilinearly: identical to
-  the paper's "resize the features, then 1x1 convolution" (both are linear and bilinear weights sum to one) at a
-  quarter of the cost at scale 2.
-- Additions: the target-resolution feature vectors also get a 1x1 projection of the unjittered guides (so the
-  upscaling and finest denoising kernels see guide edges at target resolution, not only 2x-resized features);
-  the guiding branch also gets the sub-pixel offset of each target pixel's sample (where the jittered sample lies
-  relative to the pixel centre, which is what a good upscaling kernel depends on); the radiance branch also sees
-  the warped previous output, which the omega blend uses; history that fails the depth/normal geometry test
-  (``model.ops.reproject``) is dropped, as in every baseline here (see :func:`reproject_history` for why);
-  how much of the remaining history to trust the network predicts, as in the paper.
-- History is warped bilinearly (the paper does not say how).
-
-Buffers other renderers may lack: ``specular_albedo`` falls back to 0 (its demodulation divisor is then 1, so the
-second term filters the plain radiance), ``roughness`` to 1 (the frame format's value for purely diffuse
-surfaces). ``diffuse`` / ``specular`` are never read: the decomposition is implicit, as in the paper.
-
-Loss (paper Sec. 4.3): the engine's SMAPE + temporal terms plus :meth:`MUNet.auxiliary_loss`, the L1 of the
-upscaled accumulated albedos against target-resolution albedo references. No perceptual (LPIPS) term: it needs
-downloaded weights.
+Per frame (paper Fig. 3, Sec. 3.2-3.4): the noisy colour and the guides are *unjittered* onto the target grid
+(:func:`unjitter`) and the history is warped there; a two-branch U-Net (``model.methods.munet_blocks``: a radiance
+and a guiding branch) gives three scales of features; from them, 3x3 feature-affinity kernels upscale-filter the
+colour and the albedos, predicted weights accumulate both with their histories, and a partitioning pyramid
+denoises the demodulated result, which is composed back and blended with the previous output. Renderers without
+``specular_albedo`` or ``roughness`` get 0 and 1 for them. The steps, the choices the paper leaves open and the
+loss: docs/methods.md, "model.methods.munet".
 """
 
 from __future__ import annotations

@@ -1,31 +1,14 @@
 """Building blocks of MUNet (Kazmierczyk et al. 2025, seed paper 000): the multi-branch U-Net feature extractor
 and the pieces of its filtering stage that are not shared ops.
 
-Network (paper Sec. 3.3):
-
-- Two branches run side by side: a *radiance* branch for the noisy colour (and the radiance history) and a
-  smaller *guiding* branch for the noise-free, aliased guide buffers. In every layer the guiding branch's output
-  features multiply the residual of the radiance branch ("merged into the radiance branch per layer through an
-  element-wise multiplication"; a 1x1 convolution matches the channel counts when they differ).
-- MConvRes (:class:`MultiBranchLayer` with ``partial=False``) uses full 3x3 convolutions; it serves the first
-  encoder and the last decoder layer, which see low-level image detail. MPConvRes (``partial=True``) convolves only
-  the first half of the channels (:class:`PartialConv2d`, after FasterNet's PConv) and serves all inner layers.
-- Three encoder and three decoder layers. Downsampling (the input layer too) is a 2x2 convolution with stride 2;
-  decoders upsample with 2x nearest-neighbour interpolation and merge the encoder skip with a 1x1 convolution.
-  Each decoder layer's output is one scale of the multi-scale features ``(F_r^l, F_g^l)``, l = 0 (finest) .. 2.
-  ReLUs sit inside the residual units only: the paper leaves their placement out of its figure, and a ReLU after
-  the (non-negative-input) downsampling and merge convolutions left whole channels dead in the small presets.
-
-Filtering primitives (paper Sec. 3.4):
-
-- :func:`affinity_kernel_logits`: the "3x3 Gaussian filters derived from per-pixel feature vectors": the weight
-  of tap q for pixel p is a Gaussian of the feature distance, ``exp(-a(p) ||f(p) - f(q)||^2 + c(q))``, with a
-  per-pixel bandwidth a and a per-tap confidence c (Isik et al. 2021, whom the paper cites for this idea).
-- :func:`partitioning_pyramid_filter`: the partitioning-pyramid denoiser (Balint et al. 2023): per-pixel weights
-  split the image into L partitions, partition l is filtered at 1/2^l resolution with its own kernels, and the
-  filtered levels are summed coarse to fine.
-- :func:`sinusoidal_encoding`: the Transformer's sinusoidal embedding, applied to the per-pixel accumulated
-  sample count.
+The network (paper Sec. 3.3) runs a *radiance* branch for the noisy colour and a smaller *guiding* branch for the
+noise-free guides side by side; in every layer the guiding features multiply the radiance branch's residual.
+Outer layers use full 3x3 convolutions (:class:`MultiBranchLayer`, ``partial=False``), inner ones convolve half
+the channels (:class:`PartialConv2d`, after FasterNet's PConv); three encoder and three decoder layers give the
+three feature scales. ReLUs sit inside the residual units only: one after the downsampling and merge convolutions
+left whole channels dead in the small presets. The filtering primitives (paper Sec. 3.4) are
+:func:`affinity_kernel_logits`, :func:`partitioning_pyramid_filter` and :func:`sinusoidal_encoding`. In detail:
+docs/methods.md, "model.methods.munet_blocks".
 """
 
 from __future__ import annotations

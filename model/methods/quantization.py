@@ -1,31 +1,14 @@
 """Int8 quantization of a convolutional network: quantization-aware training (QAT) and a real int8 CPU path.
 
-Tooling: PyTorch's eager-mode quantization (``torch.ao.quantization``) with the ``x86`` backend. A network that
-wants it is written with ``QuantStub`` / ``DeQuantStub`` around its quantized region, one
-``FloatFunctional`` per concatenation, and convolutions followed by ReLUs as ``nn.Sequential(conv, relu)``
-pairs (``conv_relu``). Then:
-
-- ``prepare_qat`` fuses every such pair and swaps in fake-quantized modules: training runs in float32 but
-  rounds weights and activations as int8 inference will (straight-through gradients);
-- ``convert_to_int8`` swaps those for real quantized modules: convolutions run in int8 (fbgemm / oneDNN
-  kernels), quantized tensors flow between them, pooling and bilinear resizing work on them directly.
-
-Quantization scheme (JNDS paper, Sec. 3.2.6): weights per output channel, symmetric, range = the largest
-magnitude (``MovingAveragePerChannelMinMaxObserver``); activations per tensor, affine. The paper trains the
-activation thresholds with a straight-through estimator; here they follow a moving average of the observed
-min / max, PyTorch's standard QAT observer (no private API involved). Activations use 7 bits
-(``reduce_range``, the x86 default): without VNNI, int8 GEMMs multiply u8 x s8 pairs into saturating int16
-sums, which full 8-bit activations can overflow; this machine has AVX2 only.
-
-Why eager mode rather than PT2E (``torch.export`` + ``X86InductorQuantizer``): PT2E graphs are fast only once
-``torch.compile`` (Inductor, a C++ toolchain at run time, one compilation per input shape) lowers them to
-fused int8 kernels; uncompiled they run quantize / dequantize around float convolutions and are slower than
-float32. Eager mode gives int8 convolutions straight away for any frame size, and the same module serves float
-training, QAT and int8 inference. ``torch.ao.quantization`` prints deprecation notices (its authors point to
-torchao) but is present and working in torch 2.13; ``quiet_quantization_warnings`` keeps them out of logs.
-
-Submodules whose ``qconfig`` is None before ``prepare_qat`` stay float32: JNDS keeps its kernel-weight heads
-there, because per-tensor int8 outputs would round every predicted filter tap by ~1/128 of its range.
+PyTorch's eager-mode quantization (``torch.ao.quantization``, ``x86`` backend). A network that wants it wraps its
+quantized region in ``QuantStub`` / ``DeQuantStub``, uses one ``FloatFunctional`` per concatenation and writes
+convolutions followed by ReLUs as ``conv_relu`` pairs; ``prepare_qat`` then fuses the pairs and swaps in
+fake-quantized modules, and ``convert_to_int8`` swaps those for real int8 ones. Weights are per output channel and
+symmetric, activations per tensor and affine, in 7 bits (``reduce_range``: without VNNI, full 8-bit activations
+can overflow the int16 sums of the u8 x s8 GEMMs). Eager mode rather than PT2E: PT2E graphs are fast only once
+``torch.compile`` lowers them, while eager mode gives int8 convolutions at once for any frame size. Submodules with
+``qconfig`` None stay float32 (JNDS's kernel-weight heads). The scheme and these choices in detail:
+docs/methods.md, "model.methods.quantization".
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ one conv + BatchNorm branch per odd size s <= k (``k=3``: the original RepVGG's 
 ``k=5``: WSKPN's variant with 5x5, 3x3 and 1x1, paper section 4.1) and an identity + BatchNorm branch when the
 block keeps its channel count. In eval mode every branch is linear (BatchNorm uses its running statistics), so
 the sum is one k x k convolution with a bias: :meth:`RepVGGBlock.reparameterize` computes it and replaces the
-branches. The extra branches over-parameterize small networks during training (WSKPN reports +0.5 dB PSNR for its
+branches. The extra branches over-parameterize small networks during training (WSKPN reports a PSNR gain for its
 6-layer net, paper table 5) at no inference cost.
 
 :func:`reparameterize` converts every block of a module in place; do it after training, before timing or serving.

@@ -1,32 +1,14 @@
 """WSKPN: real-time denoising with a weight-sharing kernel prediction network (Fan et al. 2021, seed paper 002).
 
-Per frame (paper figure 1):
-
-1. Preprocessing. The noisy radiance is demodulated by the diffuse albedo (irradiance = color / (albedo + eps),
-   section 4.2) and accumulated over time: the previous accumulated irradiance is backward-warped with the motion
-   vectors and blended in where the depth + normal geometry test passes; failed pixels restart from their 1 sample
-   (section 4.1). The blend factor is 0.2, the BMFR preprocessing the paper adopts ([KIM*19], whose dataset it
-   uses). Only the accumulated noisy input is carried over: the paper does not feed the filtered output back.
-2. Prediction. The ImportanceNet, a stack of RepVGG blocks, sees the accumulated irradiance and the guides and
-   predicts, per pixel, one importance logit per kernel size (3, 5, ..., 13, section 5.3) and one fusion logit per
-   size.
-3. Reconstruction. Each importance map defines a weight-sharing kernel (eq. 3-4) applied to the HDR accumulated
-   irradiance; the six results are blended with the softmax of the fusion logits (eq. 5). This is
-   ``model.ops.splat.weight_sharing_fused``, which never builds k*k kernel maps. The result is remodulated by the
-   albedo. At scale 2 the render-resolution result is upscaled bicubically ("WSKPN + bicubic").
-
-Network inputs (11 channels): log(1 + accumulated irradiance), albedo, normal mapped to [0, 1], depth divided by
-its per-frame maximum, and the accumulated sample count divided by its cap. The paper feeds gamma-corrected LDR
-color; irradiance is HDR and, once divided by a dark albedo, often far above 1, where a gamma curve clipped to
-[0, 1] would make every bright pixel and firefly look the same; log(1 + x) keeps them apart while compressing the
-range. Irradiance rather than the modulated color is what the predicted kernels filter, so the network sees the
-noise it has to remove (the albedo is an input too, so the modulated color is one product away). The sample count
-(not in the paper) tells the network where accumulation restarted and the input is still 1-sample noisy.
-
-Presets (``PRESETS``): "s" and "m" are the paper's 3- and 6-layer ImportanceNets (figure 2: widths 14, a last
-layer of 12 = 6 importance + 6 fusion maps, RepVGG blocks with 5x5/3x3/1x1 branches, all at full resolution);
-"xs" and "l" are a smaller and a larger U-Net of 3x3 RepVGG blocks (downsampling buys a wide receptive field
-cheaply on a CPU). Call :meth:`WSKPN.reparameterize` before inference: every block becomes one convolution.
+Per frame (paper figure 1): the noisy radiance is demodulated by the diffuse albedo and accumulated over time where
+the depth + normal test passes (BMFR's preprocessing, blend 0.2); the ImportanceNet, a stack of RepVGG blocks,
+predicts per pixel one importance and one fusion logit per kernel size (3, 5, ..., 13); each importance map defines
+a weight-sharing kernel on the accumulated irradiance, the six results are blended by the fusion softmax
+(``model.ops.splat.weight_sharing_fused``) and remodulated; at scale 2 the result is upscaled bicubically. The
+network reads log(1 + irradiance), not the paper's gamma-corrected LDR colour, so bright pixels and fireflies stay
+apart. Presets "s" and "m" are the paper's ImportanceNets, "xs" and "l" U-Nets of RepVGG blocks; call
+:meth:`WSKPN.reparameterize` before inference. The steps, the inputs and the presets in detail: docs/methods.md,
+"model.methods.wskpn".
 """
 
 from __future__ import annotations
