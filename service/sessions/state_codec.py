@@ -10,13 +10,11 @@ whatever the precision: methods test it against thresholds to decide where histo
 flips that decision at the pixels near the threshold (a few of a 1080p frame's two million), where the output then
 differs by the whole history rather than by a rounding. Bool tensors are bit-packed. Each payload is
 zlib-compressed (level 1) when a 4 kB probe of it saves at least three quarters: masks, counters and constant
-planes shrink by 95% and more for next to nothing, while float planes save 13-65% at 45-100 MB/s of zlib on this
-CPU (the fused model's 1080p history: 1.6 s of zlib to save 35 of 100 MB; a 128x128 MUNet history: 12 ms of a 60 ms
-frame), when writing those bytes to a local Redis takes a few milliseconds per 10 MB, so those are left raw.
-A stream's history keeps its layout from frame to frame, and a plane that did not compress last frame rarely does
-the next, so a ``CompressionMemo`` carried between one stream's encodes skips the probe for such a plane (it is
-probed again after ``reprobe_every`` encodes without one); skipping them halved a 128x128 WSKPN history's
-encode. What the memo decides changes only the size of the bytes, never what they decode to.
+planes shrink to almost nothing, while float planes save little for zlib time that costs more than writing the raw
+bytes to a local Redis, so those are left raw. A plane that did not compress last frame rarely does the next, so a
+``CompressionMemo`` carried between one stream's encodes skips the probe for such a plane (it is probed again after
+``reprobe_every`` encodes without one). What the memo decides changes only the size of the bytes, never what they
+decode to.
 
 Decoding gives every tensor back with its original dtype and shape; bytes that are not a state this module
 wrote raise ``StateFormatError`` naming what is wrong.
@@ -115,8 +113,7 @@ def _compressed(raw: bytes, key: tuple, memo: CompressionMemo | None) -> tuple[b
 
 def _worth_compressing(raw: bytes) -> bool:
     """Whether a probe of the first ``_PROBE_BYTES`` compresses by ``_MIN_SAVING``: compressing a whole 1080p
-    float plane only to throw the result away cost seconds, and a 1 MB probe of each of a 128x128 MUNet history's
-    tensors 30 ms a frame."""
+    float plane only to throw the result away is slow, and so is a large probe of every tensor every frame."""
     if len(raw) <= _PROBE_BYTES:
         return True
     probe = raw[:_PROBE_BYTES]

@@ -1,56 +1,16 @@
 """Inference sessions: a registered model plus one stream's temporal history, kept between frame requests.
 
-A session runs ``method.step(frame, state)`` once per posted frame, carrying ``state`` (the method's history)
-from frame to frame exactly as training and evaluation do, so a stream sent frame by frame gives what the method
-gives in process.
+A session runs ``method.step(frame, state)`` once per posted frame, carrying ``state`` from frame to frame exactly as
+training and evaluation do, so a stream sent frame by frame gives what the method gives in process. Frames come in
+``frame_index`` order (a gap restarts the history or is refused, by ``on_gap``; a step backwards is refused), at the
+render resolution of the first frame since the last reset.
 
-Frame order. The first frame (or the first after a reset) starts the history at any ``frame_index``. Then:
-index == next -> continue; index > next (frames were skipped) -> the history is dropped and restarted
-(``on_gap="reset"``) or the frame refused (``on_gap="reject"``, ``FrameRejected`` "frame_gap"); index < next
-(a repeat or a step backwards) -> refused ("frame_out_of_order"). A frame flagged ``camera_cut`` continues the
-index sequence but the method drops its history itself (``drop_history``), as in training. Every frame of a
-session has the render resolution of the first frame since the last reset ("resolution_mismatch" otherwise).
-
-Where sessions live. In memory (the loaded method, its state tensors on ``settings.session_device``) and in
-Redis, one hash per session at ``denoiser:session:<id>``: ``meta`` (JSON: model, counters, timestamps, a
-``revision`` bumped by every change), ``state_chunks`` (how many) and ``state.0``, ``state.1``, ... (the state
-tensors as ``service.sessions.state_codec`` bytes, float16 by default (``session_history_precision``), cut into chunks of
-``STATE_CHUNK_BYTES`` so a 1080p history stays far below Redis's 512 MB value limit). The key is replaced whole,
-in one transaction, with its TTL set to the session TTL, and read whole, in one command, so Redis always holds a
-matching pair (a history and the frame index it continues at), never one without the other:
-
-- a restarted API process finds each live session in Redis and continues it from its last mirrored frame;
-- Redis is the record of which sessions exist: a key that expired or was deleted ends the session;
-- a memory copy older than Redis (another API process served the session) is reloaded before use: a frame's
-  step starts on the memory copy while Redis's metadata is read, and is run again on the reloaded copy if
-  Redis holds a newer revision (so the read, which queues behind the previous frame's mirror write in Redis,
-  is off the frame's critical path).
-
-When the mirror is written. Creating and resetting a session write Redis before they answer (a reset lost in a crash
-could let the old history meet the new stream). A frame's mirror is written off the request's critical path: each
-session has a background writer (tasks of a small thread pool of one torch thread each, one write at a time per
-session, always the newest revision handed to it) that serializes the state and writes it; the API starts it once
-the frame's response is sent, or the session's next frame does. That frame does not wait for it: its step runs while
-the history is serialized and written (a step never changes the state it is given, which a test holds every method
-to), and the frame waits for the write to land before it is answered; a reset or delete waits for the write first.
-So Redis is at most one frame behind memory, the frame in flight, and a large history's write (a 1080p one takes a
-few hundred milliseconds) overlaps the next step instead of preceding it. Closing the store (the API's shutdown)
-waits for every pending write, so a clean restart loses nothing. If the process dies between answering frame N and
-its mirror landing, the restarted process holds the session as it was after frame N - 1 and expects frame N: the
-client's next frame, N + 1, is a gap under the frame-order rules (history restarted with ``on_gap="reset"``, 409
-"frame_gap" with ``on_gap="reject"``), and resending frame N continues exactly. A restored history is never paired
-with a frame it does not precede. For the same reason the frames of one session belong on one API process: another
-process reading Redis in that window sees the same one-frame lag.
-
-Expiry: a session idle (no frame, reset or creation) for ``session_ttl_seconds`` is gone, in memory and in Redis.
-Loaded methods are shared by every session of the same model version (one copy of the weights), run in their
-``for_inference`` form under ``torch.inference_mode`` (histories are then inference tensors, only ever read outside
-it). Frames of one session are serialized by a per-session lock; different sessions run concurrently, except that
-every step, weight load and history restore runs on the store's session torch threads (``service.sessions.torch_thread``: one
-OpenMP team each, not one per request thread); on a CPU each step uses every core, so running two at once would gain
-nothing. Stream frames are read into tensors (``read_frame``) and histories serialized for Redis on threads of one
-torch thread each (no OpenMP team), beside the steps. If Redis is unreachable, sessions keep working from memory (a
-warning is logged, by the background writer for frames) but cannot survive a restart meanwhile.
+Sessions live in memory and are mirrored to Redis (one hash per session: its metadata and its state as
+``service.sessions.state_codec`` chunks, replaced whole in one transaction), so a restarted API process continues each
+live session from its last mirrored frame, and Redis is the record of which sessions exist. A frame's mirror is
+written by a background writer while the next step runs: Redis is at most one frame behind memory. Every step,
+weight load and history restore runs on the store's torch threads (``service.sessions.torch_thread``). The frame
+rules, the mirror's timing and what a crash loses: docs/architecture.md, "service.sessions.store".
 """
 
 from __future__ import annotations
@@ -620,7 +580,7 @@ class SessionStore:
             batch = FrameBatch.from_bundles([frame], scale=None, device=self.device)
             dtype, checked = torch.float32, False
         batch, sanitized = (batch, SanitizeReport(frames=batch.batch_size)) if checked else sanitize_frame(batch)
-        with torch.inference_mode():  # 2-3% faster steps than no_grad (no view or version tracking)
+        with torch.inference_mode():  # faster steps than no_grad (no view or version tracking)
             start = time.perf_counter()
             output, state = method.step(batch, state)
             if output.device.type == "cuda":

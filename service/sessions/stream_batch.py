@@ -2,8 +2,8 @@
 
 The reference reading of a stream frame is model.layouts.read_bundle_buffers (what a POSTed EXR of the ``denoiser``
 layout goes through in a live session) followed by FrameBatch.from_bundles: NumPy, and shaped for EXR files, so
-the message's planar arrays are turned to (H, W, C) float32 and back to (C, H, W). At 128x128 that round trip and
-its checks cost about 1 ms a frame, a fifth of the fastest model's step. ``stream_frame_batch`` builds the same
+the message's planar arrays are turned to (H, W, C) float32 and back to (C, H, W), a round trip whose cost is a
+good part of the fastest model's step at small sizes. ``stream_frame_batch`` builds the same
 batch from the planes in torch: the float16 -> float32 cast, the ``denoiser`` layout's one conversion (no normal
 where nothing is hit) and, as the clean-frame test, the two checks a sanitizable frame is still held to (unit-length
 normals where depth > 0; diffuse + specular == color). A frame that is not clearly clean by them (a normal to

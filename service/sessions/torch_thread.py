@@ -4,11 +4,9 @@ Why dedicated threads: torch's CPU kernels parallelize with OpenMP (libgomp), an
 threads for every thread that has run a parallel region. The API answers requests on a pool of threads (anyio's),
 so each request thread that steps a model grows a team of its own; once the process holds more OpenMP threads
 than cores, libgomp stops spinning its idle workers (throttled waits) and every small parallel region, such as
-the hundreds of element-wise ops in one denoiser step, pays for waking them. Measured on the 2-core development
-machine (torch 2.13): ``addcmul_`` on 3x256x256 floats takes 18 us from the only thread that runs torch and
-52-66 us once a second thread has a team; a ``jnds:xs`` step at 128x128 -> 256x256 takes 21 ms on one thread
-and 37-45 ms when request threads run it. Sending every tensor operation of the sessions through a fixed set of
-``workers`` threads of ``num_threads`` torch threads each keeps the process at ``workers x num_threads`` OpenMP
+the hundreds of element-wise ops in one denoiser step, pays for waking them, and a step run from request threads
+is much slower than the same step on one thread. Sending every tensor operation of the sessions through a fixed set
+of ``workers`` threads of ``num_threads`` torch threads each keeps the process at ``workers x num_threads`` OpenMP
 threads, a budget the deployment chooses (DENOISER_SESSION_WORKERS, DENOISER_SESSION_THREADS).
 
 Why more than one: with a single thread one slow frame (a large resolution, a large model) stalls every other
@@ -77,8 +75,7 @@ def set_own_torch_threads(num_threads: int) -> None:
 
     torch applies the process's last ``set_num_threads``, whichever thread made it, to a thread the first time
     that thread asks for its count (its first parallel op does), so a session thread of 2 whose first step came
-    after a frame reader of 1 started stepped on one thread (a 1080p fused step 20% slower). Asking first ends
-    that first time here."""
+    after a frame reader of 1 started stepped on one thread. Asking first ends that first time here."""
     torch.get_num_threads()
     torch.set_num_threads(num_threads)
 

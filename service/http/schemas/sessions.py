@@ -33,7 +33,7 @@ class SessionIn(BaseModel):
     alias: str | None = Field(None, min_length=1, description="alias, e.g. champion; not with version")
     on_gap: OnGap = Field("reset", description="a frame_index past the next expected one: 'reset' restarts the "
                                                "history (X-History: reset-gap), 'reject' answers 409 frame_gap")
-    # model "auto" only (README, "Right-sizing"):
+    # model "auto" only (docs/service.md, "Choosing the model: auto"):
     max_ms_per_frame: float | None = Field(None, gt=0, allow_inf_nan=False,
                                            description="auto: the version's recorded ms_per_frame must be at most "
                                                        "this; alone, the best validation PSNR within it wins")
