@@ -5,28 +5,15 @@ An engine calls the exported graph once per frame::
     output, state_out.* = step(color, albedo, normal, depth, motion, jitter, [optional buffers],
                                [spatial_estimate], state.*)
 
-- inputs are the frame bundle's buffers at render resolution, NCHW float32 with N = 1 (``color`` (1, 3, H, W),
-  ``depth`` (1, 1, H, W), ``motion`` (1, 2, H, W), ``jitter`` (1, 2)); ``diffuse``, ``specular``,
-  ``specular_albedo`` and ``roughness`` only when exported ``with_optional`` (every method runs without them);
-- ``state.NAME`` are the method's history tensors, fed back from the previous frame's ``state_out.NAME``. On the
-  first frame and after a camera cut, pass zeros of the recorded shapes: a zeroed history is the methods' own "no
-  history" (``model.methods.base.drop_history`` zeroes it at a cut), so the first output is what ``step`` gives
-  without a state (the tests check both within the tolerance below);
-- the resolution is fixed at export (``height`` x ``width``); the output is (1, 3, H * scale, W * scale).
-
-Methods with a spatial prior (the fused family: OIDN, then the learned fusion) cannot be exported whole: OIDN is a
-native library, not torch operations. Their network part is exported, with OIDN's output at render resolution
-(linear radiance) as one more input, ``spatial_estimate``: the engine runs OIDN (quality = the preset) itself.
-Methods that are OIDN alone or OIDN + TAA have no network to export, and int8 JNDS runs eager-mode quantized
-modules that neither exporter takes: both are refused with ``ExportError`` saying so.
-
-Accuracy: ``check_export`` runs the exported file (onnxruntime) and the method over the same frames with the history
-carried and returns the largest difference; exports pass when it is within ``TOLERANCE`` (absolute 1e-4 + relative
-1e-4 of the reference's magnitude).
-
-TorchScript is not offered: the shared kernel ops are custom autograd functions (``model.ops.kernels``,
-``model.ops.splat``) that ``torch.jit.trace`` cannot record, and ``torch.jit.script`` does not take the methods'
-Python; ONNX goes through ``torch.export``, which traces into them. ``UNSUPPORTED_FORMATS`` says so.
+Inputs are the frame bundle's buffers at render resolution, NCHW float32 with N = 1 (optional buffers only when
+exported ``with_optional``); ``state.NAME`` is fed back from the previous frame's ``state_out.NAME``, zeros of the
+recorded shapes on the first frame and after a cut (a zeroed history is the methods' own "no history"). The
+resolution is fixed at export. Methods with a spatial prior (the fused family) are exported without OIDN, a native
+library: the engine runs OIDN itself and passes its output as ``spatial_estimate``. OIDN alone, OIDN + TAA and int8
+JNDS have nothing the exporter takes and are refused with ``ExportError``. ``check_export`` runs the file
+(onnxruntime) beside the method with the history carried and passes within ``TOLERANCE``. TorchScript is not
+offered (``UNSUPPORTED_FORMATS`` says why): the shared kernel ops are custom autograd functions that
+``torch.jit.trace`` cannot record, and ONNX goes through ``torch.export``, which traces into them.
 """
 
 from __future__ import annotations

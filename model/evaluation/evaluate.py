@@ -1,4 +1,4 @@
-"""The benchmark protocol (DESIGN.md): quality and speed of methods on whole sequences of a dataset split.
+"""The benchmark protocol (docs/evaluate.md): quality and speed of methods on whole sequences of a dataset split.
 
 Every method is driven as in inference (``method.step`` frame by frame, history carried, inputs sanitized outside
 the timed step) and scored per frame and per sequence; ``step`` alone is timed (``model.evaluation.timing``), with OIDN-high

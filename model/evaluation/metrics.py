@@ -1,4 +1,4 @@
-"""Image and video quality metrics of the benchmark protocol (DESIGN.md, "Benchmark protocol").
+"""Image and video quality metrics of the benchmark protocol (docs/evaluate.md).
 
 Per frame, on batches of (N, 3, H, W) linear HDR radiance (output and reference at the same resolution):
 

@@ -1,35 +1,19 @@
 """The frame bundle: the one data format every part of the project speaks, and its conventions.
 
-A frame bundle is one path-traced frame at render resolution (1 sample per pixel) with its auxiliary
-buffers, plus, for training and evaluation data, converged references at one or more target resolutions.
-Arrays are NumPy, height x width x channels (HWC), float32; one-component buffers are (H, W).
+A frame bundle is one path-traced frame at render resolution (1 sample per pixel) with its auxiliary buffers,
+plus, for training and evaluation data, converged references at one or more target resolutions. Arrays are NumPy,
+height x width x channels (HWC), float32; one-component buffers are (H, W). The conventions, exactly (data from
+other renderers is converted to them):
 
-Conventions, exactly (data from other renderers must be converted to these):
+- image coordinates are continuous, origin at the top-left corner of pixel (0, 0), x right, y down;
+- the frame's one sample in pixel (x, y) lies at (x + 0.5 + jitter_x, y + 0.5 + jitter_y), jitter in [-0.5, 0.5];
+- ``motion`` = (position in frame t-1's unjittered image of the surface this frame's sample hit) minus (this frame's
+  sample position), in render pixels, so ``prev = p + motion``;
+- references are box-filtered pixel averages at the target resolution (the scale-1 one the 2x2 mean of the scale-2
+  one when both exist, ``box_downsample``); ``depth`` is the distance along the ray, ``normal`` world space.
 
-- Image coordinates are continuous, origin at the top-left corner of pixel (0, 0), x right, y down;
-  pixel (x, y) covers [x, x+1) x [y, y+1).
-- The frame's one sample in pixel (x, y) lies at (x + 0.5 + jitter_x, y + 0.5 + jitter_y): the same offset
-  for every pixel of the frame (TAA-style jitter, e.g. Halton(2, 3) of frame index + 1, minus 0.5), with
-  jitter_x, jitter_y in [-0.5, 0.5].
-- ``motion`` at pixel (x, y) = (position in frame t-1's image of the surface point that this frame's sample
-  hit) minus (this frame's sample position), in render-resolution pixels, so ``prev = p + motion``.
-  Frame t-1's image position is its unjittered projection (the projection itself does not move).
-- References are box-filtered pixel averages at the target resolution, (H * s, W * s) for scale s; the
-  scale-1 reference is the 2x2 mean of the scale-2 one when both exist (``box_downsample``).
-- ``reference_albedo`` / ``reference_specular_albedo`` (optional) are the box-filtered (pixel-average)
-  ``albedo`` / ``specular_albedo`` at the target resolution, with the same definitions as the 1spp guides
-  averaged over each target pixel's area; they exist only at scales that also have a radiance reference.
-- ``depth`` = Euclidean distance from the camera centre to the first hit along the primary ray; 0 where the
-  ray hits nothing.
-- ``normal`` = world-space shading normal at the first hit, unit length where depth > 0, (0, 0, 0) where
-  nothing is hit.
-- ``albedo`` = diffuse albedo in [0, 1]; ``specular_albedo`` = approximate specular reflectance in [0, 1];
-  ``roughness`` in [0, 1] (1 for purely diffuse surfaces).
-- ``color`` is noisy linear HDR radiance >= 0; ``diffuse`` / ``specular`` split the same 1spp color by the
-  lobe sampled at the first hit, so diffuse + specular == color.
-
-``BUFFERS`` describes every buffer once (EXR channel names, required or not, value range); the EXR reader
-and writer and the validator all work from it.
+Every buffer's meaning and range: docs/frame-format.md. ``BUFFERS`` describes every buffer once (EXR channel names,
+required or not, value range); the EXR reader and writer and the validator all work from it.
 """
 
 from __future__ import annotations
@@ -408,7 +392,7 @@ def _check_range(spec: BufferSpec, array: np.ndarray, source: str) -> None:
 
 
 def normal_lengths(normal: np.ndarray) -> np.ndarray:
-    """|n| per pixel of (H, W, 3) normals: 2.7x faster than np.linalg.norm(axis=2), which every live frame pays
+    """|n| per pixel of (H, W, 3) normals: faster than np.linalg.norm(axis=2), which every live frame would pay
     twice (the lossy-normal repair and this check)."""
     return np.sqrt(np.einsum("ijk,ijk->ij", normal, normal))
 

@@ -11,32 +11,14 @@ A layout is a mapping (a TOML or JSON file, or one of ``model.layouts.builtin``)
     [channels]                             # frame-bundle buffer -> EXR channel names, in component order
     color = ["R", "G", "B"]
     normal = [["N.X", "N.Y", "N.Z"], ["N.R", "N.G", "N.B"]]   # alternatives: the first one present is used
-    depth = ["Z"]
-    motion = ["motion.X", "motion.Y"]
 
-    [motion]
-    points_to = "previous"      # the vector goes from this frame's position to the previous frame's ("previous",
-                                # the frame bundle's) or from the previous frame's to this one's ("current")
-    units = "pixels"            # or "ndc": -1..1 across the image (2 units = the width, or the height)
-    y = "down"                  # or "up": positive y points up the image
+    [motion]   points_to, units, y          # the vector's direction, pixels or ndc, y down or up
+    [depth]    kind, no_hit_at_or_above, fov_y_degrees / fov_y_attribute
+    [normal]   space, view_matrix_attribute
+    [sample]   jitter, jitter_attribute, frame_index_attribute
 
-    [depth]
-    kind = "ray"                # "ray": distance from the camera centre; "planar": along the view axis
-    no_hit_at_or_above = 1e9    # values this large (+Inf too) mean "nothing hit" (Cycles writes 1e10)
-    fov_y_degrees = 40.0        # planar depth needs the vertical field of view: here, in a header
-    fov_y_attribute = "fovY"    # attribute (degrees), or an option of the import
-
-    [normal]
-    space = "world"             # or "view": turned to world space with the header's 4x4 worldToCamera matrix
-    view_matrix_attribute = "worldToCamera"
-
-    [sample]
-    jitter = "header"           # "header": the 'jitter' attribute (required); "centre": every sample at the
-                                # pixel centre (jitter 0); "header-or-centre": the attribute if present, else 0
-    jitter_attribute = "jitter"  # 2 floats, or text holding "jitter=X,Y" (Blender's metadata note)
-    frame_index_attribute = "frame_index"
-
-Every problem with a layout is a LayoutError naming the layout, the key and what is allowed.
+Every key, its values and an example file: docs/frame-format.md, "Layout files". Every problem with a layout is a
+LayoutError naming the layout, the key and what is allowed.
 """
 
 from __future__ import annotations

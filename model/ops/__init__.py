@@ -13,7 +13,7 @@ One concern per module:
 - ``rectify``: history rectification (neighbourhood clamp, variance clip);
 - ``stale_history``: a test of a reprojected history against the 1 spp frame's unbiased samples.
 
-Coordinate and motion conventions are spelled out in ``warp``'s docstring (and DESIGN.md).
+Coordinate and motion conventions are spelled out in ``warp``'s docstring (and docs/frame-format.md).
 """
 
 from model.ops.accumulate import accumulate, accumulate_moments, update_count

@@ -1,9 +1,8 @@
 """Box filters over each pixel's k x k window, from sums of shifted slices: the one place for them.
 
-CPU torch does not optimise stride-1 average pooling: a 9 x 1 window over a 128 x 128 frame of 3 channels takes
-0.8 ms on this machine, while adding two such frames takes 0.004 ms. So every box filter here is a separable sum of
-shifted slices, 3-6x faster than pooling (README, "Where the 2x step's time goes"), without a summed-area table's
-float32 cancellation (a running sum across a 1920-wide HDR row loses ~1e-7 of its total).
+CPU torch does not optimise stride-1 average pooling, while adding whole frames is cheap. So every box filter here
+is a separable sum of shifted slices, faster than pooling, without a summed-area table's float32 cancellation (a
+running sum across a 1920-wide HDR row loses ~1e-7 of its total).
 
 - ``box_sum``: the window's sum, zeros outside the image (WSKPN's weight-sharing filter; its backward is itself);
 - ``box_mean``: the mean of the part of the window inside the image (avg_pool2d with count_include_pad=False; the
@@ -11,7 +10,7 @@ float32 cancellation (a running sum across a 1920-wide HDR row loses ~1e-7 of it
 - ``replicated_box_mean``: the mean with the image's edge pixels repeated past the border (the rectification's
   moments);
 - ``replicated_box_extremes``: the window's max and min, edges repeated the same way (the rectification's clamp, the
-  bounds of the fused 2x resample; 10x faster than a stride-1 3x3 ``max_pool2d``).
+  bounds of the fused 2x resample; faster than a stride-1 3x3 ``max_pool2d``).
 
 Means over non-overlapping blocks are downsampling, not a window per pixel: ``model.ops.pyramid.block_mean``.
 """
@@ -27,7 +26,7 @@ __all__ = ["box_mean", "box_sum", "replicated_box_extremes", "replicated_box_mea
 def _window_sums(values: torch.Tensor, size: int, dim: int) -> torch.Tensor:
     """Sums of ``size`` consecutive entries along ``dim`` (length L - size + 1), by doubling: sums of 1, 2, 4, ...
     entries, then one of each binary digit of ``size``, so a 33-entry window takes 6 additions instead of 32 (a
-    linear loop of them cost `fused-high-x1` 5-7 ms a frame with its two 33-pixel regional tests)."""
+    linear loop of them was a visible part of a fused step with the regional stale-history tests)."""
     if size == 1:
         return values.clone()  # a new tensor, as for every other size (never a view of the input)
     out_length = values.shape[dim] - size + 1

@@ -11,7 +11,7 @@ this one averages the unbiased samples. Per pixel, with ``count`` the frames the
 so a mean that the new samples contradict (a moving light) restarts, as does one the geometry test rejects.
 ``spread`` is how much reading the mean into this frame blurred it (``model.ops.warp.bilinear_spread``, 0 where
 nothing moved): a mean resampled at half a pixel every frame piles up that blur, which OIDN cannot undo, so there it
-keeps only as many frames as the blur is worth (README, "The mean where the camera moves").
+keeps only as many frames as the blur is worth.
 
 The frame may carry more channels after its three colour ones: the guides of the same samples (albedo, normals).
 They are averaged with the same weights, since OIDN asks for guides that cover the same samples as the colour;
@@ -27,8 +27,7 @@ from model.ops.warp import bilinear_spread
 
 __all__ = ["JITTERED_SPREAD_SHARE", "sample_mean_spread", "update_sample_mean"]
 
-# Chosen on the validation recipes (jittered) and Blender Cycles' frames (no jitter): README, "The mean where the
-# camera moves".
+# Chosen on the validation recipes (jittered) and Blender Cycles' frames (no jitter).
 JITTERED_SPREAD_SHARE = 0.5
 
 

@@ -17,8 +17,7 @@ region the evidence adds up: where nothing changed each z is about as likely sma
 square stays near 1, while a light that moved lifts the z of most windows in reach, whatever the sign of each
 change. ``regional_z`` is that root mean square over a wider window, each z capped at ``REGION_Z_CAP`` first so that
 a few windows far off (a visible lamp that moved: z in the tens) cannot speak for the whole region; a region whose
-z's are too large as a whole distrusts its history even where no single window is sure (README, "The regional
-stale-history test").
+z's are too large as a whole distrusts its history even where no single window is sure.
 """
 
 from __future__ import annotations
@@ -34,7 +33,7 @@ __all__ = ["stale_history_z", "history_trust", "regional_z", "stale_history_trus
 RELATIVE_FLOOR = 0.02  # a 2% change of the mean is never significant: references and history carry that much
 # A region's root mean square z past this is a change. Where nothing changed it sits near 1, a little under (the
 # floor above shrinks small z's); chosen with a 33-pixel region on the validation split and the seed-8 moving-light
-# renders (README, "The regional stale-history test").
+# renders.
 REGION_SIGMAS = 1.2
 REGION_Z_CAP = 4.0  # no window counts for more than this in its region's root mean square (chosen with it)
 

@@ -49,7 +49,7 @@ def log_tonemap_inverse(y: torch.Tensor) -> torch.Tensor:
 
 
 def display_encode(x: torch.Tensor) -> torch.Tensor:
-    """Benchmark-protocol LDR image: ``clip(x, 0, 1) ** (1 / 2.2)`` (DESIGN.md), on which PSNR/SSIM/FLIP run.
+    """Benchmark-protocol LDR image: ``clip(x, 0, 1) ** (1 / 2.2)`` (docs/evaluate.md), on which PSNR/SSIM/FLIP run.
 
     Values are exactly the formula's. The gradient is kept finite at 0 (where ``x ** (1/2.2)`` has an infinite
     slope) by routing x <= 0 through a constant branch, so the function can also sit inside a training loss.

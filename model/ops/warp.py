@@ -1,6 +1,6 @@
 """Backward warping with motion vectors, and the motion-vector preparation it needs.
 
-Conventions (DESIGN.md, fixed for the whole project):
+Conventions (fixed for the whole project; docs/frame-format.md, "Conventions"):
 
 - image coordinates are continuous, origin at the top-left corner of pixel (0, 0), x right, y down;
   pixel (x, y) covers [x, x+1) x [y, y+1) and its centre is (x + 0.5, y + 0.5);
@@ -8,8 +8,8 @@ Conventions (DESIGN.md, fixed for the whole project):
   surface point in the previous frame minus its position in this frame, so the previous frame is read at
   ``centre(p) + motion(p)`` ("backward warping": every output pixel gathers, nothing is scattered).
 
-Jitter: DESIGN.md measures motion from this frame's jittered sample position ``centre + jitter`` (and lands on the
-previous frame's unjittered projection), so the exact read position is ``centre + jitter + motion``. Every
+Jitter: the frame format measures motion from this frame's jittered sample position ``centre + jitter`` (and lands
+on the previous frame's unjittered projection), so the exact read position is ``centre + jitter + motion``. Every
 function taking ``jitter`` adds it (default none, i.e. ``centre + motion``); pass the frame's ``jitter`` header
 when reading an unjittered history, or leave it out where half a pixel does not matter.
 
@@ -117,10 +117,9 @@ def backward_warp(
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
     """``F.grid_sample(..., align_corners=False)``, with one image's output rows split over torch's threads. On the
     CPU grid_sample runs its batch items in parallel and each on one thread, so a single frame (every session's
-    step) used one core of two: 6 channels of 256x256, bicubic, took 3.8 ms, and 2.2 as two items of half the rows
-    each, reading the same image (bilinear 0.71 and 0.39). Each pixel's arithmetic is the same, so the outputs are
-    the same to the bit. Batches, other devices and exports (a graph with the machine's thread count in it) read as
-    one call."""
+    step) used one core of two; split into items of part of the rows each, reading the same image, it uses them
+    all. Each pixel's arithmetic is the same, so the outputs are the same to the bit. Batches, other devices and
+    exports (a graph with the machine's thread count in it) read as one call."""
     n, channels = image.shape[:2]
     rows, columns = grid.shape[1:3]
     parts = min(torch.get_num_threads(), rows)

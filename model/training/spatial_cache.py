@@ -1,8 +1,8 @@
 """OIDN's output per stored frame, computed once and kept: what training feeds methods built on a spatial denoiser.
 
 The `fused` family runs OIDN on every frame before its own network. In training, the same stored frames are
-cropped again and again, and OIDN on a 128x128 frame costs 20-80 ms on this CPU, more than the network's
-training step; so the full frame is denoised once, the result kept on disk, and crops take their part of it
+cropped again and again, and OIDN on a frame costs more than the network's training step; so the full frame
+is denoised once, the result kept on disk, and crops take their part of it
 (`model.data.crops`). OIDN on the full frame is also what inference computes (a crop would see other borders).
 
 The key is the frame's content (color, albedo, specular albedo, normal: what OIDN reads), OIDN's version and

@@ -1,30 +1,17 @@
 """The training engine: sequence crops unrolled through ``method.step``, Adam, checkpoints, exact resume, DDP.
 
-One step (nanoGPT-style, one ``master_process`` flag guards every log, validation and checkpoint):
+One step (nanoGPT-style, one ``master_process`` flag guards every log, validation and checkpoint): take this step's
+global batch from ``SampleStream`` (rank r of w takes every w-th sample, so w ranks see one process's batch); unroll
+each sample's T frames through ``method.step`` from ``state=None``, the state carried; ``SequenceLoss`` (SMAPE per
+frame plus L1 on the frame-to-frame change, every frame counted by default: the first is what a method outputs after
+every cut); backward, gradient clipping, Adam and the learning-rate schedule.
 
-1. Take the global batch of ``batch`` samples for this step from ``SampleStream`` (a seeded permutation per
-   epoch); rank r of w takes every w-th of them, like ``DistributedSampler``, so w ranks see the same global batch
-   as one process.
-2. Unroll the T frames of each sample through ``method.step``, carrying the recurrent state from frame to frame,
-   starting from ``state=None``.
-3. ``SequenceLoss``: SMAPE per frame plus L1 on the frame-to-frame change. Every frame counts by default,
-   the first one (no history yet) included: it is exactly what the method outputs after each camera cut and at
-   the start of every session, so it must be trained too. ``loss_skip_frames`` can leave the first k out.
-4. Backward, gradient clipping, Adam, learning-rate schedule (linear warm-up, then cosine, step or constant).
-
-Distributed training wraps the method in ``SequenceUnroll``, a module whose ``forward`` runs the whole unrolled
-sequence: DistributedDataParallel only synchronizes gradients of computations that go through the wrapped
-module's ``forward`` (it arms its gradient hooks there), and methods are driven through ``step``, not
-``forward``. Gradients are averaged over ranks, each of which averages its own samples, so w ranks with the
-global batch split evenly compute the same update as one process (to float rounding).
-
-Exact resume: ``last.pt`` in the output folder holds the model, optimizer, scheduler, step, the RNG state of
-every rank and the best validation result. Samples are a function of (seed, epoch, index) and the sample order
-a function of (seed, epoch), so a run restarted from step k sees exactly the batches an uninterrupted run sees
-from step k on, and ends with the same weights (on CPU bit-for-bit; on a GPU up to non-deterministic kernels).
-
-Tracking goes through a ``Tracker`` (the protocol below); this module never imports MLflow
-(``core.tracking.MLflowTracker`` implements it).
+DDP wraps the method in ``SequenceUnroll``, whose ``forward`` runs the whole unrolled sequence: DistributedDataParallel
+only synchronizes gradients of computations through the wrapped module's ``forward``, and methods are driven through
+``step``. Exact resume: ``last.pt`` holds the model, optimizer, scheduler, step, every rank's RNG state and the best
+validation result, and samples are a function of (seed, epoch, index), so a restarted run sees the batches an
+uninterrupted one sees and ends with the same weights (docs/training.md, "Checkpoints and resume"). Tracking goes
+through a ``Tracker``; this module never imports MLflow (``core.tracking.MLflowTracker`` implements it).
 """
 
 from __future__ import annotations
