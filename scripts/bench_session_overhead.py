@@ -7,39 +7,13 @@ WebSocket (GET /sessions/{id}/stream) against method.step in process.
     .venv/bin/python scripts/bench_session_overhead.py --url http://gpu-box:8000 --model jnds-s-x2@champion \\
         --checkpoint jnds-s.pt --api-key "$DENOISER_API_KEY"
 
-Without ``--url`` the API is started here on a free port, on a temporary data folder and MLflow store: by default
-as its own process (``uvicorn service.http.app:app``), as in a deployment, so client and server share no Python
-interpreter; ``--server thread`` runs it in a thread of this process instead (client and server then share one
-GIL, which inflates the round trip). The method (``--method`` preset with seeded random weights, or
-``--checkpoint``) is saved, registered there, and a session is opened on it by name. Timing does not depend on the
-weights. With ``--url``, the model must already be registered on that server (``--model NAME``, ``NAME/VERSION``
-or ``NAME@ALIAS``) and ``--checkpoint`` gives the same weights for the in-process side.
-
-Frames are synthetic valid frame bundles (or the first sequence of ``--data``, cycled and renumbered). The client
-is client.rest.DenoiserClient. Timed per frame, after ``--warmup`` frames, median over ``--frames``:
-
-- client encode: the frame bundle to EXR bytes (client.rest.frame_bytes, ``--compression``), or to a stream
-  message (service.sessions.stream_codec.encode_bundle, ``--stream-dtype``);
-- HTTP round trip: send_frame_raw's POST until the whole output EXR has arrived (upload, server, download);
-- WebSocket round trip: SessionStream.send of the packed message until the whole output message has arrived
-  (float32 or ``--stream-dtype`` both ways; the buffers the session's method reads, as DenoiserClient.open_stream
-  sends them, or every buffer with ``--all-buffers``);
-- server: the X-Server-Ms header (body read, EXR decode, step, EXR encode; the Redis mirror is written in the
-  background), or the output message's server_ms (unpack, step);
-- step: the X-Inference-Ms header or the output's inference_ms (method.step in the session);
-- in process: method.step on the same frames, here, with the same torch thread count, history carried;
-- bare echo (API started here only): a uvicorn app that answers each message with one of the stream's output size
-  and does nothing else, driven by the same WebSocket client with the stream's message sizes: the transport's
-  own cost on this machine, which the round trip can never go below (printed beside the stream's).
-
-They run in alternating blocks, ``--rounds`` times (HTTP stream, WebSocket stream, echoes, in-process stream, HTTP
-stream, ...; a new session and a new history each round), and each median is over every timed frame of its blocks:
-blocks, not frame-by-frame interleaving, because the server's work after answering a frame (its Redis mirror
-write) would otherwise run beside the in-process step on a 2-core machine and slow it, while a client stepping
-nothing at that moment does not feel it. Alternating still spreads slow drifts of other load over all sides.
-
-The overhead ratio is round trip / in-process step; client encode is reported beside it, not in it. Round trip /
-step in session is printed too (the same step, timed inside the server).
+Without ``--url`` the API is started here (its own process by default, ``--server thread`` in this one) on a
+temporary data folder, and the method is registered there; with ``--url`` the model must already be registered.
+Timed per frame, median over ``--frames``: the client's encode, the HTTP and WebSocket round trips, the server's
+and the step's own times (from the answers), the step in process, and a bare WebSocket echo (the transport's floor).
+The sides run in alternating blocks (``--rounds``), so the server's Redis write after a frame never runs beside the
+in-process step. The overhead ratio is round trip / in-process step. What each timing covers, and why blocks:
+docs/benchmark.md, "scripts/bench_session_overhead.py".
 """
 
 from __future__ import annotations

@@ -8,28 +8,11 @@ Needs Blender as a Python module (``pip install -e '.[blender]'``), run with the
 
 Writes OUT/frame_NNNN.exr (noisy) and OUT/references/frame_NNNN.exr as Blender writes them (multilayer EXR, one
 part per pass, channels ``ViewLayer.<Pass>.<component>``): the ``blender-cycles`` layout reads them as they are.
-Each file's metadata note (header attribute ``Note``) is ``fov_y_degrees=...``, the camera's vertical field of
-view, which turns Cycles' planar depth into distance along the ray. OUT/cameras.json records every frame's camera
-(for checks against known geometry).
-
-Why these settings:
-- Noisy frames: 1 sample, Blender's denoiser off, pixel filter width 0.01 px, so the one sample of each pixel sits
-  at the pixel centre (the layout's jitter 0); a new seed per frame (``use_animated_seed``). ``--jitter halton``
-  moves the sample by a TAA jitter per frame: the camera's shift, which slides the image plane by a fraction of the
-  sensor's side, with no change of perspective. Cycles leaves the shift out of the Vector pass, so the motion stays the
-  frame bundle's (from this frame's jittered sample to the previous frame's unjittered projection). The note then
-  reads ``fov_y_degrees=... jitter=X,Y``. References are rendered without the shift.
-- Guides: Diffuse Color (``DiffCol``) and Glossy Color (``GlossCol``) as albedos, ``Normal``, ``Depth`` and
-  ``Vector``. These are written at the first hit, so they are noise-free at 1 spp. Cycles' "Denoising Albedo" and
-  "Denoising Normal" passes follow glossy and transmissive bounces until a diffuse-ish surface, choosing a lobe at
-  random per sample, so at 1 spp they are noisy wherever a surface is glossy; they are not rendered here.
-- References: the same scene with ``--ref-spp`` samples and a 1 px box pixel filter, so each reference pixel is
-  the average over its square (the frame bundle's definition of a reference); ``--ref-scale 2`` renders them at
-  twice the resolution, which the import turns into 2x and 1x references.
-- Motion blur off: Cycles writes the Vector pass only without it.
-
-A user's own ``.blend``: its camera, objects and animation are used as they are; only the render settings above
-(engine, samples, filter, passes, resolution, output format) are changed, in memory (the file is not saved).
+Each file's metadata note (header attribute ``Note``) is ``fov_y_degrees=...`` (and ``jitter=X,Y`` with ``--jitter
+halton``). OUT/cameras.json records every frame's camera. Noisy frames take 1 sample at the pixel centre with
+Blender's denoiser off; the guides are first-hit passes, noise-free at 1 spp; references are box-filtered pixel
+averages; motion blur is off. A user's ``.blend`` keeps its camera, objects and animation: only the render settings
+change, in memory. Why each setting: docs/generating-data.md, "scripts/render_blender.py: why these settings".
 """
 
 from __future__ import annotations

@@ -6,45 +6,17 @@ load, and the held-out metrics copied from an evaluation report of the same run 
         --data data/reuse --dataset-script scripts/generate_reuse_data.sh \
         --training-script scripts/reproduce_reuse_results.sh --report docs/results/reuse_x1.json
 
---report-source is the checkpoint path as the report's row names it (default: the checkpoint argument).
 --after-shipped NAME: the checkpoint was fine-tuned from the shipped model NAME (--init-from pretrained/NAME/model.pt);
-the stages recorded in its manifest, then that model itself, are recorded before any --stage (its earlier runs need
-not exist here).
-
-    .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
-        --remeasure --report docs/results/reuse_x1.json --report-source fused-balanced-x1
-
---history-before-kernel / --history-after-kernel (fused only): ship the weights running that recurrence (the
-fused blend before the kernel as the next frame's history, or the filtered output; model/methods/fused.py); the
-weights are the checkpoint's.
-
-    .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
-        --after-shipped fused-balanced-x1 --history-before-kernel
-
---kernel-max-pixels N (fused only): ship the weights skipping their 3x3 output kernel on frames of more than N render
-pixels (the fused blend is the output there; 0: every frame filtered); the weights are the checkpoint's.
-
-    .venv/bin/python scripts/ship_pretrained.py pretrained/fused-balanced-x1/model.pt --name fused-balanced-x1 \
-        --after-shipped fused-balanced-x1 --kernel-max-pixels 32768
-
---mean-max-frames, --stale-test-sigmas, --stale-region-pixels, --sample-mean-frames, --sample-mean-trust-power and
---albedo-detail-frames (fused only; the last at 2x only), and --unjitter-estimate / --no-unjitter-estimate (fused
-only; the second at 1x only) set the other run-time settings the same way (model/methods/fused.py); the weights are
-the checkpoint's.
-
-    .venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
-        --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
-        --report-source runs/fast-sm8.pt
-
---rectify-history / --no-rectify-history (WSKPN, AFN, JNDS and MUNet only): ship the weights clipping the
-reprojected history to the current frame's neighbourhood before it is used, or not
-(model/methods/history_rectification.py); the weights are the checkpoint's.
+the stages recorded in its manifest, then that model itself, are recorded before any --stage. --remeasure: the
+checkpoint is the shipped model NAME itself, evaluated again in the report's run; only its held-out section is
+replaced. The run-time settings (fused: --history-before-kernel / --history-after-kernel, --kernel-max-pixels,
+--mean-max-frames, --stale-test-sigmas, ...; WSKPN, AFN, JNDS and MUNet: --rectify-history / --no-rectify-history)
+ship the checkpoint's weights running another setting:
 
     .venv/bin/python scripts/ship_pretrained.py pretrained/wskpn-s-x1/model.pt --name wskpn-s-x1 \
         --after-shipped wskpn-s-x1 --rectify-history
 
---remeasure: the checkpoint is the shipped model NAME itself, evaluated again in the report's run (beside newer
-models); only its held-out section is replaced, its weights and training record stay.
+Every flag: below, and docs/pretrained.md, "Maintainers: shipping a model".
 """
 
 from __future__ import annotations
