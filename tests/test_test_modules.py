@@ -65,6 +65,6 @@ def test_the_rule_sees_absolute_relative_and_module_imports_of_test_modules():
             "from tests.model import test_dataset\nimport tests.service.test_cli\n"
             "from tests.builders import make_frame\nfrom .training_fixtures import TINY_METHOD\n")
     found = {name for _, name in _from_test_modules(text, "tests.model.test_probe")}
-    assert {"tests.model.io.test_frames", "tests.model.io.test_exr", "tests.model.io.test_dataset",
+    assert {"tests.model.io.test_frames", "tests.model.test_exr", "tests.model.test_dataset",
             "tests.service.test_cli"} <= found
     assert not any(name.startswith(("tests.builders", "tests.model.training_fixtures")) for name in found)

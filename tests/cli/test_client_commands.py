@@ -47,13 +47,17 @@ def test_connection_refused_exits_2_naming_the_url(argv, capsys):
     assert f"cannot reach the denoiser service at {url}" in err and "denoiser serve" in err
 
 
-def test_url_and_key_come_from_options_then_environment(api, monkeypatch):
+def test_url_and_key_come_from_options_then_settings(api, monkeypatch):
+    from core.settings import get_settings
+
     monkeypatch.setenv("DENOISER_URL", "http://env.test:1234")
     monkeypatch.setenv("DENOISER_API_KEY", "from-env")
+    get_settings.cache_clear()
     assert main(["jobs"]) == 0
     assert main(["jobs", "--url", "http://option.test:9", "--api-key", "from-option"]) == 0
     monkeypatch.delenv("DENOISER_URL")
     monkeypatch.delenv("DENOISER_API_KEY")
+    get_settings.cache_clear()
     assert main(["jobs"]) == 0
     assert api.resolved == [("http://env.test:1234", "from-env"), ("http://option.test:9", "from-option"),
                             ("http://127.0.0.1:8000", None)]
@@ -274,7 +278,7 @@ def test_stream_takes_a_plain_folder_of_a_renderers_frames_with_its_layout(api, 
     layout.write_text(json.dumps(dict(BLENDER_CYCLES, name="mine")))
     assert main(["stream", str(BLENDER_ORBIT), "--layout", str(layout), "--model", "wskpn-xs", "--out",
                  str(tmp_path / "out2"), "--keep-session", "--transport", "http"]) == 0
-    assert next(iter(service.sessions.store.values())).layout["name"] == "mine"
+    assert next(iter(api.sessions.values())).layout["name"] == "mine"
     assert main(["stream", str(BLENDER_ORBIT), "--layout", "arnold", "--model", "wskpn-xs", "--out",
                  str(tmp_path / "out3")]) == 2
     assert "not a built-in layout" in capsys.readouterr().err
@@ -335,7 +339,7 @@ def test_worker_runs_the_celery_app_with_the_solo_pool(monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(serve_commands.os, "execv", lambda path, argv: calls.append(argv) if path == argv[0] else None)
     assert main(["worker", "--queues", "cpu,gpu", "--loglevel", "debug"]) == 0
-    assert calls == [[sys.executable, "-m", "celery", "-A", "workers.celery_app",
+    assert calls == [[sys.executable, "-m", "celery", "-A", "core.celery_app",
                       "worker", "--pool=solo", "--queues=cpu,gpu", "--loglevel=DEBUG"]]
     assert main(["worker", "--queues", "cpu,tpu"]) == 2
     assert "unknown: tpu" in capsys.readouterr().err
