@@ -1,4 +1,5 @@
-"""The scene library covers every hard case the issue names, and seeds really vary the scenes."""
+"""The scene library covers every hard case of temporal denoising it is built for (docs/generating-data.md), and seeds
+really vary the scenes."""
 
 from __future__ import annotations
 
