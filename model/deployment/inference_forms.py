@@ -1,23 +1,15 @@
 """Fast inference forms: how a method's networks run on this CPU, chosen per method and resolution by measurement.
 
-A method's ``step`` is its networks (the children that hold parameters: WSKPN's importance net, AFN's predictor
-and refinement, MUNet's features and heads, JNDS's network, the fused family's U-Net) plus float32 work around
-them: warps, filtering with predicted kernels, history blends. A form changes how the networks run, never the
-rest, so histories, kernels and outputs stay float32 whatever the form:
-
-- ``eager``: as ``for_inference()`` leaves them (fp32);
-- ``channels_last``: their 4-D inputs in channels_last memory format (oneDNN's native layout);
-- ``bf16``: under CPU autocast to bfloat16 (AVX-512 BF16 here), their outputs cast back to float32;
-- ``channels_last+bf16``: both;
-- ``compile``, ``compile+bf16``: compiled by ``torch.compile`` (inductor), one graph per input shape; the first
-  frame at a new resolution pays the compilation (seconds), so the measured table only chooses them where asked.
-
-Which form runs is read from a table that ``scripts/bench_inference_forms.py`` measures: per method key
-(``wskpn:s:x1``, the registry name, preset and scale, so a model trained by a user gets its architecture's form)
-and render resolution, every form's median step time and its output's PSNR against the eager fp32 output over a
-short stream; the chosen form is the fastest within tolerance (``MIN_PSNR_DB`` on every frame). A frame takes the
-row of the measured resolution nearest in pixel count. Forms apply on the CPU only; a table entry that needs
-bf16 on a CPU without it falls back to the fastest measured form without bf16.
+A method's ``step`` is its networks (the children that hold parameters) plus float32 work around them: warps,
+filtering with predicted kernels, history blends. A form changes how the networks run, never the rest, so
+histories, kernels and outputs stay float32 whatever the form: ``eager`` (fp32, as ``for_inference()`` leaves
+them), ``channels_last``, ``bf16`` (CPU autocast, outputs cast back), ``channels_last+bf16``, and ``compile`` /
+``compile+bf16`` (``torch.compile``, one graph per input shape, chosen only where asked since the first frame at a
+new resolution compiles). The form is read from a table that ``scripts/bench_inference_forms.py`` measures per
+method key (``wskpn:s:x1``: registry name, preset and scale) and render resolution: the fastest form whose output
+stays within ``MIN_PSNR_DB`` of eager fp32 on every frame. A frame takes the row of the nearest measured resolution
+in pixel count. Forms apply on the CPU only; an entry that needs bf16 on a CPU without it falls back to the fastest
+measured form without bf16. More: docs/methods.md, "Inference forms".
 """
 
 from __future__ import annotations

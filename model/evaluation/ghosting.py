@@ -1,25 +1,13 @@
 """Ghosting: where a light or an object was a few frames ago, does a method's output still show it?
 
-Temporal methods reuse history; where the scene changed, history that was not rejected leaves a trail (a
-bright smear behind a moving visible lamp, a translucent copy of an object over the wall it slid across).
-The measure needs no hand-made masks: the *trail region* comes from the references and motion vectors alone
-(``trail_masks``), and a method's ghosting is its error against the reference inside that region
-(``ghosting_error``). Both work on display-encoded images (``model.ops.tonemap.display_encode``), as PSNR does in
-the benchmark protocol, so a change or an error counts as a viewer sees it.
-
-Changed pixels of frame t: the reference of frame t-1, display-encoded and warped to frame t by frame t's motion
-(bilinear, ``model.ops.warp.backward_warp``; motion upscaled to the reference's resolution with
-``upscale_motion``), predicts frame t's reference where nothing moved but the camera. A pixel changed when, in
-some channel, the 3x3 mean of frame t's display-encoded reference differs from the 3x3 mean of that prediction by
-more than CHANGE_THRESHOLD. The 3x3 means keep what is not a change out: the references' own Monte Carlo noise
-(a single noisy pixel moves its window's mean by a ninth) and bilinear resampling of detail finer than a pixel
-under camera motion; a moved lamp or object edge of two pixels or more still changes them. Frame 0 and a frame
-after a camera cut have no previous frame: nothing changed there.
-
-Trail of frame t: the pixels that changed in one of the last TRAIL_FRAMES frames (t included), followed along
-the motion: a per-pixel age (frames since the last change) is warped (nearest) from frame t-1 to frame t, plus
-one, reset to 0 where frame t changed; the trail is age < TRAIL_FRAMES. Pixels whose history lies outside the
-image, and every pixel after a camera cut, start with no trail.
+Temporal methods reuse history; where the scene changed, history that was not rejected leaves a trail (a bright
+smear behind a moving visible lamp, a translucent copy of an object over the wall it slid across). The measure needs
+no hand-made masks: the *trail region* comes from the references and motion vectors alone (``trail_masks``), and a
+method's ghosting is its error against the reference inside that region (``ghosting_error``), both on display-encoded
+images as PSNR is. A pixel *changed* where the 3x3 mean of frame t's reference differs by more than
+``CHANGE_THRESHOLD`` from that of frame t-1's reference warped to frame t (the means keep the references' own noise
+and resampled sub-pixel detail out); the trail is what changed in the last ``TRAIL_FRAMES`` frames, carried along the
+motion. Frame 0 and a frame after a camera cut have no trail. The measure in detail: docs/stability.md, "Ghosting".
 """
 
 from __future__ import annotations

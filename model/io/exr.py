@@ -1,27 +1,14 @@
 """One frame bundle = one EXR file (OpenEXR 3.x Python bindings).
 
-Layout written by ``write_frame``:
-
-- part 0, named "render": every render-resolution buffer, channels named by ``frames.BUFFERS``
-  (``color.R``, ``normal.X``, ``depth.Z``, ...), plus the scale-1 target buffers present: ``reference.R/G/B``
-  and, when the frame has them, ``reference_albedo.R/G/B`` and ``reference_specular_albedo.R/G/B``.
-  Header attributes: ``jitter`` (V2d: two doubles, so Python floats round-trip exactly), ``frame_index`` (int),
-  ``sequence`` (string), ``scale`` (int: the largest reference scale in the file, 1 if none),
-  ``camera_cut`` (int 0/1).
-- one more part per reference scale s > 1, named ``reference_x{s}``: ``reference.R/G/B`` at (H*s, W*s) and
-  the albedo references of that scale when present, header ``scale`` = s. Multi-part EXR requires every part
-  to share one displayWindow, so all parts carry the render-resolution display window; the larger parts' data
-  windows extend past it.
-
-``read_frame`` also accepts single-part files from other renderers (reference at scale 1 or none, with or
-without albedo references, FLOAT or HALF channels, any part name); ``jitter`` is required there too because
-without it the sample positions are unknown, while a missing ``frame_index``, ``sequence``, ``camera_cut`` or
-``scale`` reads as 0, "", false and "the largest reference scale present".
-
-Half storage (``half=True``): every channel, motion and depth included, is stored as IEEE half, which
-keeps 11 significant bits (relative error <= 2**-11 ~ 4.9e-4) and tops out at 65504. So depth at 100
-units is good to about 0.05 units, and motion to about 0.002 px below 4 px, 0.03 px below 64 px and
-0.25 px between 256 and 512 px; values above 65504 are refused rather than stored as Inf.
+``write_frame`` writes part 0, named "render", with every render-resolution buffer (channels named by
+``frames.BUFFERS``: ``color.R``, ``normal.X``, ``depth.Z``, ...) and the scale-1 references, and one more part per
+reference scale s > 1, named ``reference_x{s}``, at (H*s, W*s). Header attributes: ``jitter`` (V2d: two doubles, so
+Python floats round-trip exactly), ``frame_index``, ``sequence``, ``scale`` (the largest reference scale) and
+``camera_cut``. Multi-part EXR requires every part to share one displayWindow, so all parts carry the
+render-resolution display window; the larger parts' data windows extend past it. ``read_frame`` also accepts
+single-part files from other renderers; ``jitter`` is required there too, the other attributes have defaults.
+With ``half=True`` every channel is stored as IEEE half (11 significant bits; values above 65504 are refused rather
+than stored as Inf). The layout and the precision half storage keeps: docs/frame-format.md, "EXR layout".
 """
 
 from __future__ import annotations

@@ -1,28 +1,15 @@
 """Input sanitizing: the one place where NaN, Inf and out-of-range values in a frame's buffers are repaired.
 
 Data read from disk is validated (``model.io.frames``) and never holds them, but a live renderer can send a NaN
-from a degenerate path, an Inf from a zero pdf, or garbage in a guide buffer. A method must not propagate
-such a value into its history (one NaN pixel poisons every later frame through the temporal blend), so every
-frame a method steps on goes through ``sanitize_frame`` first (evaluation, the stability suite), which
-returns the repaired frame and a ``SanitizeReport`` counting the repaired pixels per buffer. The repairs:
-
-- radiance (``color``, ``diffuse``, ``specular``): a pixel with a NaN or Inf in ``color`` takes
-  ``diffuse + specular`` when those are finite there, else 0; a pixel whose ``diffuse`` or ``specular`` is not
-  finite takes ``diffuse = color, specular = 0`` (so ``diffuse + specular == color`` still holds), or 0 in all
-  three when ``color`` is bad too. Negative radiance is clamped to 0 (counted as out of range).
-- ``albedo``, ``specular_albedo``: NaN/Inf -> 0; clamped to [0, 1]. ``roughness``: NaN/Inf -> 1 (treated as
-  diffuse, the case that asks for the most spatial filtering); clamped to [0, 1].
-- ``normal``: a pixel with a NaN/Inf component -> (0, 0, 0) ("nothing hit"); a non-zero normal whose length is
-  off 1 by more than the format's tolerance is renormalized (counted as out of range).
-- ``depth``: NaN/Inf -> the largest finite depth of that frame (the farthest surface it shows; 0 when none is
-  finite): far enough to fail history's geometry test, yet not a huge constant that would flatten the depth of
-  every other pixel for methods that normalize depth by its per-frame maximum (AFN). Negative -> 0.
-- ``motion``: a pixel with a NaN/Inf component -> (0, 0). ``jitter``: NaN/Inf -> 0, clamped to [-0.5, 0.5]
-  (counted per frame, not per pixel).
-
-Counts are pixels (a pixel with several bad channels counts once) summed over the batch. Values that stray
-outside a range by no more than the format's tolerance (``model.io.frames.BUFFERS``) are clamped without being
-counted, so a valid frame reports nothing. References are never touched: a method does not see them.
+from a degenerate path, an Inf from a zero pdf, or garbage in a guide buffer. A method must not propagate such a
+value into its history (one NaN pixel poisons every later frame through the temporal blend), so every frame a method
+steps on goes through ``sanitize_frame`` first, which returns the repaired frame and a ``SanitizeReport`` counting
+the repaired pixels per buffer. Each repair keeps the frame consistent: bad radiance takes ``diffuse + specular`` or
+0 (the split still sums to ``color``), guides are zeroed or clamped to their ranges, bad normals become "nothing
+hit" or are renormalized, a non-finite depth becomes the frame's farthest finite depth (far enough to fail the
+geometry test without flattening a depth normalized by its maximum), bad motion and jitter 0. Values within the
+format's tolerance of a range (``model.io.frames.BUFFERS``) are clamped without being counted, so a valid frame
+reports nothing. References are never touched: a method does not see them.
 """
 
 from __future__ import annotations

@@ -1,25 +1,14 @@
 """AFN: real-time Monte Carlo denoising with an adaptive fusion network (Lee et al. 2024, seed paper 004).
 
-Per frame, on albedo-demodulated radiance (paper Sec. III-A):
-
-1. Temporal accumulation (TA, parameter-free preprocessing): the previous accumulated radiance is warped to this
-   frame with the motion vectors, kept where the depth/normal geometry test passes, and blended with the new
-   1spp sample. This gives two inputs: the raw frame ``r_1spp`` and the accumulated frame ``r_TA``.
-2. Multi-scale kernel prediction (Sec. III-B, Eq. 1): one light-weight U-Net ``M`` reads both (tone-mapped) plus
-   the guides and predicts, from decoder features at two scales, per-pixel k x k kernels ``K_1spp`` at half
-   resolution and ``K_TA`` at full resolution, plus the per-pixel fusion weight ``alpha``.
-3. Filtering and fusion (Sec. III-C, Eqs. 2-3): ``d_1spp = K_1spp * D(r_1spp)`` (filtered at half scale, where
-   the sparse 1spp signal has 4x the effective spp), ``d_TA = K_TA * r_TA`` (full scale), both on linear HDR
-   radiance, fused by the scale compositor ``i = d_TA - alpha U(D(d_TA)) + alpha U(d_1spp)``, D = 2x2 average
-   pooling, U = nearest-neighbour upsampling: the low frequencies of the accumulated frame are swapped for those of
-   the current frame where ``alpha`` says the history is stale (moving light, early frames, disocclusions).
-4. Refinement (Sec. III-D, Eq. 4): a few convolutions read the fused image and the guides and predict a residual,
-   ``o = i + R(i, f)``; the output is remodulated with the albedo (the paper's loss and metrics use ``o * albedo``).
-
-The paper gives no channel widths. Presets are sized by cost: "m" is the paper-like point (a 3-level U-Net whose
-full-resolution work is one 3x3 conv in and one out, k = 7 as in the paper, three refinement convs), "xs"/"s"
-cheaper, "l" one level deeper and wider. At scale 2 the method denoises at render resolution and upscales with a
-bicubic filter ("AFN + bicubic" in issue 4's comparison).
+Per frame, on albedo-demodulated radiance (paper Sec. III): the previous accumulated radiance is warped and blended
+with the new 1spp sample where the depth/normal test passes (``r_TA``); one light-weight U-Net reads the raw frame and
+``r_TA`` with the guides and predicts k x k kernels for the raw frame at half resolution, kernels for ``r_TA`` at full
+resolution and a fusion weight ``alpha``; the scale compositor ``i = d_TA - alpha U(D(d_TA)) + alpha U(d_1spp)`` swaps
+the accumulated frame's low frequencies for the current frame's where ``alpha`` says the history is stale; a few
+convolutions refine ``i`` with a residual, and the output is remodulated with the albedo. The paper gives no channel
+widths: "m" is the paper-like point (k = 7), "xs"/"s" cheaper, "l" deeper and wider. At scale 2 it denoises at
+render resolution and upscales bicubically ("AFN + bicubic"). The steps with the paper's equations: docs/methods.md,
+"model.methods.afn".
 """
 
 from __future__ import annotations

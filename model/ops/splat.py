@@ -3,21 +3,13 @@
 WSKPN predicts ONE importance value per pixel q (per kernel size) and gives every pixel p whose k x k window
 contains q the same weight w(q) for it (paper eq. 3-4, with w = exp(I)):
 
-    out(p) = sum_{q in window(p)} w(q) c(q) / sum_{q in window(p)} w(q)
+    out(p) = sum_{q in window(p)} w(q) c(q) / sum_{q in window(p)} w(q)  =  box_sum(w * c, k) / box_sum(w, k)
 
-The weights do not depend on p, so numerator and denominator are plain box filters of w*c and w:
-
-    out = box_sum(w * c, k) / box_sum(w, k)
-
-which costs O(H W) per size (separable sums of shifted slices) instead of the paper's unfold to an
-(N, k*k, H, W) kernel map (it reports 3.95 GB -> 1.25 GB at 720p for its fused CUDA op; here no map exists).
-
-Borders: pixels outside the image have weight 0, i.e. the window is clipped to the image and renormalized.
-(Unfold with zero padding followed by softmax would instead give each missing tap weight exp(0) and colour 0,
-darkening borders.)
-
-Kernel fusion (paper eq. 5): several sizes k_i, each with its own importance map, are blended per pixel with
-softmax-normalized weights alpha_i(p).
+The weights do not depend on p, so this costs O(H W) per size (separable sums of shifted slices) instead of the
+paper's unfold to an (N, k*k, H, W) kernel map. Pixels outside the image have weight 0: the window is clipped to
+the image and renormalized (unfold with zero padding followed by softmax would darken borders). Kernel fusion
+(paper eq. 5): several sizes k_i, each with its own importance map, are blended per pixel with softmax-normalized
+weights alpha_i(p).
 """
 
 from __future__ import annotations

@@ -1,23 +1,15 @@
 """A statistical test of whether a reprojected history is stale, read from the 1 spp frame itself.
 
 Motion vectors describe geometry, so where a light moved the warped history passes the depth test and is still
-wrong: it lags behind the shading. A spatially denoised frame cannot tell such a change from its own blotches,
-since both are errors of the same size and reach. The noisy frame can: its samples are unbiased, so over a
-window of B x B pixels their mean estimates what the history's mean should be, with a standard error that the
-window's own spread measures. Where the two means differ by many standard errors, the light changed (A-SVGF
-finds the same with re-shaded samples, which our frame format does not carry). Fireflies widen the spread, so
-the test grows more lenient exactly where the frame is least trustworthy.
-
-``stale_history_z`` is that distance in standard errors, per pixel (each pixel's window centred on it);
-``history_trust`` turns it into a weight in [0, 1]: 1 up to ``sigmas``, then a Gaussian fall-off;
-``stale_history_trust`` is the two together, the weight its callers use.
-
-One window's 81 samples see a light that moves a little every frame only where the change is large. Over a
-region the evidence adds up: where nothing changed each z is about as likely small as large and their root mean
-square stays near 1, while a light that moved lifts the z of most windows in reach, whatever the sign of each
-change. ``regional_z`` is that root mean square over a wider window, each z capped at ``REGION_Z_CAP`` first so that
-a few windows far off (a visible lamp that moved: z in the tens) cannot speak for the whole region; a region whose
-z's are too large as a whole distrusts its history even where no single window is sure.
+wrong: it lags behind the shading. A spatially denoised frame cannot tell such a change from its own blotches, but
+the noisy frame can: over a B x B window its unbiased samples' mean estimates what the history's mean should be,
+with a standard error the window's own spread measures (A-SVGF finds the same with re-shaded samples, which our
+frame format does not carry). Fireflies widen the spread, so the test grows lenient where the frame is least
+trustworthy. ``stale_history_z`` is that distance in standard errors per pixel; ``history_trust`` turns it into a
+weight in [0, 1] (1 up to ``sigmas``, then a Gaussian fall-off); ``stale_history_trust`` is the two together.
+``regional_z`` is the root mean square of the z's over a wider window: where nothing changed it stays near 1, and a
+light that moved a little everywhere lifts it though no single window is sure. Each z is capped at ``REGION_Z_CAP``
+first, so a few windows far off (a visible lamp that moved) cannot speak for the whole region.
 """
 
 from __future__ import annotations

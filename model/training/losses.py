@@ -1,23 +1,14 @@
 """Training losses over an unrolled sequence: SMAPE per frame plus an L1 loss on the frame-to-frame change.
 
-Tone mapping. Both terms are computed by default on log-tonemapped radiance, ``sign(x) log(1 + |x|)``:
-
-- On linear HDR, a few bright pixels (light sources, specular highlights, fireflies in the 1spp input) carry
-  most of the L1 of the temporal term. Above 1 the log map makes a flicker cost by its relative size (10% at
-  radiance 10 or 1000 costs about the same), below 1 it is nearly linear.
-- SMAPE is already relative, but its ``eps`` makes dark pixels count less; the log map is nearly the identity
-  below 1 (where the display-encoded metrics live) and compresses only highlights, which the display encoding
-  clips anyway, while keeping them distinguishable (unlike clipping).
-- The sign-preserving form keeps the loss finite, with a gradient, for negative outputs a network may produce
-  early in training.
-
-``tonemap="mulaw"`` compresses harder (MUNet's curve), ``"linear"`` uses radiance as it is.
-
-An optional third term, ``display_weight * MSE`` on display-encoded images (``clip(x, 0, 1) ** (1/2.2)``, the
-benchmark protocol's encoding), is the error PSNR measures. SMAPE weighs an error by its relative size, so a dark
-pixel's small error costs as much as a bright edge's large one; squared display error weighs large visible errors
-(a ghost, a lagging highlight) most. Highlights above 1 are not compared by it (the display clips them); the log
-terms still are.
+Both terms are computed by default on log-tonemapped radiance, ``sign(x) log(1 + |x|)``: on linear HDR a few bright
+pixels (lights, highlights, fireflies) would carry most of the temporal term, and the log map makes a flicker cost
+by its relative size above 1 while staying nearly linear below 1, where the display-encoded metrics live; its
+sign-preserving form keeps the loss finite for the negative outputs of early training. ``tonemap="mulaw"``
+compresses harder (MUNet's curve), ``"linear"`` uses radiance as it is. An optional third term,
+``display_weight * MSE`` on display-encoded images (the benchmark protocol's encoding), is the error PSNR measures:
+SMAPE weighs a dark pixel's small error like a bright edge's large one, while the squared display error weighs
+large visible errors (a ghost, a lagging highlight) most. Highlights above 1 are not compared by it (the display
+clips them); the log terms still are.
 """
 
 from __future__ import annotations

@@ -1,23 +1,15 @@
 """A method's state (its temporal history) as compact bytes, for mirroring a session to a store and back.
 
-Layout: ``MAGIC``, a 4-byte little-endian header length, a JSON header, then each tensor's bytes in header order.
-The header lists, per tensor: name, original dtype, shape, the dtype it is stored as, the encoding and the
-byte count. With ``precision="half"`` a float tensor is stored as float16 when every value is finite and within
-float16's range (a history of x / (1 + x) values, colours, recurrent features), and as it is otherwise (a
-radiance history with a 1e5 emitter in it stays float32); float16 keeps 11 significant bits, a relative error of
-at most 2^-11 (0.05%) per value. The previous frame's geometry (``GEOMETRY``: depth, normals, jitter) stays float32
-whatever the precision: methods test it against thresholds to decide where history is valid, and a rounded depth
-flips that decision at the pixels near the threshold (a few of a 1080p frame's two million), where the output then
-differs by the whole history rather than by a rounding. Bool tensors are bit-packed. Each payload is
-zlib-compressed (level 1) when a 4 kB probe of it saves at least three quarters: masks, counters and constant
-planes shrink to almost nothing, while float planes save little for zlib time that costs more than writing the raw
-bytes to a local Redis, so those are left raw. A plane that did not compress last frame rarely does the next, so a
-``CompressionMemo`` carried between one stream's encodes skips the probe for such a plane (it is probed again after
-``reprobe_every`` encodes without one). What the memo decides changes only the size of the bytes, never what they
-decode to.
-
-Decoding gives every tensor back with its original dtype and shape; bytes that are not a state this module
-wrote raise ``StateFormatError`` naming what is wrong.
+Layout: ``MAGIC``, a 4-byte little-endian header length, a JSON header (per tensor: name, original dtype, shape,
+stored dtype, encoding, byte count), then each tensor's bytes in header order. With ``precision="half"`` a float
+tensor is stored as float16 when every value is finite and within float16's range, and as it is otherwise; the
+previous frame's geometry (``GEOMETRY``: depth, normals, jitter) stays float32 whatever the precision, since methods
+test it against thresholds and a rounded depth would flip where history is valid. Bool tensors are bit-packed. A
+payload is zlib-compressed (level 1) when a 4 kB probe of it saves at least three quarters (masks, counters,
+constant planes); float planes, which save little for their zlib time, are left raw, and a ``CompressionMemo``
+carried between one stream's encodes skips the probe for a plane that did not compress last time (probed again
+after ``reprobe_every`` encodes). Decoding gives every tensor back with its original dtype and shape; bytes that are
+not a state this module wrote raise ``StateFormatError`` naming what is wrong.
 """
 
 from __future__ import annotations
