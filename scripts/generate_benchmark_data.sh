@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Renders the dataset the README's evaluation tables use: whole scenes held out of training.
+# Renders the dataset the denoising and upscaling comparisons use (docs/results/denoise_x1.md, upscale_x2.md): whole
+# scenes held out of training.
 #   train:      diffuse_room, textured_detail, metals, moving_object, fast_camera, dark_fireflies,
 #               swinging_light (added for the 2x results: lighting that changes, a recipe unlike moving_light)
 #   validation: other seeds of diffuse_room and moving_object

@@ -7,8 +7,8 @@
 #   128 spp references at 256x256 (--ref-scale 2: 2x references for the 2x models, and their 2x2 means, 512
 #   samples a pixel, as the 1x ones) -> data/blender-train (train split);
 #   data/reuse-mixed: links to data/reuse's train and validation sequences and to each Blender sequence four
-#   times (so Cycles' frames are about a third of the training windows; with six sequences listed once, a
-#   seventh, the same 1x fine-tune measured 28.43 dB on Blender's evaluation sequences at step 750 against 29.19).
+#   times (so Cycles' frames are about a third of the training windows; listed once, a seventh, the same 1x
+#   fine-tune scored lower on Blender's evaluation sequences).
 # About 25 minutes on 2 CPU cores (the references take most of it).
 # Usage: scripts/generate_blender_training_data.sh  (after generate_reuse_data.sh)
 set -euo pipefail

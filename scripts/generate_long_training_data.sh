@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Renders the long training sequences of the 1x fused models' last fine-tune (README: "Training on long
-# samples"): the training recipes of scripts/generate_reuse_data.sh with 32 frames instead of 12, so a sample of
+# Renders the long training sequences of the 1x fused models' last fine-tune (docs/results/findings.md): the
+# training recipes of scripts/generate_reuse_data.sh with 32 frames instead of 12, so a sample of
 # 24 frames shows the network a history twice as long as before; the held-out recipes stay held out.
 #   data/longtrain:   train: the nine training recipes, seeds 7 and 8, 32 frames; validation: sliding_over_texture,
 #                     orbiting_light, moving_highlights, textured_detail, seed 5, 32 frames; 128x128, 1x
@@ -10,7 +10,7 @@
 #   data/longmix:     links to data/longtrain's sequences and to each Blender sequence twice more (scripts/
 #                     link_datasets.py), so Cycles' frames are 6 of the 24 training sequences.
 # About 30 minutes on 2 CPU cores (Mitsuba and Blender side by side).
-# Seed 7 is also the stability suite's seed (README: "Stability suite"): a model trained on this set has seen
+# Seed 7 is also the stability suite's seed (docs/stability.md): a model trained on this set has seen
 # that report's scenes, so its numbers there are not held out.
 # Usage: scripts/generate_long_training_data.sh
 set -euo pipefail

@@ -5,7 +5,7 @@
 #   data: orbit (seeds 1, 2), pan (seed 1), 12 frames, and moving_object (seed 3), 16 frames; 128x128, 1 spp,
 #   256 spp references at 256x256 (--ref-scale 2: the import keeps them as 2x references and their 2x2 means as the
 #   1x ones), all in the test split of DATA, imported with the blender-cycles layout.
-#   JITTER=none (the default, the README's first tables): the sample at the pixel centre, as Blender renders;
+#   JITTER=none (the default): the sample at the pixel centre, as Blender renders;
 #   JITTER=halton: a TAA jitter per frame (render_blender.py --jitter halton), into renders/blender-x2-jittered,
 #   data/blender-eval-jittered and reports named blender_jittered_*.
 # Reports: docs/results/blender[_jittered]_x{1,2}.{json,md};

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Reproduces the README's denoising (1x) table: trains WSKPN and AFN for about 30 minutes each on the
-# 2-core CPU (the two runs side by side, one torch thread each), then evaluates them on the held-out test
+# Reproduces the denoising (1x) table (docs/results/denoise_x1.md): trains WSKPN and AFN for about 30 minutes each
+# on the 2-core CPU (the two runs side by side, one torch thread each), then evaluates them on the held-out test
 # scenes against the baselines and OIDN. Needs the dataset of scripts/generate_benchmark_data.sh.
 # Usage: scripts/reproduce_denoise_results.sh [DATA_DIR] [STEPS]
 set -euo pipefail

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Reproduces the README's fine-tuning result: a shipped model adapted to a user's own renderer through the REST
-# API, against the shipped model as it is and against training from scratch with the same budget, on a held-out
-# scene of that renderer.
+# Reproduces the fine-tuning result (docs/results/finetune_user.md): a shipped model adapted to a user's own
+# renderer through the REST API, against the shipped model as it is and against training from scratch with the same
+# budget, on a held-out scene of that renderer.
 #   1. the user's data: Blender Cycles renders (scripts/render_blender.py; needs bpy, the 'blender' extra) of
 #      procedural scenes: train orbit (seed 1) and pan (seed 1), validation orbit (seed 2), test moving_object
 #      (seed 3, a scene recipe the training never sees), imported with the blender-cycles layout;

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Reproduces the README's right-sizing result: `denoiser fit` picks a smaller WSKPN preset for a simple scene
+# Reproduces the right-sizing result (docs/fit.md): `denoiser fit` picks a smaller WSKPN preset for a simple scene
 # (diffuse, static light) than for a hard one (glossy metal, changing light), with the same quality target.
 # The two datasets hold the same sequences (same seeds, so the same frames) as these of
 # scripts/generate_benchmark_data.sh:

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Reproduces the README's temporal-reuse results: the fused family (OIDN + learned temporal reuse) trained on
+# Reproduces the reuse results (docs/results/reuse_*): the fused family (OIDN + learned temporal reuse) trained on
 # the dataset of scripts/generate_reuse_data.sh (rendered first if missing), then evaluated on its held-out test
 # recipes at 1x and 2x against OIDN (fast, balanced, high) and OIDN + TAA at the same qualities, timed in the same
 # run, with side-by-side pictures of the moving-light and moving-object cases; then it ships the default
@@ -16,7 +16,7 @@
 # without the dataset's jitter-free sequences, which reproducing them now includes): 1500 steps at 1x beside 1000 at
 # 2x, then 1000 more at 2x and 1000 for the fast 2x model, and the 1x fast / high presets again (about 30 minutes).
 # Checkpoints of the rotation fine-tunes were chosen by validation on both renderers: data/reuse's validation
-# split and Blender's orbit_s1 and pan_s1 (scripts/reproduce_blender_results.sh); see the README.
+# split and Blender's orbit_s1 and pan_s1 (scripts/reproduce_blender_results.sh).
 # Last, at 1x, on Mitsuba and Blender Cycles frames together (needs bpy): 1500 steps, then the network grown by the
 # clipped running mean of OIDN's estimates, and the fast / high presets from it (about 25 minutes); then both 2x
 # models grown the same way (1000 steps each, about 20 minutes), then fine-tuned on the mixed frames (600 steps each,
@@ -47,8 +47,8 @@ tune=(.venv/bin/denoiser train --data "$DATA" --frames-per-sample 12 --batch 4 -
   --checkpoint-every 100 --out runs/fused-fast-x2 > runs-fused-fast-x2.log 2>&1 &
 wait
 # Then the display-error term (display_weight 50: squared error on display-encoded images, what PSNR measures) in
-# three fine-tunes of 600, 1000 and 1500 steps, each from the last's best checkpoint (validation PSNR 32.75 ->
-# 32.86 -> 32.90 -> 32.95; 600 steps without the term: 32.75).
+# three fine-tunes of 600, 1000 and 1500 steps, each from the last's best checkpoint (each stage gained on
+# validation; 600 steps without the term gained nothing).
 previous=runs/fused-balanced-x1-long/best.pt
 for stage in 600:150 1000:200 1500:250; do  # steps:validation interval
   steps=${stage%:*} every=${stage#*:}
@@ -71,11 +71,10 @@ for preset in balanced fast; do
 done
 wait
 # The normals' world frame rotated at random per sample (what the augment option does now), with the display-error
-# term: a fine-tune of each model. Two stages at 1x were run: the first (1500 steps) scored 32.86 dB on this
-# validation split and 29.10 on Blender's validation sequences, a second 1500 steps from it 33.01 and 28.45; the
-# first is kept (a model for every renderer) and fine-tuned on both renderers' frames below. At 2x the
-# second balanced stage is shipped (31.12 / 26.55 dB against 31.07 / 26.44); a second fast stage (30.92 / 25.88
-# against 30.87 / 26.19) was not.
+# term: a fine-tune of each model. Two stages at 1x were run: the second gained on this validation split and lost
+# on Blender's validation sequences, so the first is kept (a model for every renderer) and fine-tuned on both
+# renderers' frames below. At 2x the second balanced stage is shipped (better on both); a second fast stage (worse
+# on Blender's) was not.
 rot=(.venv/bin/denoiser train --data "$DATA" --batch 4 --lr 5e-4 --warmup 10 --threads 1 --quiet --display-weight 50)
 "${rot[@]}" --scale 1 --crop 64 --frames-per-sample 12 --method fused:balanced \
   --init-from runs/fused-balanced-x1-display-1500/best.pt --steps 1500 --validate-every 250 --checkpoint-every 250 \
@@ -96,8 +95,8 @@ wait
   --init-from runs/fused-balanced-x2-rot/best.pt --steps 1000 --validate-every 250 --checkpoint-every 250 \
   --out runs/fused-balanced-x2-rot2 > runs-fused-balanced-x2-rot2.log 2>&1
 # Then the 1x model fine-tuned on Mitsuba and Blender Cycles frames together (scripts/generate_blender_training_data.sh,
-# needs bpy): 1500 steps from the rotation fine-tune, the checkpoint of step 1250 (validation 32.90 dB; on Blender's
-# orbit_s1 / pan_s1 29.44 / 29.57 against 28.96 / 29.29 before); the fast / high presets 200 steps from it.
+# needs bpy): 1500 steps from the rotation fine-tune, the checkpoint of step 1250 (better on Blender's orbit_s1 /
+# pan_s1 than before); the fast / high presets 200 steps from it.
 bash scripts/generate_blender_training_data.sh
 mixed=(.venv/bin/denoiser train --data data/reuse-mixed --batch 4 --lr 5e-4 --warmup 10 --threads 1 --quiet
        --display-weight 50 --scale 1 --crop 64 --frames-per-sample 12)
@@ -105,10 +104,10 @@ mixed=(.venv/bin/denoiser train --data data/reuse-mixed --batch 4 --lr 5e-4 --wa
   --checkpoint-every 250 --out runs/fused-balanced-x1-mixed > runs-fused-balanced-x1-mixed.log 2>&1
 # Then the network with the clipped running mean of OIDN's estimates as a fourth candidate (model/methods/fused.py;
 # --init-from the three-candidate model grows it with the new weights at zero), on the same data at a lower
-# learning rate (2e-4, another seed's crops), a 2500-step schedule stopped at step 1250 for time (validation
-# 33.05 dB; 1000: 33.02); the fast / high presets 600 steps from it (best validation: fast step 600, 32.93 dB;
-# high step 400, 33.53 dB), shipped as fused-fast-x1 and fused-high-x1. The same run without the new candidate
-# (1500 steps) reached 32.96 dB; with the plain mean as a fifth candidate 33.04 (step 1250, more ghosting).
+# learning rate (2e-4, another seed's crops), a 2500-step schedule stopped at step 1250 for time; the fast / high
+# presets 600 steps from it (best validation: fast step 600, high step 400), shipped as fused-fast-x1 and
+# fused-high-x1. The same run without the new candidate scored lower; the plain mean as a fifth candidate ghosted
+# more.
 "${mixed[@]}" --method fused:balanced --init-from runs/fused-balanced-x1-mixed/best.pt --lr 2e-4 --seed 2 --steps 2500 \
   --validate-every 250 --checkpoint-every 250 --out runs/fused-balanced-x1-cmean > runs-fused-balanced-x1-cmean.log 2>&1
 for quality in fast high; do
@@ -118,7 +117,7 @@ done
 wait
 # The 2x models grown the same way (the clipped running mean as a fourth candidate, --init-from the three-candidate
 # model), 1000 steps each on data/reuse at lr 2e-4, another seed's crops, side by side (about 20 minutes):
-# validation 31.11 -> 31.16 dB (balanced), 30.87 -> 30.95 (fast), the last checkpoint the best of both.
+# both gained on validation, the last checkpoint the best of both.
 x2tune=(.venv/bin/denoiser train --data "$DATA" --batch 4 --lr 2e-4 --warmup 10 --threads 1 --quiet --display-weight 50
         --scale 2 --crop 48 --frames-per-sample 10 --seed 2 --steps 1000 --validate-every 250 --checkpoint-every 250)
 "${x2tune[@]}" --method fused:balanced --init-from runs/fused-balanced-x2-rot2/best.pt \
@@ -179,10 +178,10 @@ done
   --stage runs/fused-fast-x2/best.pt --stage runs/fused-fast-x2-display/best.pt --stage runs/fused-fast-x2-rot/best.pt \
   --stage runs/fused-fast-x2-cmean/best.pt --report docs/results/reuse_x2.json
 # Last, the three 1x models re-shipped running the fused blend before the kernel as the next frame's history (the
-# same weights; README: "The history before the kernel"), evaluated at 1x beside the checkpoints as trained (the
+# same weights), evaluated at 1x beside the checkpoints as trained (the
 # filtered output as history), and their manifests' held-out rows taken from that run; the 1x pictures with them.
 # They also skip their output kernel on frames of more than 32768 render pixels (twice the 128x128 they were trained
-# on; README: "The kernel and resolved texture"): the same outputs at 128x128, the fused blend above.
+# on): the same outputs at 128x128, the fused blend above.
 reship() {  # "SETTING FLAGS" NAME...: each shipped model shipped again with those run-time settings, weights unchanged
   local settings=$1 name
   shift
@@ -211,11 +210,11 @@ picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png fused-bal
 .venv/bin/denoiser compare --data "$DATA" --sequence moving_light_s4 --frame -1 --scale 1 --zoom 30,50,56 \
   --method oidn:high=OIDN-high --method oidn-taa:balanced=OIDN+TAA-balanced --method fused-balanced-x1=fused-balanced \
   --method fused-high-x1=fused-high --out docs/reuse_moving_light_x1.png
-# Later stages, each measured on its own in the README, the weights unchanged: the running mean's 8-frame window
-# ("Long streams") at both scales, and the stale-history test ("The stale-history test") at 1x.
+# Later stages, each measured on its own (docs/results/findings.md), the weights unchanged: the running mean's
+# 8-frame window at both scales, and the stale-history test at 1x.
 reship "--mean-max-frames 8 --stale-test-sigmas 2" fused-balanced-x1 fused-fast-x1 fused-high-x1
 reship "--mean-max-frames 8" fused-balanced-x2 fused-fast-x2
-# The default model trained with its sample mean (README: "Accumulating samples before OIDN"): 400 steps from the
+# The default model trained with its sample mean: 400 steps from the
 # shipped weights with sample_mean_frames 8; the best validation checkpoint ships.
 .venv/bin/python -c "from model.deployment.pretrained import load_pretrained; from model.training.checkpoint import save_checkpoint
 m = load_pretrained('fused-balanced-x1'); m.set_sample_mean_frames(8); save_checkpoint('runs/balanced-sm8-init.pt', method=m)"
@@ -228,8 +227,7 @@ cp runs/sm8-balanced/best.pt runs/sm8-balanced-best.pt
 .venv/bin/python scripts/ship_pretrained.py runs/sm8-balanced-best.pt --name fused-balanced-x1 \
   --after-shipped fused-balanced-x1 --data "$DATA" --dataset-script scripts/generate_reuse_data.sh \
   --report docs/results/reuse_x1_sample_mean.json
-# The fast preset with the sample mean, its weights unchanged, once the mean averages OIDN's guides too (README:
-# "The guides averaged with the samples").
+# The fast preset with the sample mean, its weights unchanged, once the mean averages OIDN's guides too.
 .venv/bin/python -c "from model.deployment.pretrained import load_pretrained; from model.training.checkpoint import save_checkpoint
 m = load_pretrained('fused-fast-x1'); m.set_sample_mean_frames(8); save_checkpoint('runs/fast-sm8.pt', method=m)"
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
@@ -239,7 +237,7 @@ m = load_pretrained('fused-fast-x1'); m.set_sample_mean_frames(8); save_checkpoi
   --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
   --report-source runs/fast-sm8.pt
 # The high preset with the sample mean, its weights unchanged, keeping the mean's frames in the network's history
-# share cubed (README: "How long the sample mean trusts"); one quiet run of the shipped 1x models and the peers.
+# share cubed; one quiet run of the shipped 1x models and the peers.
 .venv/bin/python -c "from model.deployment.pretrained import load_pretrained; from model.training.checkpoint import save_checkpoint
 m = load_pretrained('fused-high-x1'); m.set_sample_mean_frames(8); m.set_sample_mean_trust_power(3.0)
 save_checkpoint('runs/high-sm8-p3.pt', method=m)"
@@ -248,14 +246,14 @@ reship "--sample-mean-frames 8 --sample-mean-trust-power 3" fused-high-x1
   --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out docs/results/reuse_x1_mean_trust.json \
   | tee docs/results/reuse_x1_mean_trust.md
 remeasure docs/results/reuse_x1_mean_trust.json fused-balanced-x1 fused-fast-x1 fused-high-x1
-# The 2x models with the sample mean, their weights unchanged (README: "The sample mean at 2x"); one run with the peers.
+# The 2x models with the sample mean, their weights unchanged; one run with the peers.
 reship "--sample-mean-frames 8" fused-balanced-x2 fused-fast-x2
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
   --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_sample_mean.json \
   | tee docs/results/reuse_x2_sample_mean.md
 remeasure docs/results/reuse_x2_sample_mean.json fused-balanced-x2 fused-fast-x2
-# Every fused model with a looser stale-history test, weights unchanged (README: "The stale-history test at half a
-# standard error"): 0.5 standard errors at 1x, and the test switched on at 2x at 1; one run each with the peers.
+# Every fused model with a looser stale-history test, weights unchanged: 0.5 standard errors at 1x, and the test
+# switched on at 2x at 1; one run each with the peers.
 reship "--stale-test-sigmas 0.5" fused-balanced-x1 fused-fast-x1 fused-high-x1
 reship "--stale-test-sigmas 1" fused-balanced-x2 fused-fast-x2
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
@@ -266,8 +264,8 @@ remeasure docs/results/reuse_x1_stale_low.json fused-balanced-x1 fused-fast-x1 f
   --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_stale_low.json \
   | tee docs/results/reuse_x2_stale_low.md
 remeasure docs/results/reuse_x2_stale_low.json fused-balanced-x2 fused-fast-x2
-# Every fused model with the regional stale-history test over 33 x 33 render pixels, weights unchanged (README: "The
-# regional stale-history test"); one run each with the models before it (copied first) and the peers.
+# Every fused model with the regional stale-history test over 33 x 33 render pixels, weights unchanged; one run each
+# with the models before it (copied first) and the peers.
 mkdir -p runs/old
 for name in fused-balanced-x1 fused-fast-x1 fused-high-x1 fused-balanced-x2 fused-fast-x2; do
   cp "pretrained/$name/model.pt" "runs/old/$name.pt"
@@ -282,8 +280,8 @@ remeasure docs/results/reuse_x1_stale_region.json fused-balanced-x1 fused-fast-x
   --method fused-fast-x2 --method runs/old/fused-balanced-x2.pt --method runs/old/fused-fast-x2.pt \
   "${peers[@]:0:12}" --out docs/results/reuse_x2_stale_region.json | tee docs/results/reuse_x2_stale_region.md
 remeasure docs/results/reuse_x2_stale_region.json fused-balanced-x2 fused-fast-x2
-# The same weights and settings after the box means and the jitter resample got faster (README: "Where the 2x
-# step's time goes"): one run per scale with the peers, every shipped fused model remeasured from it.
+# The same weights and settings after the box means and the jitter resample got faster: one run per scale with the
+# peers, every shipped fused model remeasured from it.
 measure() {  # NAME SCALE MODEL...: one held-out run of the models and the peers, the models remeasured from it
   local report=docs/results/$1.json scale=$2 name models=()
   shift 2
@@ -294,9 +292,9 @@ measure() {  # NAME SCALE MODEL...: one held-out run of the models and the peers
 }
 measure reuse_x1_fast_ops 1 fused-balanced-x1 fused-fast-x1 fused-high-x1
 measure reuse_x2_fast_ops 2 fused-balanced-x2 fused-fast-x2
-# The default 1x model fine-tuned on Mitsuba and Blender Cycles frames together again (README: "The default model
-# back on Cycles' frames"): its sample-mean stage above read data/reuse alone, and on Cycles' frames with a TAA jitter
-# it fell 0.45 dB behind the fast preset, whose last stage read the mixed data. 600 steps from the shipped weights
+# The default 1x model fine-tuned on Mitsuba and Blender Cycles frames together again: its sample-mean stage above
+# read data/reuse alone, and on Cycles' frames with a TAA jitter it fell behind the fast preset, whose last stage
+# read the mixed data. 600 steps from the shipped weights
 # and settings at the fast / high presets' rate (5e-4), the best validation checkpoint (step 500) shipped; one
 # held-out run beside the model before it (copied first) and the peers. Its Blender numbers come from
 # scripts/reproduce_blender_results.sh (JITTER=none and JITTER=halton).
@@ -310,10 +308,10 @@ cp runs/balanced-mixed-lr5/best.pt runs/balanced-mixed-lr5-best.pt
 .venv/bin/python scripts/ship_pretrained.py runs/balanced-mixed-lr5-best.pt --name fused-balanced-x1 \
   --after-shipped fused-balanced-x1 --data data/reuse-mixed --dataset-script scripts/generate_blender_training_data.sh \
   --training-script scripts/reproduce_reuse_results.sh --report docs/results/reuse_x1_mixed_balanced.json
-# The 1x models reading OIDN's estimate at the pixel centres (README: "The estimate at the pixel centres"): the same
+# The 1x models reading OIDN's estimate at the pixel centres: the same
 # weights, shipped with --unjitter-estimate first into a scratch folder (runs/unjitter/NAME.pt), evaluated beside the
 # models before (copied to runs/old/) and the peers in one run, then shipped with that run's numbers; and the peers
-# with the same read, for what it alone is worth.
+# with the same read, for what it alone is worth (experiments/measure_unjittered_peers.py).
 mkdir -p runs/unjitter
 rm -rf runs/unjitter/pretrained && cp -r pretrained runs/unjitter/pretrained
 for name in fused-balanced-x1 fused-fast-x1 fused-high-x1; do

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Reproduces the README's joint denoising + 2x upscaling table and picture. On the 2-core CPU, one torch
-# thread per run: MUNet and JNDS train side by side at scale 2 (about 35 minutes), then WSKPN at 1x (its
+# Reproduces the joint denoising + 2x upscaling table (docs/results/upscale_x2.md) and picture. On the 2-core CPU,
+# one torch thread per run: MUNet and JNDS train side by side at scale 2 (about 35 minutes), then WSKPN at 1x (its
 # network runs at render resolution: "WSKPN + bicubic" at 2x) beside int8 JNDS (quantization-aware
 # fine-tuning from the float32 JNDS), then everything is evaluated on the held-out test scenes at 2x against
 # OIDN-high + bicubic and accumulation + bicubic, and one frame is drawn side by side.

@@ -5,7 +5,7 @@
 # held-out test split as the shipped fused models. Then one evaluation per scale on the test split (recipes never
 # seen in training) with OIDN and OIDN + TAA timed in the same run, whose rows go into each manifest.
 # On the 2-core CPU, one torch thread per run, two runs side by side. The step counts are short (these are
-# starting points for fine-tuning, not the families' best: the README's other result sections train the same
+# starting points for fine-tuning, not the families' best: the other reproduce scripts train the same
 # presets 5-40x longer): about 35 minutes of training on a busy machine (WSKPN 8 minutes per scale), 10 of
 # evaluation, then every one shipped again with its history rectified.
 # Usage: scripts/train_pretrained_seed_models.sh [DATA_DIR]   (SKIP_TRAINED=1 keeps runs that have best.pt)
@@ -51,7 +51,7 @@ for run in wskpn-s-x2 afn-m-x2 munet-s-x2 jnds-s-x2; do
 done
 "${ship[@]}" runs/jnds-s-int8-x2/best.pt --name jnds-s-int8-x2 --stage runs/jnds-s-x2/best.pt \
   --report docs/results/seed_models_x2.json
-# The seed models run with their history rectified (README, "History rectification for the learned seed
+# The seed models run with their history rectified (docs/methods.md, "History rectification for the seed
 # methods"): the shipped weights are copied to a scratch folder with the setting, evaluated beside the models without
 # it, and shipped again with that report (the same weights; only the setting changes).
 rm -rf runs/rectify && mkdir -p runs/rectify && cp -r pretrained runs/rectify/pretrained
