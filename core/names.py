@@ -6,7 +6,8 @@ Plain constants, no imports, so the CLI's --help and the client stay light. ``SP
 
 SPLITS = ("train", "validation", "test")
 
-JOB_KINDS = ("generate", "train", "evaluate", "benchmark", "infer", "fit")
+# The kinds of core.jobs.kinds.KINDS, as plain names for the client (a test holds them equal).
+JOB_KINDS = ("generate", "train", "evaluate", "benchmark", "infer", "fit", "stability")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINISHED_STATES = frozenset({"succeeded", "failed", "cancelled"})
 DEVICES = ("cpu", "gpu")

@@ -10,6 +10,9 @@ CHECKPOINT_FOLDER = "checkpoints"  # a train job's checkpoints
 REPORT_JSON = "report.json"  # evaluate and benchmark reports
 REPORT_MARKDOWN = "report.md"
 CHART = "quality_speed.png"  # a benchmark's quality/speed chart
+BENCHMARK_FILES = ("benchmark.json", "benchmark.md", "quality_cost.png")  # a benchmark's table and cost chart
+# A stability job's report and charts (as model.evaluation.stability_report.write_report names them).
+STABILITY_FILES = ("stability.json", "stability.md", "psnr_curves.png", "psnr_drop.png", "ghost_curves.png")
 
 
 def tail_lines(path: Path, count: int, block: int = 64 * 1024) -> list[str]:

@@ -8,10 +8,11 @@ from model.io.dataset import MANIFEST, Dataset
 from core.errors import Conflict, Invalid
 from core.jobs.checks import dataset_root
 from core.jobs.specs import GenerateParams
+from core.settings import Settings
 from core.storage import Storage
 
 
-def check(params: GenerateParams, storage: Storage) -> dict[str, Any]:
+def check(params: GenerateParams, storage: Storage, settings: Settings | None = None) -> dict[str, Any]:
     from model.data.generate import default_sequence_name
     from model.data.scenes import SCENES
 

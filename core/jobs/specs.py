@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from core.names import AUTO_MODEL, AUTO_MODEL_RESERVED, DEVICES, JOB_KINDS, JOB_STATES, SPLITS
+from model.names import STABILITY_SCENARIOS
 from model.training.training_settings import FitTrainingSettings, TrainingSettings
 
 
@@ -92,8 +93,8 @@ class EvaluateParams(BaseModel):
         "methods": ["identity", "oidn:high", "models:/wskpn-s-rooms@champion"], "frames": 32}]})
 
     dataset: str = Field(pattern=_ID_PATTERN)
-    split: JobSplit = "test"
-    scale: Literal[1, 2] = 1
+    split: JobSplit = Field("test", description="split to evaluate on")
+    scale: Literal[1, 2] = Field(1, description="output / render resolution ratio; the data needs references at it")
     methods: list[str] = Field(min_length=1, max_length=64, description="registry NAME[:PRESET], model refs "
                                "models:/NAME/VERSION or models:/NAME@ALIAS, or checkpoints under jobs/")
     frames: int | None = Field(None, ge=1, le=100_000, description="first N frames of each sequence (none: all)")
@@ -104,17 +105,23 @@ class EvaluateParams(BaseModel):
 
 
 class BenchmarkParams(EvaluateParams):
-    """``evaluate`` over a method list that defaults to the baselines and OIDN's presets; adds a chart."""
+    """``evaluate`` at one scale or both over a method list that defaults to the non-learned baselines with OIDN
+    and OIDN + TAA at their three presets; adds the benchmark table and charts."""
 
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "split": "test", "scale": 1, "frames": 32}]})
 
+    scale: Literal[1, 2, "both"] = Field(1, description="output / render resolution ratio; both: 1 and 2, each "
+                                                        "method at the scales it runs at")  # type: ignore[assignment]
     methods: list[str] | None = Field(None, min_length=1, max_length=64,  # type: ignore[assignment]
-                                      description="as for evaluate; none: identity, accumulation, svgf and "
-                                                  "oidn:fast/balanced/high (those that run at the scale)")
+                                      description="non-learned registry methods NAME[:PRESET] (learned ones as for "
+                                                  "evaluate); none: every non-learned method at its default "
+                                                  "preset, and oidn and oidn-taa at all three")
+    all_presets: bool = Field(False, description="every preset of each non-learned method (of those in methods "
+                                                 "when given, unless a preset is named)")
     include_learned: list[str] | None = Field(
-        None, min_length=1, max_length=64, description="trained models added to the methods (as the CLI's "
-        "--include-learned): model references models:/NAME[/VERSION|@ALIAS] or checkpoint files in the data folder")
+        None, min_length=1, max_length=64, description="trained models added to the methods: model references "
+        "models:/NAME[/VERSION|@ALIAS], pretrained model names or checkpoint files")
 
 
 class InferParams(BaseModel):
@@ -177,6 +184,26 @@ class FitParams(FitTrainingSettings):
         return value
 
 
-JOB_PARAMS: dict[str, type[BaseModel]] = {"generate": GenerateParams, "train": TrainParams,
-                                         "evaluate": EvaluateParams, "benchmark": BenchmarkParams,
-                                         "infer": InferParams, "fit": FitParams}
+# --- stability jobs (model.evaluation.stability): hard scenarios and corrupted inputs --------------------------
+
+class StabilityParams(BaseModel):
+    """The stability suite: methods on a stored dataset's hard scenes and on corrupted copies of one clean sequence;
+    where each fails worst (largest drop of its PSNR gain over the noisy input) and which ghosts least."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
+        "dataset": "rooms", "methods": ["svgf", "oidn-taa:high", "models:/wskpn-s-rooms@champion"],
+        "scenarios": ["moving_light", "clean", "nan_inf_color"], "frames": 8}]})
+
+    dataset: str = Field(pattern=_ID_PATTERN)
+    methods: list[str] = Field(min_length=1, max_length=64, description="as for evaluate: registry NAME[:PRESET], "
+                               "model references, pretrained model names or checkpoints")
+    scenarios: list[Literal[STABILITY_SCENARIOS]] | None = Field(None, min_length=1, description="scenarios to "
+                                                                 "run (none: all that the dataset allows)")
+    scale: Literal[1, 2] = Field(1, description="output / render resolution ratio")
+    base: str | None = Field(None, pattern=_ID_PATTERN, description="clean sequence the derived scenarios are made "
+                             "from (none: a diffuse_room one, else the first that is no scene scenario)")
+    frames: int | None = Field(None, ge=1, le=100_000, description="first N frames of each sequence (none: all)")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="seed of the corruptions (NaN/Inf pixels, garbage motion)")
+    vdp: bool = Field(False, description="compute FovVideoVDP JOD too (the slowest metric)")
+    threads: int | None = Field(None, ge=1, le=1024, description="torch threads for the run")
+    track: bool = Field(True, description="log the report and scores to MLflow")

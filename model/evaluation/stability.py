@@ -28,7 +28,8 @@ from model.evaluation.timing import torch_threads
 __all__ = [
     "SCENE_SCENARIOS", "DERIVED_SCENARIOS", "SCENARIOS", "BASE_SCENES", "Scenario", "scale_exposure",
     "inject_non_finite", "zero_motion", "garbage_motion", "drop_optional_buffers", "derive_scenarios",
-    "build_scenarios", "generate_scenarios", "run_suite", "fails_worst", "least_ghosting",
+    "ScenarioPlan", "plan_scenarios", "build_scenarios", "generate_scenarios", "run_suite", "fails_worst",
+    "least_ghosting",
 ]
 
 SCENE_SCENARIOS: dict[str, str] = {
@@ -224,22 +225,33 @@ def _pick_base(sequences: list[Sequence], base: str | None) -> Sequence:
     return (others or sequences)[0]
 
 
-def build_scenarios(dataset_dir: str | os.PathLike, scale: int = 1, *, names: tuple[str, ...] = SCENARIOS,
-                    base: str | None = None, frame_limit: int | None = None,
-                    seed: int = 0) -> tuple[list[Scenario], list[dict]]:
-    """The scenarios ``names`` from a dataset: (scenarios, missing), missing = [{"name", "reason"}] for scene
-    scenarios the dataset has no usable sequence for. Derived scenarios are made from ``base`` (a sequence
+@dataclass
+class ScenarioPlan:
+    """Where each scenario's frames come from, read from the manifests alone (no frame decoded)."""
+
+    scenes: dict[str, Sequence]  # scene scenario -> the sequence of that scene it runs on
+    base: Sequence | None  # the clean sequence of the derived scenarios (None when none is asked for)
+    derived: tuple[str, ...]
+    missing: list[dict]  # {"name", "reason"} of the scene scenarios the dataset has no usable sequence for
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.scenes) + list(self.derived)
+
+
+def plan_scenarios(dataset_dir: str | os.PathLike, scale: int = 1, *, names: tuple[str, ...] = SCENARIOS,
+                   base: str | None = None) -> ScenarioPlan:
+    """The sequences the scenarios ``names`` would use; ValueError for an unknown scenario, an empty dataset, an
+    unknown base or one without references at ``scale``. Derived scenarios are made from ``base`` (a sequence
     name), by default the first of BASE_SCENES present, else the first sequence that is no scene scenario."""
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise ValueError(f"unknown scenario {', '.join(map(repr, unknown))}; scenarios: {', '.join(SCENARIOS)}")
-    if frame_limit is not None and frame_limit < 1:
-        raise ValueError(f"frame limit must be positive, got {frame_limit}")
     dataset = Dataset(dataset_dir)
     sequences = _ordered_sequences(dataset)
     if not sequences:
         raise ValueError(f"dataset {dataset.root} has no sequences")
-    scenarios: list[Scenario] = []
+    scenes: dict[str, Sequence] = {}
     missing: list[dict] = []
     for name in SCENE_SCENARIOS:
         if name not in names:
@@ -251,14 +263,32 @@ def build_scenarios(dataset_dir: str | os.PathLike, scale: int = 1, *, names: tu
                       f"sequence '{matches[0].name}' has no references at scale {scale}")
             missing.append({"name": name, "reason": reason})
             continue
-        sequence = EvaluationSequence.from_sequence(usable[0], scale, frame_limit)
-        scenarios.append(Scenario(name, SCENE_SCENARIOS[name], replace(sequence, name=name), usable[0].name))
+        scenes[name] = usable[0]
     derived = tuple(n for n in names if n in DERIVED_SCENARIOS)
-    if derived:
-        chosen = _pick_base(sequences, base)
-        clean = EvaluationSequence.from_sequence(chosen, scale, frame_limit)  # raises on a missing scale
-        scenarios += derive_scenarios(clean, derived, seed=seed)
-    return scenarios, missing
+    chosen = _pick_base(sequences, base) if derived else None
+    if chosen is not None and scale not in chosen.scales:
+        present = ", ".join(str(s) for s in chosen.scales) or "none"
+        raise ValueError(f"sequence '{chosen.name}' ({chosen.path}) has no references at scale {scale} "
+                         f"(scales present: {present})")
+    return ScenarioPlan(scenes, chosen, derived, missing)
+
+
+def build_scenarios(dataset_dir: str | os.PathLike, scale: int = 1, *, names: tuple[str, ...] = SCENARIOS,
+                    base: str | None = None, frame_limit: int | None = None,
+                    seed: int = 0) -> tuple[list[Scenario], list[dict]]:
+    """The scenarios ``names`` from a dataset (as ``plan_scenarios`` finds them): (scenarios, missing), missing =
+    [{"name", "reason"}] for scene scenarios the dataset has no usable sequence for."""
+    if frame_limit is not None and frame_limit < 1:
+        raise ValueError(f"frame limit must be positive, got {frame_limit}")
+    plan = plan_scenarios(dataset_dir, scale, names=names, base=base)
+    scenarios: list[Scenario] = []
+    for name, source in plan.scenes.items():
+        sequence = EvaluationSequence.from_sequence(source, scale, frame_limit)
+        scenarios.append(Scenario(name, SCENE_SCENARIOS[name], replace(sequence, name=name), source.name))
+    if plan.base is not None:
+        clean = EvaluationSequence.from_sequence(plan.base, scale, frame_limit)
+        scenarios += derive_scenarios(clean, plan.derived, seed=seed)
+    return scenarios, plan.missing
 
 
 def generate_scenarios(root: str | os.PathLike, *, size: tuple[int, int] = (64, 64), frames: int = 8,

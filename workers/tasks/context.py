@@ -16,7 +16,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -164,6 +165,19 @@ class JobContext:
             return
         self.store.update(self.job_id, mlflow_run_id=run_id, mlflow_url=mlflow_url(self.settings, run_id,
                                                                                    experiment_id))
+
+    @contextmanager
+    def ending(self, tracker) -> Iterator[None]:
+        """Ends ``tracker``'s MLflow run (None: nothing to end) as the block ends: FINISHED, or KILLED on a cancel,
+        FAILED on any other error."""
+        try:
+            yield
+        except BaseException:
+            if tracker is not None:
+                tracker.finish("KILLED" if self.cancelled.is_set() else "FAILED")
+            raise
+        if tracker is not None:
+            tracker.finish("FINISHED")
 
 
 def mlflow_url(settings: Settings, run_id: str, experiment_id: str | None = None) -> str | None:

@@ -1,10 +1,9 @@
 """The ``evaluate`` and ``benchmark`` jobs: model.evaluation.evaluate's protocol on a stored dataset split.
 
-Both write ``report.json`` (the full report) and ``report.md`` (its table) into the job folder and summarize the
-methods in the job result; ``benchmark`` defaults its method list to the non-learned baselines and OIDN's three
-presets, refuses learned registry presets (untrained weights: learned methods come only as model references or
-checkpoints), and also draws ``quality_speed.png`` with ``model.evaluation.benchmark`` (PSNR and FLIP against time per
-frame, log scale, Pareto front; the chart ``denoiser benchmark`` draws, served at GET /jobs/{id}/chart.png). With
+A run at one scale writes ``report.json`` (the full report) and ``report.md`` (its table) into the job folder and
+summarizes the methods in the job result. A benchmark (its methods and scales: ``core.jobs.evaluate``) also writes
+what ``denoiser benchmark`` writes (``model.evaluation.benchmark.write_benchmark``): ``benchmark.json``,
+``benchmark.md``, ``quality_speed.png`` (served at GET /jobs/{id}/chart.png) and ``quality_cost.png``. With
 ``track`` the run goes to MLflow (experiment ``denoiser-evaluation``): parameters, one metric per method and
 measure, the files as artifacts; and a registered model version that was evaluated gets its measurements as
 version tags (``ms_per_frame``, ``metric.<name>``), which GET /models shows.
@@ -17,15 +16,15 @@ import re
 from pathlib import Path
 from typing import Any
 
-from core.jobs.evaluate import default_methods
-from core.jobs.files import CHART, REPORT_JSON, REPORT_MARKDOWN
+from core.jobs.checks import open_dataset, split_sequences
+from core.jobs.evaluate import benchmark_scales, planned_methods, runs_at
+from core.jobs.files import BENCHMARK_FILES, CHART, REPORT_JSON, REPORT_MARKDOWN
 from core.jobs.methods import is_model_ref, runnable
 from core.jobs.specs import BenchmarkParams, EvaluateParams
-from core.jobs.checks import open_dataset, split_sequences
 from workers.tasks.context import JobContext
 
 EXPERIMENT = "denoiser-evaluation"
-ARTIFACTS = (REPORT_JSON, REPORT_MARKDOWN, CHART)
+ARTIFACTS = (REPORT_JSON, REPORT_MARKDOWN, CHART, *BENCHMARK_FILES)
 SUMMARY_KEYS = ("label", "source", "method", "preset", "scale", "params", "flops_per_pixel", "ms_per_frame",
                 "time_ratio_to_oidn")
 
@@ -33,14 +32,20 @@ SUMMARY_KEYS = ("label", "source", "method", "preset", "scale", "params", "flops
 def run(context: JobContext) -> dict[str, Any]:
     from model.evaluation.evaluate import TIMING_REFERENCE, evaluate, format_table
 
-    model = BenchmarkParams if context.record["kind"] == "benchmark" else EvaluateParams
-    params = model.model_validate(context.params)
-    methods = list(params.methods or default_methods(params.scale))
+    benchmark = context.record["kind"] == "benchmark"
+    params = (BenchmarkParams if benchmark else EvaluateParams).model_validate(context.params)
+    scales = benchmark_scales(params.scale)
+    methods = planned_methods(params)
+    # At both scales a method runs at those it can (the check made sure it runs at one at least).
+    plan = {scale: [m for m in methods if len(scales) == 1 or runs_at(m, scale, context.storage)]
+            for scale in scales}
+    skipped = [{"method": m, "scale": scale, "reason": f"{m} does not run at scale {scale}"}
+               for scale, running in plan.items() for m in methods if m not in running]
     dataset_dir = context.storage.dataset(params.dataset)
-    sequences = split_sequences(open_dataset(context.storage, params.dataset), params.dataset, params.split,
-                                params.scale)
-    timed_separately = params.oidn_timing and TIMING_REFERENCE not in methods
-    total = (len(methods) + int(timed_separately)) * len(sequences)
+    sequences = {scale: split_sequences(open_dataset(context.storage, params.dataset), params.dataset,
+                                        params.split, scale) for scale in scales}
+    timed_separately = {scale: params.oidn_timing and TIMING_REFERENCE not in plan[scale] for scale in scales}
+    total = sum((len(plan[s]) + int(timed_separately[s])) * len(sequences[s]) for s in scales)
     runs = 0
 
     def say(message: str) -> None:
@@ -50,31 +55,36 @@ def run(context: JobContext) -> dict[str, Any]:
         runs += 1
 
     tracker = _start_tracking(context, params, methods) if params.track else None
-    try:
-        report = evaluate(dataset_dir, [runnable(m, context.storage) for m in methods], split=params.split,
-                          scale=params.scale, frame_limit=params.frames, threads=params.threads, vdp=params.vdp,
-                          timing_reference=TIMING_REFERENCE if params.oidn_timing else None,
-                          device=context.torch_device, progress=say,
-                          inference_forms=context.settings.inference_forms)
+    with context.ending(tracker):
+        reports = []
+        for scale in scales:
+            if not plan[scale]:
+                continue
+            report = evaluate(dataset_dir, [runnable(m, context.storage) for m in plan[scale]], split=params.split,
+                              scale=scale, frame_limit=params.frames, threads=params.threads, vdp=params.vdp,
+                              timing_reference=TIMING_REFERENCE if params.oidn_timing else None,
+                              device=context.torch_device, progress=say,
+                              inference_forms=context.settings.inference_forms)
+            for entry, text in zip(report["methods"], plan[scale]):
+                entry["source"] = text  # the reference as given, not the cached checkpoint's path
+            report["dataset"] = params.dataset
+            reports.append(report)
         context.progress(total, total, "writing the report")
-        for entry, text in zip(report["methods"], methods):
-            entry["source"] = text  # the reference as given, not the cached checkpoint's path
-        report["dataset"] = params.dataset
-        files = _write_files(context.folder, report, format_table(report), chart=context.record["kind"] ==
-                             "benchmark")
+        files = _write_files(context.folder, reports, format_table, skipped, benchmark)
         if tracker is not None:
-            _log_results(tracker, report, files)
-            tracker.finish("FINISHED")
-    except BaseException:
-        if tracker is not None:
-            tracker.finish("KILLED" if context.cancelled.is_set() else "FAILED")
-        raise
+            _log_results(tracker, reports, files)
     if params.track:
-        _tag_registered_versions(context, report, f"{params.dataset}/{params.split}")
-    return summary(context.job_id, report, files)
+        for report in reports:
+            _tag_registered_versions(context, report, f"{params.dataset}/{params.split}")
+    if len(reports) == 1:
+        return summary(context.job_id, reports[0], files)
+    return {"dataset": params.dataset, "split": params.split, "scales": [r["scale"] for r in reports],
+            "runs": [{key: value for key, value in summary(context.job_id, r, {}).items()
+                      if key not in ("table", "artifacts")} for r in reports],
+            "skipped": skipped, "table": files["table"], "artifacts": _artifact_urls(context.job_id, files)}
 
 
-def summary(job_id: str, report: dict, files: dict[str, Path]) -> dict[str, Any]:
+def summary(job_id: str, report: dict, files: dict[str, Any]) -> dict[str, Any]:
     reference = report["timing_reference"]
     return {
         "dataset": report["dataset"], "split": report["split"], "scale": report["scale"],
@@ -84,35 +94,37 @@ def summary(job_id: str, report: dict, files: dict[str, Path]) -> dict[str, Any]
                                                             "ms_per_frame": reference["ms_per_frame"]},
         "methods": [{**{key: entry.get(key) for key in SUMMARY_KEYS}, "metrics": entry["metrics"]}
                     for entry in report["methods"]],
-        "table": files["table"],
-        "artifacts": {name: f"/jobs/{job_id}/artifacts/{name}" for name in files if name in ARTIFACTS},
+        "table": files.get("table"),
+        "artifacts": _artifact_urls(job_id, files),
     }
 
 
-def _write_files(folder: Path, report: dict, table: str, chart: bool) -> dict[str, Any]:
-    (folder / REPORT_JSON).write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
-    (folder / REPORT_MARKDOWN).write_text(table + "\n")
-    files: dict[str, Any] = {REPORT_JSON: folder / REPORT_JSON, REPORT_MARKDOWN: folder / REPORT_MARKDOWN,
-                             "table": table}
-    if chart:
-        path = quality_speed_chart(report, folder / CHART)
-        if path is not None:
-            files[CHART] = path
+def _artifact_urls(job_id: str, files: dict[str, Any]) -> dict[str, str]:
+    return {name: f"/jobs/{job_id}/artifacts/{name}" for name in files if name in ARTIFACTS}
+
+
+def _write_files(folder: Path, reports: list[dict], format_table, skipped: list[dict],
+                 benchmark: bool) -> dict[str, Any]:
+    """One scale: its report (report.json, report.md); a benchmark also writes the benchmark table and charts of
+    every scale it ran (``model.evaluation.benchmark.write_benchmark``, as ``denoiser benchmark`` does)."""
+    files: dict[str, Any] = {}
+    if len(reports) == 1:
+        report, table = reports[0], format_table(reports[0])
+        (folder / REPORT_JSON).write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
+        (folder / REPORT_MARKDOWN).write_text(table + "\n")
+        files.update({REPORT_JSON: folder / REPORT_JSON, REPORT_MARKDOWN: folder / REPORT_MARKDOWN, "table": table})
+    if benchmark:
+        from model.evaluation.benchmark import BENCHMARK_MARKDOWN, write_benchmark
+
+        written = write_benchmark(folder, reports, skipped)
+        files.update(written)
+        files.setdefault("table", written[BENCHMARK_MARKDOWN].read_text().rstrip())
     return files
-
-
-def quality_speed_chart(report: dict, path: Path) -> Path | None:
-    """PSNR and FLIP against ms per frame (log scale), Pareto front, every point labelled (model.evaluation.benchmark);
-    None when no method was both timed and scored."""
-    from model.evaluation.benchmark import benchmark_rows, write_quality_speed_chart
-
-    title = f"{report['dataset']} / {report['split']}, scale {report['scale']}"
-    return write_quality_speed_chart(benchmark_rows([report]), path, title)
 
 
 # ---------------------------------------------------------------------------------------------- MLflow
 
-def _metric_key(text: str) -> str:
+def metric_key(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_\-. :/]", "_", text)
 
 
@@ -130,13 +142,15 @@ def _start_tracking(context: JobContext, params: EvaluateParams, methods: list[s
     return tracker
 
 
-def _log_results(tracker, report: dict, files: dict[str, Any]) -> None:
+def _log_results(tracker, reports: list[dict], files: dict[str, Any]) -> None:
     metrics: dict[str, float] = {}
-    for entry in report["methods"]:
-        name = _metric_key(entry["source"])
-        values = {**entry["metrics"], "ms_per_frame": entry["ms_per_frame"],
-                  "time_ratio_to_oidn": entry["time_ratio_to_oidn"]}
-        metrics.update({f"{name}/{key}": value for key, value in values.items() if value is not None})
+    for report in reports:
+        prefix = f"x{report['scale']}/" if len(reports) > 1 else ""
+        for entry in report["methods"]:
+            name = prefix + metric_key(entry["source"])
+            values = {**entry["metrics"], "ms_per_frame": entry["ms_per_frame"],
+                      "time_ratio_to_oidn": entry["time_ratio_to_oidn"]}
+            metrics.update({f"{name}/{key}": value for key, value in values.items() if value is not None})
     tracker.log_metrics(metrics, step=0)
     for name, path in files.items():
         if name in ARTIFACTS:

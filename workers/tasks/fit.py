@@ -36,16 +36,10 @@ def run(context: JobContext) -> dict[str, Any]:
         recorder = start_fit_run(config, config.tracking_uri, f"fit {params.method} {params.target} "
                                                               f"(job {context.job_id[:8]})")
         context.set_mlflow_run(recorder.run_id, recorder.experiment_id)
-    try:
+    with context.ending(recorder):
         result = fit(config, store=recorder, tracker=recorder,
                      train_tracker=recorder.train_tracker if recorder else None, progress=context.progress,
                      say=context.logger.info, plan=plan)
-    except BaseException:
-        if recorder is not None:
-            recorder.finish("KILLED" if context.cancelled.is_set() else "FAILED")
-        raise
-    if recorder is not None:
-        recorder.finish("FINISHED")
     write_ladder(result, context.folder)
     context.logger.info("ladder:\n%s", format_ladder(result))
     if not result.met:

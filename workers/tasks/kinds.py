@@ -1,24 +1,15 @@
-"""The job kinds the worker runs: which module's ``run(context) -> dict`` (the job's result) runs each one.
-
-Their checks, run by the API before queueing, are in ``core.jobs`` (``core.jobs.kinds.check``).
-"""
+"""The module whose ``run(context) -> dict`` (the job's result) runs each job kind, as ``core.jobs.kinds.KINDS``
+names it (the table of kinds: parameters, checks, run modules)."""
 
 from __future__ import annotations
 
 import importlib
 from types import ModuleType
 
-KIND_MODULES = {
-    "generate": "workers.tasks.generate",
-    "train": "workers.tasks.train",
-    "evaluate": "workers.tasks.evaluate",
-    "benchmark": "workers.tasks.evaluate",
-    "infer": "workers.tasks.infer",
-    "fit": "workers.tasks.fit",
-}
+from core.jobs.kinds import KINDS, kind_of
+
+KIND_MODULES = {name: kind.run for name, kind in KINDS.items()}
 
 
 def module_for(kind: str) -> ModuleType:
-    if kind not in KIND_MODULES:
-        raise ValueError(f"unknown job kind {kind!r}; kinds: {', '.join(KIND_MODULES)}")
-    return importlib.import_module(KIND_MODULES[kind])
+    return importlib.import_module(kind_of(kind).run)

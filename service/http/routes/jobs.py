@@ -1,4 +1,4 @@
-"""/jobs: submit generate, train, evaluate, benchmark and infer jobs; follow, cancel, read logs and results.
+"""/jobs: submit a job of any kind (``core.jobs.kinds``); follow, cancel, read logs, artifacts and results.
 
 A submission is checked completely before anything is queued (the kind's ``check`` in ``core.jobs``: the
 dataset, methods, presets, model references, sizes), stored as a job record in Redis (``core.job_store``)
@@ -29,10 +29,9 @@ from core.job_store import JobFinished, JobNotFound, JobStore, store_for
 from core.jobs.checks import invalid
 from core.jobs.dispatch import CeleryDispatcher
 from core.jobs.files import CHART as QUALITY_SPEED_CHART
-from core.jobs.files import CHECKPOINT_FOLDER, DDP_LOG_FILE, LOG_FILE, tail_lines
-from core.jobs.kinds import check
+from core.jobs.files import BENCHMARK_FILES, CHECKPOINT_FOLDER, DDP_LOG_FILE, LOG_FILE, STABILITY_FILES, tail_lines
+from core.jobs.kinds import KINDS, check
 from core.jobs.specs import JobKind, JobState
-from core.names import QUEUE_FOR_DEVICE
 from core.settings import Settings, get_settings
 from core.storage import Storage, checked_id, get_storage
 
@@ -61,9 +60,10 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 DispatcherDep = Annotated[CeleryDispatcher, Depends(get_dispatcher)]
 JobId = Annotated[str, Path(description="job id", examples=["5f0c3a9e2b6d4f1a8c7e9d0b1a2c3d4e"])]
 
-ARTIFACT_TYPES = {"report.json": "application/json", "report.md": "text/markdown; charset=utf-8",
-                  QUALITY_SPEED_CHART: "image/png",
-                  LADDER_JSON: "application/json", LADDER_MARKDOWN: "text/markdown; charset=utf-8"}
+_TYPES = {".json": "application/json", ".md": "text/markdown; charset=utf-8", ".png": "image/png"}
+ARTIFACT_TYPES = {name: _TYPES[FilePath(name).suffix] for name in
+                  ("report.json", "report.md", QUALITY_SPEED_CHART, *BENCHMARK_FILES, *STABILITY_FILES, LADDER_JSON,
+                   LADDER_MARKDOWN)}
 EXR_TYPE = "image/x-exr"
 _FRAME = re.compile(r"^(?:frame_)?(\d{1,9})(?:\.exr)?$")
 
@@ -110,7 +110,7 @@ def submit_job(body: Annotated[JobCreate, Body()], response: Response, store: St
         params = check(body.kind, body.params, storage, settings)
     except (ValueError, KeyError) as error:  # a library's refusal of the input (e.g. a damaged dataset manifest)
         raise invalid(error) from None
-    queue = QUEUE_FOR_DEVICE[body.device]
+    queue = KINDS[body.kind].queue(body.device)
     record = store.create(body.kind, params, body.device, queue)
     try:
         dispatcher.send(record["id"], queue)
@@ -179,19 +179,23 @@ def job_logs(job_id: JobId, store: StoreDep, storage: StorageDep,
     return JobLogs(lines=tail_lines(path, lines))
 
 
-@router.get("/{job_id}/artifacts/{name}", summary="A file an evaluate, benchmark or fit job wrote",
+@router.get("/{job_id}/artifacts/{name}", summary="A file an evaluate, benchmark, fit or stability job wrote",
             response_class=FileResponse,
             responses={200: {"content": {kind: {} for kind in ARTIFACT_TYPES.values()}}, 404: _NOT_FOUND})
 def job_artifact(job_id: JobId, store: StoreDep, storage: StorageDep,
-                 name: Annotated[str, Path(description="report.json, report.md, quality_speed.png (evaluate, "
-                                                       "benchmark); ladder.json, ladder.md (fit)")]
+                 name: Annotated[str, Path(description="report.json, report.md (evaluate, benchmark at one "
+                                                       "scale); quality_speed.png, benchmark.json, benchmark.md, "
+                                                       "quality_cost.png (benchmark); ladder.json, ladder.md (fit); "
+                                                       "stability.json, stability.md, psnr_curves.png, "
+                                                       "psnr_drop.png, ghost_curves.png (stability)")]
                  ) -> FileResponse:
     _require(store, job_id)
     path = storage.job(job_id) / name
     if name not in ARTIFACT_TYPES or not path.is_file():
         raise ApiError(404, "not_found", f"job {job_id!r} has no artifact {name!r} (artifacts: "
                        f"report.json and report.md written by evaluate and benchmark jobs when they succeed, "
-                       f"{QUALITY_SPEED_CHART} by benchmark jobs, {LADDER_JSON} and {LADDER_MARKDOWN} by fit jobs)")
+                       f"{QUALITY_SPEED_CHART} and {', '.join(BENCHMARK_FILES)} by benchmark jobs, {LADDER_JSON} "
+                       f"and {LADDER_MARKDOWN} by fit jobs, {', '.join(STABILITY_FILES)} by stability jobs)")
     return FileResponse(path, media_type=ARTIFACT_TYPES[name], filename=name)
 
 
@@ -202,7 +206,7 @@ def job_artifact(job_id: JobId, store: StoreDep, storage: StorageDep,
                 "job '5f0c3a9e...' has no quality-vs-speed chart: benchmark jobs draw one when they succeed")})
 def job_chart(job_id: JobId, store: StoreDep, storage: StorageDep) -> FileResponse:
     """PSNR and FLIP against ms per frame (log scale), the Pareto front drawn and every method labelled: the
-    chart `denoiser benchmark` draws (`model/evaluation/benchmark.py`), for the benchmark job's one scale. Also under
+    chart `denoiser benchmark` draws (`model/evaluation/benchmark.py`), for the benchmark job's scales. Also under
     `/jobs/{id}/artifacts/quality_speed.png`."""
     record = _require(store, job_id)
     path = storage.job(job_id) / QUALITY_SPEED_CHART

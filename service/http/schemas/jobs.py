@@ -7,48 +7,31 @@ from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from core.jobs.specs import (
-    BenchmarkParams,
-    EvaluateParams,
-    FitParams,
-    GenerateParams,
-    InferParams,
-    JobDevice,
-    JobKind,
-    JobState,
-    TrainParams,
-)
+from core.jobs.kinds import KINDS, Kind
+from core.jobs.specs import JobDevice, JobKind, JobState, TrainParams
 
 
-def _job_create(kind: str, params: type[BaseModel], device: str = "cpu") -> type[BaseModel]:
+def _job_create(kind: Kind) -> type[BaseModel]:
     """The POST /jobs body of one kind: ``{"kind": KIND, "params": PARAMS, "device": ...}`` as a model named
-    ``<Kind>JobCreate`` (its OpenAPI schema name), with an example built from ``params``' first example."""
-    example = {"kind": kind, "params": params.model_config["json_schema_extra"]["examples"][0], "device": device}
+    ``<Kind>JobCreate`` (its OpenAPI schema name), with an example built from the parameters' first example."""
+    params = kind.params.model_config["json_schema_extra"]["examples"][0]
+    example = {"kind": kind.name, "params": params, "device": kind.example_device}
     return create_model(
-        f"{kind.capitalize()}JobCreate",
+        f"{kind.name.capitalize()}JobCreate",
         __config__=ConfigDict(extra="forbid", strict=True, json_schema_extra={"examples": [example]}),
         __module__=__name__,
-        kind=(Literal[kind], ...),
-        params=(params, ...),
-        device=(JobDevice, Field("cpu", description="cpu: queue 'cpu'; gpu: queue 'gpu' (the job runs on CUDA)")),
+        kind=(Literal[kind.name], ...),
+        params=(kind.params, ...),
+        device=(Literal[kind.devices], Field("cpu", description="cpu: queue 'cpu'; gpu: queue 'gpu' (the job runs "
+                                                                "on CUDA)")),
     )
 
 
-GenerateJobCreate = _job_create("generate", GenerateParams)
-TrainJobCreate = _job_create("train", TrainParams, device="gpu")
-EvaluateJobCreate = _job_create("evaluate", EvaluateParams)
-BenchmarkJobCreate = _job_create("benchmark", BenchmarkParams)
-InferJobCreate = _job_create("infer", InferParams)
-
-
-FitJobCreate = _job_create("fit", FitParams)
-
+# One body per kind of the table (core.jobs.kinds.KINDS), named <Kind>JobCreate.
+JOB_CREATE = {name: _job_create(kind) for name, kind in KINDS.items()}
 
 # POST /jobs body: the kind picks the parameter schema.
-JobCreate = Annotated[
-    Union[GenerateJobCreate, TrainJobCreate, EvaluateJobCreate, BenchmarkJobCreate, InferJobCreate, FitJobCreate],
-    Field(discriminator="kind"),
-]
+JobCreate = Annotated[Union[tuple(JOB_CREATE.values())], Field(discriminator="kind")]
 
 
 class JobProgress(BaseModel):

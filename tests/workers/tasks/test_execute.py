@@ -14,7 +14,7 @@ import torch
 from model.io.dataset import Dataset
 from model.methods.base import FrameBatch
 from model.methods.registry import build_method
-from core.jobs.specs import JOB_PARAMS
+from core.jobs.kinds import JOB_PARAMS
 from tests.builders import write_sequence
 from tests.model.training_fixtures import TINY_METHOD
 from tests.workers.tasks.datasets import store_dataset
@@ -73,15 +73,18 @@ def test_evaluate_writes_reports_and_mirrors_progress(store, storage, settings, 
 
 def test_benchmark_defaults_to_baselines_and_oidn_and_draws_a_chart(store, storage, settings, dataset):
     job_id = submit(store, storage, settings, "benchmark", dataset="tiny", vdp=False, track=False, frames=3)
-    assert store.get(job_id)["params"]["methods"] == ["identity", "accumulation", "svgf", "oidn:fast",
-                                                      "oidn:balanced", "oidn:high"]
+    # The defaults of `denoiser benchmark` too: every non-learned method, OIDN and OIDN + TAA at all three presets.
+    assert store.get(job_id)["params"]["methods"] == ["accumulation", "identity", "oidn:fast", "oidn:balanced",
+                                                      "oidn:high", "oidn-taa:fast", "oidn-taa:balanced",
+                                                      "oidn-taa:high", "svgf"]
     store.update(job_id, params={**store.get(job_id)["params"], "methods": ["identity", "oidn:fast"]})
     record = run(store, storage, settings, job_id)
     assert record["state"] == "succeeded", record["error"]
     result = record["result"]
     assert result["timing_reference"]["label"] == "oidn:high" and result["methods"][1]["time_ratio_to_oidn"] > 0
     assert (storage.job(job_id) / "quality_speed.png").stat().st_size > 1000
-    assert set(result["artifacts"]) == {"report.json", "report.md", "quality_speed.png"}
+    assert set(result["artifacts"]) == {"report.json", "report.md", "quality_speed.png", "benchmark.json",
+                                        "benchmark.md", "quality_cost.png"}
 
 
 def test_a_dataset_gone_before_the_run_fails_the_job_with_a_message(store, storage, settings, dataset):

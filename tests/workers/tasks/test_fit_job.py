@@ -8,7 +8,7 @@ import json
 import pytest
 
 from core.errors import DomainError, Invalid, NotFound
-from core.jobs.specs import JOB_PARAMS
+from core.jobs.kinds import JOB_PARAMS
 from tests.model.training_fixtures import TINY_METHOD
 from tests.workers.tasks.datasets import store_dataset
 from workers.tasks.jobs import execute

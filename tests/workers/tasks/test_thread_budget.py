@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from core.jobs.specs import JOB_PARAMS
+from core.jobs.kinds import JOB_PARAMS
 from workers.tasks.jobs import apply_job_threads
 from core.jobs.train import rank_threads, train_config
 

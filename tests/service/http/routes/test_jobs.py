@@ -149,10 +149,32 @@ def test_generate_refuses_to_overwrite_a_sequence_unless_asked(client, storage):
     assert len(job["params"]["scenes"]) > 3 and job["params"]["size"] == [32, 32]
 
 
+DEFAULT_BENCHMARK = ["accumulation", "identity", "oidn:fast", "oidn:balanced", "oidn:high", "oidn-taa:fast",
+                     "oidn-taa:balanced", "oidn-taa:high", "svgf"]
+
+
 def test_benchmark_lists_its_default_methods_in_the_record(client):
     job = client.post("/jobs", json={"kind": "benchmark", "params": {"dataset": "tiny"}}).json()
-    assert job["params"]["methods"] == ["identity", "accumulation", "svgf", "oidn:fast", "oidn:balanced",
-                                        "oidn:high"]
+    assert job["params"]["methods"] == DEFAULT_BENCHMARK and job["params"]["scale"] == 1
+    body = {"kind": "benchmark", "params": {"dataset": "tiny", "methods": ["svgf"], "all_presets": True,
+                                            "scale": "both"}}
+    job = client.post("/jobs", json=body).json()
+    assert job["params"]["methods"] == ["svgf", "svgf:rectified"] and job["params"]["scale"] == "both"
+
+
+def test_a_benchmark_at_both_scales_runs_each_method_where_it_can(client, storage):
+    path = storage.job("trained") / "checkpoints" / "last.pt"  # the test-only method runs at scale 1 only
+    path.parent.mkdir(parents=True)
+    save_checkpoint(path, method=build_method(TINY_METHOD), optimizer=None, scheduler=None, train_config={},
+                    step=1, epoch=0.0, rng=None, best_metric=None, extra={})
+    body = {"kind": "benchmark", "params": {"dataset": "tiny", "scale": "both", "methods": ["identity"],
+                                            "include_learned": ["jobs/trained/checkpoints/last.pt"]}}
+    assert client.post("/jobs", json=body).status_code == 202
+    body["params"].update(methods=None, include_learned=None, scale=2)
+    body["params"]["methods"] = ["jobs/trained/checkpoints/last.pt"]
+    assert error_of(client.post("/jobs", json=body), 422)["code"] == "unsupported_scale"
+    body["params"]["scale"] = "three"
+    assert error_of(client.post("/jobs", json=body), 422)["code"] == "invalid_request"
 
 
 def test_model_references_go_through_the_registry(client, monkeypatch, tmp_path):
@@ -308,7 +330,8 @@ def test_the_openapi_document_describes_every_job_endpoint(client):
     assert {"/jobs", "/jobs/{job_id}", "/jobs/{job_id}/cancel", "/jobs/{job_id}/logs", "/jobs/{job_id}/results",
             "/jobs/{job_id}/results.zip", "/jobs/{job_id}/results/{sequence}/{frame}"} <= set(paths)
     schemas = document["components"]["schemas"]
-    for name in ("Job", "TrainParams", "EvaluateParams", "GenerateParams", "InferParams", "BenchmarkParams"):
+    for name in ("Job", "TrainParams", "EvaluateParams", "GenerateParams", "InferParams", "BenchmarkParams",
+                 "FitParams", "StabilityParams"):
         assert schemas[name].get("examples"), name
 
 
@@ -351,8 +374,7 @@ def test_a_benchmark_adds_trained_models_to_its_default_methods(client, storage,
                     step=1, epoch=0.0, rng=None, best_metric=None, extra={})
     body = {"kind": "benchmark", "params": {"dataset": "tiny", "include_learned": ["jobs/trained/checkpoints/last.pt"]}}
     job = client.post("/jobs", json=body).json()
-    assert job["params"]["methods"] == ["identity", "accumulation", "svgf", "oidn:fast", "oidn:balanced",
-                                        "oidn:high", "jobs/trained/checkpoints/last.pt"]
+    assert job["params"]["methods"] == DEFAULT_BENCHMARK + ["jobs/trained/checkpoints/last.pt"]
     assert job["params"]["include_learned"] is None
     body["params"]["include_learned"] = [TINY_METHOD]  # a registry name has no trained weights
     error = error_of(client.post("/jobs", json=body), 422)
@@ -365,3 +387,36 @@ def test_a_benchmark_refuses_untrained_learned_presets(client, dispatcher):
     assert error["code"] == "untrained_method" and TINY_METHOD in error["message"]
     assert dispatcher.sent == []
     assert client.post("/jobs", json=evaluate_body(methods=[TINY_METHOD])).status_code == 202  # evaluate may
+
+
+# ------------------------------------------------------------------------------------------- stability
+
+def test_a_stability_job_is_checked_queued_and_serves_its_report(client, storage, dispatcher):
+    body = {"kind": "stability", "params": {"dataset": "tiny", "methods": ["identity", "svgf"],
+                                            "scenarios": ["clean", "nan_inf_color", "clean"], "frames": 2}}
+    response = client.post("/jobs", json=body)
+    assert response.status_code == 202, response.text
+    job = response.json()
+    assert job["params"]["scenarios"] == ["clean", "nan_inf_color"] and job["params"]["vdp"] is False
+    assert dispatcher.sent[-1] == (job["id"], "cpu")
+    job = client.post("/jobs", json={**body, "params": {"dataset": "tiny", "methods": ["identity"]}}).json()
+    assert len(job["params"]["scenarios"]) == 19  # none given: every scenario the dataset allows
+    storage.job(job["id"]).mkdir(parents=True)
+    (storage.job(job["id"]) / "stability.md").write_text("# Stability\n")
+    response = client.get(f"/jobs/{job['id']}/artifacts/stability.md")
+    assert response.text == "# Stability\n" and response.headers["content-type"].startswith("text/markdown")
+
+
+@pytest.mark.parametrize("params, status, code, words", [
+    ({"methods": ["identity"], "scenarios": ["earthquake"]}, 422, "invalid_request", "scenarios"),
+    ({"methods": ["nope"]}, 422, "unknown_method", "unknown method 'nope'"),
+    ({"methods": ["identity"], "base": "zeta"}, 422, "invalid_scenarios", "no sequence 'zeta'"),
+    ({"methods": ["identity"], "scenarios": ["moving_light"]}, 422, "no_scenarios", "moving_light"),
+    ({"methods": []}, 422, "invalid_request", "methods"),
+    ({"dataset": "nope", "methods": ["identity"]}, 404, "dataset_not_found", "'nope'"),
+])
+def test_a_stability_job_with_bad_parameters_is_refused(client, dispatcher, params, status, code, words):
+    body = {"kind": "stability", "params": {"dataset": "tiny", **params}}
+    error = error_of(client.post("/jobs", json=body), status)
+    assert error["code"] == code and words in error["message"]
+    assert dispatcher.sent == []
