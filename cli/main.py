@@ -77,14 +77,9 @@ def size_option(text: str) -> tuple[int, int]:
     return values[0], values[1]
 
 
-def scales_option(text: str) -> tuple[int, ...]:
-    try:
-        values = tuple(sorted({int(p) for p in text.split(",") if p.strip()}))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"scales must be a comma-separated list like 1,2; got {text!r}") from None
-    if not values or any(v not in (1, 2, 4) for v in values):
-        raise argparse.ArgumentTypeError(f"scales must be chosen from 1, 2, 4; got {text!r}")
-    return values
+def size_list(text: str) -> list[int]:
+    """``size_option`` as [width, height]: the command-line form of job parameters' size fields."""
+    return list(size_option(text))
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

@@ -6,7 +6,9 @@ import argparse
 import json
 from pathlib import Path
 
-from cli.main import UsageError, positive_int, scales_option, size_option
+from cli.main import UsageError, size_list
+from cli.options import add_model_options, params_from_args
+from core.jobs.specs import GenerateParams
 from core.names import SPLITS
 
 
@@ -31,35 +33,26 @@ def _add_generate(commands) -> None:
                     "jitter, and box-filtered references (radiance, diffuse and specular albedo) at the requested "
                     "scales. Deterministic for a seed.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--scene", action="append", required=True, metavar="NAME",
-                        help=f"scene recipe; repeat for several, or 'all'. One of: {', '.join(sorted(SCENES))}")
-    parser.add_argument("--frames", type=positive_int, default=16, help="frames per sequence")
-    parser.add_argument("--size", type=size_option, default=(128, 128), metavar="N|WxH",
-                        help="render resolution (references are this times each scale)")
-    parser.add_argument("--ref-spp", type=positive_int, default=1024, metavar="N",
-                        help="samples per pixel of the references (at the largest scale)")
-    parser.add_argument("--albedo-spp", type=positive_int, default=16, metavar="N",
-                        help="first-hit samples per pixel of the reference albedos (at the largest scale)")
-    parser.add_argument("--scales", type=scales_option, default=(1, 2), metavar="S[,S]",
-                        help="reference scales to store (1, 2, 4); scale 1 is the 2x2 mean of scale 2")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the scene variation and of the noise")
+    # The generate job's parameters (core.jobs.specs.GenerateParams) but the dataset id, which is --out here.
+    add_model_options(parser, GenerateParams, exclude=("dataset",), aliases={"scenes": ("--scene",)},
+                      overrides={"scenes": {"metavar": "NAME", "help": "scene recipes; repeat for several, or "
+                                            f"'all'. One of: {', '.join(sorted(SCENES))}"},
+                                 "size": {"type": size_list, "metavar": "N|WxH", "shown_default": "128x128",
+                                          "help": "render resolution (references are this times each scale)"},
+                                 "scales": {"metavar": "S[,S]", "help": "reference scales to store (1, 2, 4); "
+                                            "scale 1 is the 2x2 mean of scale 2"}})
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="dataset folder")
-    parser.add_argument("--split", choices=SPLITS, default="train",
-                        help="split the new sequences belong to")
     parser.add_argument("--name", default=None,
                         help="sequence name (one scene only); default SCENE_sSEED")
-    parser.add_argument("--max-depth", type=positive_int, default=6,
-                        help="longest path (1 = directly visible emitters only), as Mitsuba's path integrator")
     parser.add_argument("--variant", choices=("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb"), default=None,
                         help="Mitsuba variant; default: cuda_ad_rgb on a GPU, else llvm_ad_rgb, else (no LLVM 19) "
                              "scalar_rgb")
-    parser.add_argument("--half", action="store_true", help="store EXR channels as half floats")
-    parser.add_argument("--no-jitter", dest="jitter", action="store_false",
-                        help="sample every frame at the pixel centres (as renderers without TAA jitter do) instead of "
-                             "the Halton(2,3) sub-pixel jitter")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing sequence of the same name")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(run=_run_generate)
+
+
+def job_params(args) -> GenerateParams:
+    return params_from_args(GenerateParams, args)
 
 
 def _run_generate(args) -> int:
@@ -67,7 +60,8 @@ def _run_generate(args) -> int:
     from model.data.render import RenderSettings
     from model.data.scenes import SCENES
 
-    scenes = sorted(SCENES) if "all" in args.scene else args.scene
+    params = job_params(args)
+    scenes = sorted(SCENES) if "all" in params.scenes else list(dict.fromkeys(params.scenes))
     unknown = [s for s in scenes if s not in SCENES]
     if unknown:
         raise UsageError(f"unknown scene {', '.join(map(repr, unknown))}; known scenes: {', '.join(sorted(SCENES))}")
@@ -76,19 +70,19 @@ def _run_generate(args) -> int:
     from model.data.generate import default_sequence_name
 
     for scene in scenes:
-        target = args.out / (args.name or default_sequence_name(scene, args.seed))
-        if target.exists() and not args.overwrite:
+        target = args.out / (args.name or default_sequence_name(scene, params.seed))
+        if target.exists() and not params.overwrite:
             raise UsageError(f"sequence {target} already exists; pass --overwrite to replace it")
     from model.data.mitsuba_backend import choose_variant
 
     choose_variant(args.variant)  # a variant this machine cannot run: exit 2 before the dataset folder is made
-    width, height = args.size
-    settings = RenderSettings(width=width, height=height, ref_spp=args.ref_spp, ref_scales=args.scales,
-                              albedo_spp=args.albedo_spp, max_depth=args.max_depth, variant=args.variant,
-                              jitter=args.jitter)
+    width, height = params.size
+    settings = RenderSettings(width=width, height=height, ref_spp=params.ref_spp, ref_scales=tuple(params.scales),
+                              albedo_spp=params.albedo_spp, max_depth=params.max_depth, variant=args.variant,
+                              jitter=params.jitter)
     for scene in scenes:
-        generate_sequence(scene, args.out, frames=args.frames, settings=settings, seed=args.seed,
-                          split=args.split, name=args.name, half=args.half, overwrite=args.overwrite,
+        generate_sequence(scene, args.out, frames=params.frames, settings=settings, seed=params.seed,
+                          split=params.split, name=args.name, half=params.half, overwrite=params.overwrite,
                           progress=not args.quiet)
     _print_summary(args.out)
     return 0
