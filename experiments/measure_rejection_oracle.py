@@ -2,7 +2,7 @@
 wherever the reference changed from the frame before (findings: docs/results/findings.md).
 
     .venv/bin/python experiments/measure_rejection_oracle.py --data data/reuse --split test --sequence moving_light_s4 \
-        --model fused-fast-x1 --model fused-balanced-x1 --model fused-high-x1 --out docs/results/rejection_oracle.json
+        --model fused-fast-x1 --model fused-balanced-x1 --model fused-high-x1 --out var/results/rejection_oracle.json
 
 A stale-history test can do no better than to send a model to its spatial estimate exactly where the scene changed;
 the oracle knows where from the references, which no method sees. Per model and sequence it reports the model, its

@@ -4,7 +4,7 @@ use the estimate where its samples lie; this measures how much of the fused mode
 (findings: docs/results/findings.md).
 
     .venv/bin/python experiments/measure_unjittered_peers.py --data data/reuse --split test \
-        --out docs/results/reuse_x1_unjittered_peers.json
+        --out var/results/reuse_x1_unjittered_peers.json
 
 Writes a ``denoiser evaluate`` report (1x, no timing: the read costs the same for every quality) whose rows are
 ``oidn:Q`` and ``oidn-taa:Q`` with the read; FovVideoVDP unless --no-vdp.

@@ -1,10 +1,10 @@
 """How each method's step scales from 128x128 to 1920x1080 output: ms per frame, peak memory, achieved GFLOP/s.
 
     .venv/bin/python scripts/bench_resolution_scaling.py --chart docs/resolution_scaling.png \
-        --out docs/results/resolution_scaling.json
+        --out var/results/resolution_scaling.json
     .venv/bin/python scripts/bench_resolution_scaling.py --model munet-s-x2 --model oidn:high --size 512 \
         --size 1920x1080
-    .venv/bin/python scripts/bench_resolution_scaling.py --device cuda --out docs/results/resolution_scaling_gpu.json
+    .venv/bin/python scripts/bench_resolution_scaling.py --device cuda --out var/results/resolution_scaling_gpu.json
 
 Every (model, output size) runs in a fresh process (so its peak memory is its own): the model is loaded as sessions
 load it (inference form and the measured ``model.deployment.inference_forms`` table), a synthetic stream at the render size

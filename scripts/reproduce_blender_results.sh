@@ -31,7 +31,7 @@ render() {  # NAME SCENE FRAMES SEED
     --seed "$4" --size 128 --ref-spp 256 --ref-scale 2 --jitter "$JITTER" > "$RENDERS-$1.log" 2>&1
   .venv/bin/denoiser import --layout blender-cycles "$RENDERS/$1" --out "$DATA" --split test --overwrite > /dev/null
 }
-mkdir -p "$RENDERS" docs/results
+mkdir -p "$RENDERS" docs/results var/results
 render orbit_s1 orbit 12 1
 render pan_s1 pan 12 1
 render orbit_s2 orbit 12 2

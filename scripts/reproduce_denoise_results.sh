@@ -12,8 +12,8 @@ common=(--data "$DATA" --steps "$STEPS" --crop 64 --frames-per-sample 4 --batch 
 .venv/bin/denoiser train "${common[@]}" --method wskpn:s --out runs/wskpn-s > runs-wskpn-s.log 2>&1 &
 .venv/bin/denoiser train "${common[@]}" --method afn:m --out runs/afn-m > runs-afn-m.log 2>&1 &
 wait
-mkdir -p docs/results
+mkdir -p docs/results var/results
 .venv/bin/denoiser evaluate --data "$DATA" --split test --threads 2 \
   --method runs/wskpn-s/best.pt --method runs/afn-m/best.pt --method accumulation --method svgf \
   --method identity --method oidn:fast --method oidn:balanced --method oidn:high \
-  --out docs/results/denoise_x1.json | tee docs/results/denoise_x1.md
+  --out var/results/denoise_x1.json | tee docs/results/denoise_x1.md

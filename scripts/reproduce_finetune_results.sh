@@ -53,7 +53,7 @@ job=$($DENOISER submit evaluate --param dataset="$dataset" --param split=test --
   --param methods=models:/user-fused-scratch --param methods=oidn:high --param methods=oidn:balanced \
   --param methods=oidn-taa:balanced --param methods=oidn-taa:high --param threads=2 --progress none --follow \
   | grep -o 'job [0-9a-f-]*' | head -1 | cut -d' ' -f2)
-mkdir -p docs/results
+mkdir -p docs/results var/results
 for name in report.json report.md; do
   curl -sf "$URL/jobs/$job/artifacts/$name" -o "docs/results/finetune_user.${name#report.}"
 done

@@ -135,13 +135,13 @@ for preset in balanced fast; do
     --out "runs/fused-$preset-x2-mixed" > "runs-fused-$preset-x2-mixed.log" 2>&1 &
 done
 wait
-mkdir -p docs/results
+mkdir -p docs/results var/results
 peers=(--method oidn-taa:fast --method oidn-taa:balanced --method oidn-taa:high --method oidn:fast
        --method oidn:balanced --method oidn:high --method accumulation --method accumulation:rectified --method svgf
        --method svgf:rectified)
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 \
   --method runs/fused-balanced-x2-mixed/best.pt --method runs/fused-fast-x2-mixed/best.pt "${peers[@]}" \
-  --out docs/results/reuse_x2.json | tee docs/results/reuse_x2.md
+  --out var/results/reuse_x2.json | tee docs/results/reuse_x2.md
 # The hard frames, side by side: input, OIDN-high, OIDN + TAA, ours, reference.
 picture() {  # SEQUENCE FRAME SCALE ZOOM OUT CHECKPOINT
   .venv/bin/denoiser compare --data "$DATA" --sequence "$1" --frame "$2" --scale "$3" --zoom "$4" \
@@ -164,7 +164,7 @@ ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-scrip
   --dataset-script scripts/generate_blender_training_data.sh --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-balanced-x2-display/best.pt --stage runs/fused-balanced-x2-rot/best.pt \
   --stage runs/fused-balanced-x2-rot2/best.pt --stage runs/fused-balanced-x2-cmean/best.pt \
-  --report docs/results/reuse_x2.json
+  --report var/results/reuse_x2.json
 # The 1x fast and high presets, fine-tuned from the 1x model above on the mixed data (its stages are theirs too).
 for quality in fast high; do
   "${ship[@]}" "runs/fused-$quality-x1-cmean/best.pt" --name "fused-$quality-x1" --data data/reuse-mixed \
@@ -176,7 +176,7 @@ done
 "${ship[@]}" runs/fused-fast-x2-mixed/best.pt --name fused-fast-x2 --data data/reuse-mixed \
   --dataset-script scripts/generate_blender_training_data.sh --stage runs/fused-balanced-x2/best.pt \
   --stage runs/fused-fast-x2/best.pt --stage runs/fused-fast-x2-display/best.pt --stage runs/fused-fast-x2-rot/best.pt \
-  --stage runs/fused-fast-x2-cmean/best.pt --report docs/results/reuse_x2.json
+  --stage runs/fused-fast-x2-cmean/best.pt --report var/results/reuse_x2.json
 # Last, the three 1x models re-shipped running the fused blend before the kernel as the next frame's history (the
 # same weights), evaluated at 1x beside the checkpoints as trained (the
 # filtered output as history), and their manifests' held-out rows taken from that run; the 1x pictures with them.
@@ -194,7 +194,7 @@ reship() {  # "SETTING FLAGS" NAME...: each shipped model shipped again with tho
 reship "--history-before-kernel --kernel-max-pixels 32768" fused-balanced-x1 fused-fast-x1 fused-high-x1
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method fused-fast-x1 --method fused-high-x1 --method "$x1" --method runs/fused-fast-x1-cmean/best.pt \
-  --method runs/fused-high-x1-cmean/best.pt "${peers[@]}" --out docs/results/reuse_x1.json | tee docs/results/reuse_x1.md
+  --method runs/fused-high-x1-cmean/best.pt "${peers[@]}" --out var/results/reuse_x1.json | tee docs/results/reuse_x1.md
 remeasure() {  # REPORT NAME...: each shipped model takes its held-out rows from REPORT, weights unchanged
   local report=$1 name
   shift
@@ -203,7 +203,7 @@ remeasure() {  # REPORT NAME...: each shipped model takes its held-out rows from
       --report "$report" --report-source "pretrained:$name"
   done
 }
-remeasure docs/results/reuse_x1.json fused-balanced-x1 fused-fast-x1 fused-high-x1
+remeasure var/results/reuse_x1.json fused-balanced-x1 fused-fast-x1 fused-high-x1
 picture visible_emitter_s4 10 1 40,30,56 docs/reuse_visible_emitter_x1.png fused-balanced-x1
 picture moving_object_s4 -1 1 30,40,56 docs/reuse_moving_object_x1.png fused-balanced-x1
 # The moving light with the high preset too (the one at or above OIDN-high on every sequence).
@@ -223,18 +223,18 @@ m = load_pretrained('fused-balanced-x1'); m.set_sample_mean_frames(8); save_chec
   --steps 400 --validate-every 100 --checkpoint-every 100 --no-tracking --out runs/sm8-balanced
 cp runs/sm8-balanced/best.pt runs/sm8-balanced-best.pt
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method runs/sm8-balanced-best.pt \
-  --method fused-fast-x1 --method fused-high-x1 "${peers[@]}" --out docs/results/reuse_x1_sample_mean.json
+  --method fused-fast-x1 --method fused-high-x1 "${peers[@]}" --out var/results/reuse_x1_sample_mean.json
 .venv/bin/python scripts/ship_pretrained.py runs/sm8-balanced-best.pt --name fused-balanced-x1 \
   --after-shipped fused-balanced-x1 --data "$DATA" --dataset-script scripts/generate_reuse_data.sh \
-  --report docs/results/reuse_x1_sample_mean.json
+  --report var/results/reuse_x1_sample_mean.json
 # The fast preset with the sample mean, its weights unchanged, once the mean averages OIDN's guides too.
 .venv/bin/python -c "from model.deployment.pretrained import load_pretrained; from model.training.checkpoint import save_checkpoint
 m = load_pretrained('fused-fast-x1'); m.set_sample_mean_frames(8); save_checkpoint('runs/fast-sm8.pt', method=m)"
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method runs/fast-sm8.pt --method fused-fast-x1 --method fused-high-x1 "${peers[@]}" \
-  --out docs/results/reuse_x1_guides_mean.json
+  --out var/results/reuse_x1_guides_mean.json
 .venv/bin/python scripts/ship_pretrained.py pretrained/fused-fast-x1/model.pt --name fused-fast-x1 \
-  --after-shipped fused-fast-x1 --sample-mean-frames 8 --report docs/results/reuse_x1_guides_mean.json \
+  --after-shipped fused-fast-x1 --sample-mean-frames 8 --report var/results/reuse_x1_guides_mean.json \
   --report-source runs/fast-sm8.pt
 # The high preset with the sample mean, its weights unchanged, keeping the mean's frames in the network's history
 # share cubed; one quiet run of the shipped 1x models and the peers.
@@ -243,27 +243,27 @@ m = load_pretrained('fused-high-x1'); m.set_sample_mean_frames(8); m.set_sample_
 save_checkpoint('runs/high-sm8-p3.pt', method=m)"
 reship "--sample-mean-frames 8 --sample-mean-trust-power 3" fused-high-x1
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
-  --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out docs/results/reuse_x1_mean_trust.json \
+  --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out var/results/reuse_x1_mean_trust.json \
   | tee docs/results/reuse_x1_mean_trust.md
-remeasure docs/results/reuse_x1_mean_trust.json fused-balanced-x1 fused-fast-x1 fused-high-x1
+remeasure var/results/reuse_x1_mean_trust.json fused-balanced-x1 fused-fast-x1 fused-high-x1
 # The 2x models with the sample mean, their weights unchanged; one run with the peers.
 reship "--sample-mean-frames 8" fused-balanced-x2 fused-fast-x2
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
-  --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_sample_mean.json \
+  --method fused-fast-x2 "${peers[@]:0:12}" --out var/results/reuse_x2_sample_mean.json \
   | tee docs/results/reuse_x2_sample_mean.md
-remeasure docs/results/reuse_x2_sample_mean.json fused-balanced-x2 fused-fast-x2
+remeasure var/results/reuse_x2_sample_mean.json fused-balanced-x2 fused-fast-x2
 # Every fused model with a looser stale-history test, weights unchanged: 0.5 standard errors at 1x, and the test
 # switched on at 2x at 1; one run each with the peers.
 reship "--stale-test-sigmas 0.5" fused-balanced-x1 fused-fast-x1 fused-high-x1
 reship "--stale-test-sigmas 1" fused-balanced-x2 fused-fast-x2
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
-  --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out docs/results/reuse_x1_stale_low.json \
+  --method fused-fast-x1 --method fused-high-x1 "${peers[@]:0:12}" --out var/results/reuse_x1_stale_low.json \
   | tee docs/results/reuse_x1_stale_low.md
-remeasure docs/results/reuse_x1_stale_low.json fused-balanced-x1 fused-fast-x1 fused-high-x1
+remeasure var/results/reuse_x1_stale_low.json fused-balanced-x1 fused-fast-x1 fused-high-x1
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
-  --method fused-fast-x2 "${peers[@]:0:12}" --out docs/results/reuse_x2_stale_low.json \
+  --method fused-fast-x2 "${peers[@]:0:12}" --out var/results/reuse_x2_stale_low.json \
   | tee docs/results/reuse_x2_stale_low.md
-remeasure docs/results/reuse_x2_stale_low.json fused-balanced-x2 fused-fast-x2
+remeasure var/results/reuse_x2_stale_low.json fused-balanced-x2 fused-fast-x2
 # Every fused model with the regional stale-history test over 33 x 33 render pixels, weights unchanged; one run each
 # with the models before it (copied first) and the peers.
 mkdir -p runs/old
@@ -274,12 +274,12 @@ reship "--stale-region-pixels 33" fused-balanced-x1 fused-fast-x1 fused-high-x1 
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method fused-balanced-x1 \
   --method fused-fast-x1 --method fused-high-x1 --method runs/old/fused-balanced-x1.pt \
   --method runs/old/fused-fast-x1.pt --method runs/old/fused-high-x1.pt "${peers[@]:0:12}" \
-  --out docs/results/reuse_x1_stale_region.json | tee docs/results/reuse_x1_stale_region.md
-remeasure docs/results/reuse_x1_stale_region.json fused-balanced-x1 fused-fast-x1 fused-high-x1
+  --out var/results/reuse_x1_stale_region.json | tee docs/results/reuse_x1_stale_region.md
+remeasure var/results/reuse_x1_stale_region.json fused-balanced-x1 fused-fast-x1 fused-high-x1
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 --method fused-balanced-x2 \
   --method fused-fast-x2 --method runs/old/fused-balanced-x2.pt --method runs/old/fused-fast-x2.pt \
-  "${peers[@]:0:12}" --out docs/results/reuse_x2_stale_region.json | tee docs/results/reuse_x2_stale_region.md
-remeasure docs/results/reuse_x2_stale_region.json fused-balanced-x2 fused-fast-x2
+  "${peers[@]:0:12}" --out var/results/reuse_x2_stale_region.json | tee docs/results/reuse_x2_stale_region.md
+remeasure var/results/reuse_x2_stale_region.json fused-balanced-x2 fused-fast-x2
 # The same weights and settings after the box means and the jitter resample got faster: one run per scale with the
 # peers, every shipped fused model remeasured from it.
 measure() {  # NAME SCALE MODEL...: one held-out run of the models and the peers, the models remeasured from it
@@ -304,10 +304,10 @@ cp pretrained/fused-balanced-x1/model.pt runs/old/fused-balanced-x1.pt
 cp runs/balanced-mixed-lr5/best.pt runs/balanced-mixed-lr5-best.pt
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 --method runs/balanced-mixed-lr5-best.pt \
   --method fused-fast-x1 --method fused-high-x1 --method runs/old/fused-balanced-x1.pt "${peers[@]:0:12}" \
-  --out docs/results/reuse_x1_mixed_balanced.json | tee docs/results/reuse_x1_mixed_balanced.md
+  --out var/results/reuse_x1_mixed_balanced.json | tee docs/results/reuse_x1_mixed_balanced.md
 .venv/bin/python scripts/ship_pretrained.py runs/balanced-mixed-lr5-best.pt --name fused-balanced-x1 \
   --after-shipped fused-balanced-x1 --data data/reuse-mixed --dataset-script scripts/generate_blender_training_data.sh \
-  --training-script scripts/reproduce_reuse_results.sh --report docs/results/reuse_x1_mixed_balanced.json
+  --training-script scripts/reproduce_reuse_results.sh --report var/results/reuse_x1_mixed_balanced.json
 # The 1x models reading OIDN's estimate at the pixel centres: the same
 # weights, shipped with --unjitter-estimate first into a scratch folder (runs/unjitter/NAME.pt), evaluated beside the
 # models before (copied to runs/old/) and the peers in one run, then shipped with that run's numbers; and the peers
@@ -323,11 +323,11 @@ done
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 1 --threads 2 \
   --method runs/unjitter/fused-balanced-x1.pt --method runs/unjitter/fused-fast-x1.pt \
   --method runs/unjitter/fused-high-x1.pt --method runs/old/fused-balanced-x1.pt --method runs/old/fused-fast-x1.pt \
-  --method runs/old/fused-high-x1.pt "${peers[@]:0:12}" --out docs/results/reuse_x1_unjittered.json \
+  --method runs/old/fused-high-x1.pt "${peers[@]:0:12}" --out var/results/reuse_x1_unjittered.json \
   | tee docs/results/reuse_x1_unjittered.md
 for name in fused-balanced-x1 fused-fast-x1 fused-high-x1; do
   .venv/bin/python scripts/ship_pretrained.py "pretrained/$name/model.pt" --name "$name" --after-shipped "$name" \
-    --unjitter-estimate --report docs/results/reuse_x1_unjittered.json --report-source "runs/unjitter/$name.pt"
+    --unjitter-estimate --report var/results/reuse_x1_unjittered.json --report-source "runs/unjitter/$name.pt"
 done
 .venv/bin/python experiments/measure_unjittered_peers.py --data "$DATA" --split test \
-  --out docs/results/reuse_x1_unjittered_peers.json
+  --out var/results/reuse_x1_unjittered_peers.json

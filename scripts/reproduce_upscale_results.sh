@@ -24,11 +24,11 @@ wait
 "${train[@]}" --scale 1 --method wskpn:s --steps "$WSKPN_STEPS" --temporal-weight 0.5 --validate-every 500 \
   --checkpoint-every 500 --out runs/wskpn-s-short > runs-wskpn-s-short.log 2>&1 &
 wait
-mkdir -p docs/results
+mkdir -p docs/results var/results
 .venv/bin/denoiser evaluate --data "$DATA" --split test --scale 2 --threads 2 \
   --method runs/munet-s-x2/best.pt --method runs/jnds-s-x2/best.pt --method runs/jnds-s-int8-x2/best.pt \
   --method runs/wskpn-s-short/best.pt --method accumulation --method svgf --method identity --method oidn:high \
-  --out docs/results/upscale_x2.json | tee docs/results/upscale_x2.md
+  --out var/results/upscale_x2.json | tee docs/results/upscale_x2.md
 .venv/bin/denoiser compare --data "$DATA" --sequence glass_s4 --frame -1 --scale 2 \
   --method runs/munet-s-x2/best.pt=MUNet --method runs/jnds-s-x2/best.pt=JNDS \
   --method oidn:high=OIDN-high+bicubic --zoom 96,96,80 --out docs/upscale_x2.png

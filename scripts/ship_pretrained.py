@@ -4,7 +4,7 @@ load, and the held-out metrics copied from an evaluation report of the same run 
 
     .venv/bin/python scripts/ship_pretrained.py runs/fused-balanced-x1/best.pt --name fused-balanced-x1 \
         --data data/reuse --dataset-script scripts/generate_reuse_data.sh \
-        --training-script scripts/reproduce_reuse_results.sh --report docs/results/reuse_x1.json
+        --training-script scripts/reproduce_reuse_results.sh --report var/results/reuse_x1.json
 
 --after-shipped NAME: the checkpoint was fine-tuned from the shipped model NAME (--init-from pretrained/NAME/model.pt);
 the stages recorded in its manifest, then that model itself, are recorded before any --stage. --remeasure: the

@@ -30,7 +30,7 @@ train() {  # METHOD SCALE STEPS [extra options]
  train jnds:s-int8 2 60 --init-from runs/jnds-s-x2/best.pt --lr 2e-4 --warmup-steps 10
  train jnds:s 1 150) &
 wait
-mkdir -p docs/results
+mkdir -p docs/results var/results
 baselines=(--method oidn:balanced --method oidn:high --method oidn-taa:balanced --method oidn-taa:high)
 evaluate() {  # SCALE RUN...
   local scale=$1 methods=()
@@ -44,13 +44,13 @@ evaluate 2 wskpn-s-x2 afn-m-x2 munet-s-x2 jnds-s-x2 jnds-s-int8-x2
 ship=(.venv/bin/python scripts/ship_pretrained.py --data "$DATA" --dataset-script scripts/generate_reuse_data.sh
       --training-script scripts/train_pretrained_seed_models.sh)
 for run in wskpn-s-x1 afn-m-x1 munet-s-x1 jnds-s-x1; do
-  "${ship[@]}" "runs/$run/best.pt" --name "$run" --report docs/results/seed_models_x1.json
+  "${ship[@]}" "runs/$run/best.pt" --name "$run" --report var/results/seed_models_x1.json
 done
 for run in wskpn-s-x2 afn-m-x2 munet-s-x2 jnds-s-x2; do
-  "${ship[@]}" "runs/$run/best.pt" --name "$run" --report docs/results/seed_models_x2.json
+  "${ship[@]}" "runs/$run/best.pt" --name "$run" --report var/results/seed_models_x2.json
 done
 "${ship[@]}" runs/jnds-s-int8-x2/best.pt --name jnds-s-int8-x2 --stage runs/jnds-s-x2/best.pt \
-  --report docs/results/seed_models_x2.json
+  --report var/results/seed_models_x2.json
 # The seed models run with their history rectified (docs/methods.md, "History rectification for the seed
 # methods"): the shipped weights are copied to a scratch folder with the setting, evaluated beside the models without
 # it, and shipped again with that report (the same weights; only the setting changes).
