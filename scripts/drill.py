@@ -145,7 +145,7 @@ class Stack:
         self._wait(lambda: httpx.get(f"{self.url}/health", timeout=1).status_code == 200, "the API")
 
     def start_worker(self) -> None:
-        self._start("worker", [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "--pool=solo",
+        self._start("worker", [sys.executable, "-m", "celery", "-A", "core.celery_app", "worker", "--pool=solo",
                                "--queues=cpu", "--loglevel=WARNING", "--hostname=drill@%h"])
 
     def kill(self, name: str) -> None:

@@ -91,7 +91,7 @@ def test_uvicorn_target_exists(services):
 def test_celery_workers_use_the_project_app_with_the_solo_pool(services):
     from celery import Celery
 
-    from workers.celery_app import QUEUES
+    from core.names import QUEUES
 
     for name, queue in (("worker", "cpu"), ("worker-gpu", "gpu")):
         command = command_of(services[name])

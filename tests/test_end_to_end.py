@@ -1,7 +1,7 @@
 """The whole service end to end: a real API process (uvicorn), a real Celery worker process, real Redis (db 15).
 
 One stack per module (``stack``): the API is ``service.http.app:app`` served by uvicorn on a free port, with an API
-key, a temporary data folder and a temporary SQLite MLflow store; the worker is ``celery -A workers.celery_app
+key, a temporary data folder and a temporary SQLite MLflow store; the worker is ``celery -A core.celery_app
 worker -P solo`` on the same settings. Both are configured by DENOISER_* environment variables only, as deployed.
 Changed for the test: the API sends jobs to a queue named for this module, which only this module's worker
 consumes (``QUEUE_FOR_DEVICE`` is patched in the API process before it serves), so no other test worker on db 15
@@ -51,6 +51,7 @@ from client.rest import DenoiserClient, decode_rgb_exr
 from tests.builders import write_sequence, write_tiny_dataset
 from tests.service.session_fixtures import assert_same_image, in_process_outputs
 from tests.workers.tasks.fixtures import TEST_REDIS_URL, redis_client
+from tests.workers.parking import PARKING_ENV
 from core.job_store import JobStore
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -64,8 +65,8 @@ TRAIN = {"method": "wskpn:xs", "scale": 1, "crop": 8, "batch": 2, "frames_per_sa
 # The API process: the production app, with this module's queue for every job (see the module notes).
 API_SERVER = """
 import os, sys, uvicorn
-import service.http.routes.jobs as jobs
-jobs.QUEUE_FOR_DEVICE = {"cpu": os.environ["E2E_QUEUE"], "gpu": os.environ["E2E_QUEUE"]}
+from core.names import QUEUE_FOR_DEVICE
+QUEUE_FOR_DEVICE.update(cpu=os.environ["E2E_QUEUE"], gpu=os.environ["E2E_QUEUE"])  # in place: every importer sees it
 uvicorn.run("service.http.app:app", host="127.0.0.1", port=int(sys.argv[1]), log_level="info")
 """
 
@@ -84,7 +85,7 @@ class Stack:
         self.data = root / "data"
         self.tracking_uri = f"sqlite:///{root / 'mlflow' / 'mlflow.db'}"
         (root / "mlflow").mkdir(parents=True)
-        self.parking = root / "parking"  # where a test asks a training job to park (workers.tasks.train)
+        self.parking = root / "parking"  # where a test asks a training job to park (tests.workers.parking)
         self.parking.mkdir()
         self.queue = f"test-e2e-{uuid.uuid4().hex[:8]}"
         self.port = free_port()
@@ -103,7 +104,7 @@ class Stack:
             "DENOISER_TRACKING_URI": self.tracking_uri, "DENOISER_API_KEY": API_KEY,
             "DENOISER_SESSION_THREADS": "1", "E2E_QUEUE": self.queue, "PYTHONPATH": str(REPOSITORY),
             "OMP_NUM_THREADS": "1", "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false",
-            "DENOISER_TEST_PARKING_DIR": str(self.parking)}
+            PARKING_ENV: str(self.parking)}
 
     def create_tracking_store(self) -> None:
         """The MLflow store's tables, created while the processes start rather than by the first training (seconds
@@ -127,11 +128,12 @@ class Stack:
 
     def start_worker(self) -> None:
         self.worker = self._spawn("worker", [
-            sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-P", "solo", "-Q", self.queue,
+            sys.executable, "-m", "celery", "-A", "core.celery_app", "worker", "-P", "solo", "-Q", self.queue,
             "--concurrency", "1", "-n", f"{self.queue}-{self._starts['worker']}@%h", "--without-gossip",
             "--without-mingle", "--without-heartbeat", "--loglevel", "INFO",
             # Imported while the worker starts rather than by its first job (seconds on a busy machine).
-            "-I", "model.training.train,core.tracking,workers.tasks.train"])
+            # tests.workers.parking: the hook that parks a training job where a test asks (PARKING_ENV).
+            "-I", "model.training.train,core.tracking,workers.tasks.train,tests.workers.parking"])
 
     def wait_for_api(self, timeout: float = 90.0) -> None:
         import httpx

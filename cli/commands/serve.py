@@ -71,7 +71,7 @@ def _run_serve(args) -> int:
 def _add_worker(commands) -> None:
     parser = commands.add_parser(
         "worker", help="run a Celery worker for the job queues (solo pool)",
-        description="Run a Celery worker of workers.celery_app with the solo pool: tasks run in the worker's "
+        description="Run a Celery worker of core.celery_app with the solo pool: tasks run in the worker's "
                     "main process, which is not daemonic, so training jobs can start DDP ranks (prefork children "
                     "cannot). One job at a time per worker; start more workers for more parallel jobs.")
     parser.add_argument("--queues", default="cpu", metavar="Q[,Q]",
@@ -84,7 +84,7 @@ def _add_worker(commands) -> None:
 
 
 def worker_argv(queues: str, loglevel: str, hostname: str | None = None) -> list[str]:
-    """The worker arguments of ``celery -A workers.celery_app``; checked queue names, always the solo pool."""
+    """The worker arguments of ``celery -A core.celery_app``; checked queue names, always the solo pool."""
     names = [name.strip() for name in queues.split(",") if name.strip()]
     unknown = [name for name in names if name not in QUEUES]
     if not names or unknown:
@@ -97,7 +97,7 @@ def worker_argv(queues: str, loglevel: str, hostname: str | None = None) -> list
 
 
 def _run_worker(args) -> int:
-    # This process becomes `celery -A workers.celery_app worker ...` (same pid, so signals reach the worker as
+    # This process becomes `celery -A core.celery_app worker ...` (same pid, so signals reach the worker as
     # before): the worker is named by module path, and nothing of it is imported here.
     argv = celery_argv(worker_argv(args.queues, args.loglevel, args.hostname))
     os.execv(argv[0], argv)
@@ -105,7 +105,7 @@ def _run_worker(args) -> int:
 
 
 def celery_argv(worker: list[str]) -> list[str]:
-    return [sys.executable, "-m", "celery", "-A", "workers.celery_app", *worker]
+    return [sys.executable, "-m", "celery", "-A", "core.celery_app", *worker]
 
 
 # -------------------------------------------------------------------------------------------- mlflow-ui

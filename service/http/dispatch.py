@@ -1,25 +1,13 @@
-"""The API's side of queueing: a producer-only Celery app on the workers' broker, sending jobs by task name
-(``core.jobs.dispatch``), so the API process never imports the Celery task modules."""
+"""The API's side of queueing: jobs sent by task name through the one Celery app (``core.celery_app``), whose task
+modules only a worker imports."""
 
 from __future__ import annotations
 
-from functools import lru_cache
-
-from celery import Celery
-from kombu import Queue
-
-from core.jobs.dispatch import CeleryDispatcher, celery_config
-from core.names import QUEUES
-from core.settings import get_settings
-
-
-@lru_cache(maxsize=1)
-def producer() -> Celery:
-    settings = get_settings()
-    app = Celery("denoiser", broker=settings.redis_url, backend=settings.redis_url)
-    app.conf.update(task_queues=[Queue(name) for name in QUEUES], **celery_config(settings))
-    return app
+from core.jobs.dispatch import CeleryDispatcher
 
 
 def get_dispatcher() -> CeleryDispatcher:
-    return CeleryDispatcher(producer())
+    # Imported at the first job, not with the app: the Celery app reads the settings when it is built.
+    from core.celery_app import app
+
+    return CeleryDispatcher(app)

@@ -10,7 +10,7 @@
    message), and releases the lease. An execution that lost its lease to another one leaves the record alone.
 
 Progress goes to the record and to Celery's result backend (``update_state`` with state ``PROGRESS`` and meta
-``{current, total, message, eta_seconds}``). Acks are late (``workers.celery_app``), and on ``worker_ready``
+``{current, total, message, eta_seconds}``). Acks are late (``core.celery_app``), and on ``worker_ready``
 every worker starts a thread that recovers orphaned jobs now and every minute (``workers.tasks.recovery``).
 """
 
@@ -31,7 +31,7 @@ from core.jobs.files import LOG_FILE
 from core.names import QUEUES
 from core.settings import Settings, get_settings
 from core.storage import Storage, get_storage
-from workers.celery_app import app
+from core.celery_app import app
 from core.job_store import JobStore, execution_owner, get_job_store
 from workers.tasks.context import (
     JobCancelled,

@@ -12,9 +12,7 @@ soon as the cancel flag is seen.
 
 from __future__ import annotations
 
-import os
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +41,7 @@ def run(context: JobContext) -> dict[str, Any]:
         if total is not None and checkpoint["step"] >= total:
             return _relative(context, _completed(context, params, checkpoint, last))
     if params.world_size == 1:
-        result = _train_here(context, config, params.track, params)
+        result = _train_here(context, config, params.track)
     else:
         result = _train_ranks(context, config, params.track)
     return _relative(context, result)
@@ -90,44 +88,10 @@ def _tracker(context: JobContext, config, track: bool):
                                      run_name=f"{config.method} (job {context.job_id[:8]})"), context)
 
 
-# Test-only: a folder in which a test asks a training job to park (see ``_parked_progress``). Unset in every
-# deployment; the end-to-end tests set it to kill a worker while its job is at a known step, not by racing it.
-TEST_PARKING_ENV = "DENOISER_TEST_PARKING_DIR"
-
-
-def _parked_progress(context: JobContext, params: TrainParams, progress):
-    """Test-only hook: with ``$DENOISER_TEST_PARKING_DIR`` set and a file ``<register_as>.park`` in it holding a step,
-    the job's first attempt writes ``<register_as>.parked`` once that step is reported (its checkpoint is already
-    written then) and waits there until its worker is killed (or, as in any step, a cancel or a lost lease ends
-    it). Later attempts and other jobs run as usual; unset, the progress callback is returned unchanged."""
-    folder = os.environ.get(TEST_PARKING_ENV)
-    if not folder or not params.register_as or int(context.record.get("attempts") or 1) != 1:
-        return progress
-    request = Path(folder) / f"{params.register_as}.park"
-    if not request.is_file():
-        return progress
-    park_at = int(request.read_text().strip())
-
-    def parked(current: int, total: int, message: str = "") -> None:
-        progress(current, total, message)
-        if current == park_at:
-            # Written whole, then renamed: the test reads the step as soon as the file exists.
-            marker = Path(folder) / f"{params.register_as}.parked"
-            partial = marker.with_suffix(".partial")
-            partial.write_text(str(current))
-            partial.replace(marker)
-            while True:
-                context.check()
-                time.sleep(0.05)
-
-    return parked
-
-
-def _train_here(context: JobContext, config, track: bool, params: TrainParams) -> dict[str, Any]:
+def _train_here(context: JobContext, config, track: bool) -> dict[str, Any]:
     from model.training.train import train
 
-    return train(config, tracker=_tracker(context, config, track),
-                 progress=_parked_progress(context, params, context.progress))
+    return train(config, tracker=_tracker(context, config, track), progress=context.progress)
 
 
 def plugin_modules() -> list[str]:

@@ -455,31 +455,26 @@ def test_the_watchdog_notices_a_lost_lease_and_a_cancel(store, storage, settings
 # ----------------------------------------------------------------------------------- test-only parking
 
 def test_the_parking_hook_changes_nothing_unless_a_test_asks_and_parks_the_first_attempt_only(
-        store, storage, settings, tmp_path, monkeypatch):
-    from types import SimpleNamespace
-
-    from workers.tasks.train import TEST_PARKING_ENV, _parked_progress
+        store, storage, settings, tmp_path):
+    from tests.workers.parking import parked_progress
 
     parking = tmp_path / "parking"
     parking.mkdir()
-    job_id = store.create("train", {}, "cpu", "cpu")["id"]
+    job_id = store.create("train", {"register_as": "parked-model"}, "cpu", "cpu")["id"]
     store.start(job_id, "me")
     context = JobContext(store.get(job_id), store, storage, settings, "me")
-    params = SimpleNamespace(register_as="parked-model")
     calls = []
 
     def progress(current, total, message=""):
         calls.append(current)
 
-    monkeypatch.delenv(TEST_PARKING_ENV, raising=False)
-    assert _parked_progress(context, params, progress) is progress  # unset: the callback itself
-    monkeypatch.setenv(TEST_PARKING_ENV, str(parking))
-    assert _parked_progress(context, params, progress) is progress  # no request for this model
+    assert parked_progress(context, progress, None) is progress  # no folder: the callback itself
+    assert parked_progress(context, progress, parking) is progress  # no request for this model
     (parking / "parked-model.park").write_text("2")
     retried = JobContext({**store.get(job_id), "attempts": 2}, store, storage, settings, "me")
-    assert _parked_progress(retried, params, progress) is progress  # a later attempt runs on
+    assert parked_progress(retried, progress, parking) is progress  # a later attempt runs on
 
-    parked = _parked_progress(context, params, progress)
+    parked = parked_progress(context, progress, parking)
     parked(1, 4)
     assert calls == [1] and not (parking / "parked-model.parked").exists()
     context.cancelled.set()  # parked, the job still ends on a cancel, as in any step

@@ -89,7 +89,7 @@ def worker(tmp_path_factory):
     log = data.parent / "worker.log"
     environment = {**os.environ, "DENOISER_DATA_DIR": str(data), "DENOISER_REDIS_URL": TEST_REDIS_URL,
                    "PYTHONPATH": str(REPOSITORY), "OMP_NUM_THREADS": "1"}
-    command = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-P", "solo", "-Q", QUEUE,
+    command = [sys.executable, "-m", "celery", "-A", "core.celery_app", "worker", "-P", "solo", "-Q", QUEUE,
                "--concurrency", "1", "-n", f"{QUEUE}@%h", "--without-gossip", "--without-mingle",
                "--without-heartbeat", "--loglevel", "INFO", "-I", "tests.model.training_fixtures"]
     with log.open("wb") as output:
