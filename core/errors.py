@@ -1,7 +1,7 @@
 """Domain errors: what went wrong, named for what it is, without HTTP.
 
 Job checks, the registry and the worker raise these; the API turns each class into its status code in one
-place (``service.http.errors.DOMAIN_STATUS``), the worker ends a job ``failed`` with the error's code and message.
+place (``service.http.errors.ERROR_STATUS``), the worker ends a job ``failed`` with the error's code and message.
 """
 
 from __future__ import annotations

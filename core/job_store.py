@@ -51,6 +51,7 @@ class JobFinished(RuntimeError):
     def __init__(self, job_id: str, state: str) -> None:
         super().__init__(f"job {job_id!r} has already finished ({state})")
         self.state = state
+        self.details = {"state": state}
 
 
 def utc_now() -> str:

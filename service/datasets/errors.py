@@ -1,4 +1,4 @@
-"""Upload errors: each is a caller's mistake and maps to one HTTP status in ``service.http.routes.datasets``."""
+"""Upload errors: each is a caller's mistake, with one HTTP status in ``service.http.errors.ERROR_STATUS``."""
 
 from __future__ import annotations
 

@@ -1,9 +1,11 @@
-"""The one JSON error shape of the API: {"error": {"code", "message", "details"}}, and the one place where domain
-errors become HTTP status codes (``DOMAIN_STATUS``).
+"""The one JSON error shape of the API: {"error": {"code", "message", "details"}}, and the one table where errors
+of the domain become HTTP status codes (``ERROR_STATUS``), which every route uses.
 
-Routes raise ApiError (or its helpers) for the caller's mistakes, core raises domain errors (``core.errors``);
-those, request validation errors, HTTP errors from Starlette (404 for unknown paths, 405) and library errors that
-mean bad input (FrameError, DatasetError) are all turned into that shape here. Anything else is a bug and answers 500 with the same shape.
+Routes raise ApiError (or its helpers) for the caller's mistakes; core, the registry, the job store, sessions and
+uploads raise their own errors, translated by the table (a handler of the app, or ``domain_errors`` where a route
+needs the ApiError itself). Those, request validation errors, HTTP errors from Starlette (404 for unknown paths,
+405) and library errors that mean bad input (FrameError, DatasetError) all get that shape here. Anything else is a
+bug and answers 500 with the same shape.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from __future__ import annotations
 import errno
 import logging
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -19,7 +23,16 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from core.errors import Conflict, DomainError, Invalid, NotFound, Unavailable
+from core.errors import Conflict, Invalid, NotFound, Unavailable
+from core.job_store import JobFinished, JobNotFound
+from core.registry import ConstraintNotMet, NoAutoCandidates, RegistryUnavailable, UnknownModelError
+from model.io.dataset import DatasetError
+from model.io.exr import FrameTooLarge
+from model.io.frames import FrameError
+from service.datasets import errors as upload
+from service.sessions import store as sessions
+from service.sessions.models import SessionModelInvalid, SessionModelNotFound
+from service.sessions.stream_codec import StreamFrameTooLarge, StreamMessageError
 
 log = logging.getLogger("denoiser.api")
 
@@ -47,15 +60,66 @@ def conflict(message: str, details: Any = None, code: str = "conflict") -> ApiEr
     return ApiError(409, code, message, details)
 
 
-DOMAIN_STATUS: dict[type[DomainError], int] = {NotFound: 404, Invalid: 422, Conflict: 409, Unavailable: 503}
+# Error class -> (HTTP status, error code). The nearest class of an error's MRO decides; the code is the error's own
+# ``code`` when it has one (None here), the message its ``message`` (else its text), the details its ``details``.
+ERROR_STATUS: dict[type[Exception], tuple[int, str | None]] = {
+    # core.errors: job checks, the worker's refusals
+    NotFound: (404, None), Invalid: (422, None), Conflict: (409, None), Unavailable: (503, None),
+    # the model registry and its automatic choice
+    UnknownModelError: (404, "not_found"), RegistryUnavailable: (503, "registry_unavailable"),
+    NoAutoCandidates: (404, "no_candidate_model"), ConstraintNotMet: (422, "constraint_not_met"),
+    # the job store
+    JobNotFound: (404, "not_found"), JobFinished: (409, "job_finished"),
+    # sessions and the models they open
+    SessionModelNotFound: (404, "not_found"), SessionModelInvalid: (422, None),
+    sessions.SessionNotFound: (404, None), sessions.FrameRejected: (409, None),
+    sessions.SessionLimitReached: (429, None), sessions.ModelNotLoadable: (422, None),
+    sessions.SessionStoreUnavailable: (503, None),
+    # dataset uploads
+    upload.UploadError: (400, None), upload.InvalidUpload: (400, None), upload.UnknownDataset: (404, None),
+    upload.UploadConflict: (409, None), upload.UploadTooLarge: (413, None), upload.FrameTooLargeUpload: (413, None),
+    # frames and datasets the caller sent
+    FrameError: (400, "invalid_frame"), FrameTooLarge: (413, "frame_too_large"), DatasetError: (400, "invalid_dataset"),
+    StreamMessageError: (400, None), StreamFrameTooLarge: (413, None),
+    # Any other library refusal of the input, inside ``domain_errors`` only: elsewhere a ValueError is a bug (500).
+    ValueError: (422, "invalid_request"),
+}
+_ONLY_INSIDE_ROUTES = (ValueError,)
 
 
-def status_of(error: DomainError) -> int:
-    """The HTTP status of a domain error (its nearest class in ``DOMAIN_STATUS``; 422 for another)."""
+def api_error(error: Exception, details: Any = None) -> ApiError | None:
+    """``error`` as the ApiError the table gives it (``details``: instead of the error's own), None when the table
+    has no class of it."""
     for cls in type(error).__mro__:
-        if cls in DOMAIN_STATUS:
-            return DOMAIN_STATUS[cls]
-    return 422
+        if cls in ERROR_STATUS:
+            status, code = ERROR_STATUS[cls]
+            message = getattr(error, "message", None) or str(error)
+            return ApiError(status, getattr(error, "code", None) or code, message,
+                            details if details is not None else getattr(error, "details", None))
+    return None
+
+
+def frame_error_details(error: FrameError) -> dict:
+    """The details the frame routes give a refused frame: the pixels and the limit of one too large, else the buffer
+    and the problem."""
+    if isinstance(error, FrameTooLarge):
+        return {"pixels": error.pixels, "limit_pixels": error.limit}
+    return {"buffer": error.buffer, "problem": error.problem}
+
+
+@contextmanager
+def domain_errors() -> Iterator[None]:
+    """Errors of the table raised inside as their ApiError (for a route that hands it on, e.g. over a WebSocket,
+    or one where a ValueError means the caller's input)."""
+    try:
+        yield
+    except ApiError:
+        raise
+    except Exception as error:
+        translated = api_error(error)
+        if translated is None:
+            raise
+        raise translated from None
 
 
 def error_body(code: str, message: str, details: Any = None) -> dict:
@@ -146,9 +210,12 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse(error_body(error.code, error.message, error.details), status_code=error.status,
                             headers=error.headers)
 
-    @app.exception_handler(DomainError)
-    async def _domain_error(request: Request, error: DomainError) -> JSONResponse:
-        return JSONResponse(error_body(error.code, error.message, error.details), status_code=status_of(error))
+    async def _table_error(request: Request, error: Exception) -> JSONResponse:
+        return await _api_error(request, api_error(error))
+
+    for error_class in ERROR_STATUS:
+        if error_class not in _ONLY_INSIDE_ROUTES:
+            app.add_exception_handler(error_class, _table_error)
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, error: RequestValidationError) -> JSONResponse:
@@ -175,17 +242,6 @@ def install_error_handlers(app: FastAPI) -> None:
             message = f"{request.method} is not allowed on {request.url.path}; allowed: {allowed or 'none'}"
         return JSONResponse(error_body(_status_code_name(error.status_code), message), status_code=error.status_code,
                             headers=headers)
-
-    from model.io.dataset import DatasetError
-    from model.io.frames import FrameError
-
-    @app.exception_handler(FrameError)
-    async def _frame_error(request: Request, error: FrameError) -> JSONResponse:
-        return JSONResponse(error_body("invalid_frame", str(error)), status_code=400)
-
-    @app.exception_handler(DatasetError)
-    async def _dataset_error(request: Request, error: DatasetError) -> JSONResponse:
-        return JSONResponse(error_body("invalid_dataset", str(error)), status_code=400)
 
     @app.exception_handler(OSError)
     async def _storage_error(request: Request, error: OSError) -> JSONResponse:

@@ -54,6 +54,10 @@ FRAME_FIELDS = frozenset({"frame_index", "width", "height", "dtype", "buffers", 
 _KIND_NAMES = {FRAME: "frame", OUTPUT: "output"}
 
 
+class StreamFrameTooLarge(StreamMessageError):
+    """A frame message declaring more pixels than the server's limit (code ``frame_too_large``)."""
+
+
 class StreamMessageError(ValueError):
     """A message that breaks the protocol. ``code``: ``invalid_message`` (not a message of this protocol, or a
     malformed header) or ``invalid_frame`` (the arrays do not match the header; a required buffer is missing), as
@@ -272,7 +276,7 @@ def decode_frame(data: bytes, *, max_pixels: int | None = None) -> StreamFrame:
     frame_index = None if index is None else _int_field(header, "frame_index", 0)
     width, height = _int_field(header, "width", 1), _int_field(header, "height", 1)
     if max_pixels is not None and width * height > max_pixels:
-        raise StreamMessageError(f"the frame declares {width}x{height} = {width * height} pixels; the limit is "
+        raise StreamFrameTooLarge(f"the frame declares {width}x{height} = {width * height} pixels; the limit is "
                                  f"{max_pixels} pixels per frame", "frame_too_large",
                                  {"pixels": width * height, "limit_pixels": max_pixels})
     dtype = _dtype_field(header, "dtype")

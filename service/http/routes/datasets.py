@@ -1,14 +1,12 @@
 """/datasets: upload (archive or frame by frame), list, inspect, delete.
 
 HTTP only: request bodies are streamed to a staging file here, everything else is service.datasets, whose
-UploadError subclasses become the API's error shape with one status each. Validation and moving files run in
-the thread pool so a large upload never blocks the event loop.
+UploadError subclasses get their status from service.http.errors. Validation and moving files run in the thread
+pool so a large upload never blocks the event loop.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
@@ -16,7 +14,7 @@ from starlette.concurrency import run_in_threadpool
 
 from model.layouts import BUILTIN_LAYOUTS, Layout
 from service.datasets import archives, catalog, errors, ingest, receive, staged
-from service.http.errors import ApiError, documented_error
+from service.http.errors import ApiError, documented_error, domain_errors
 from service.http.request_limits import upload_slots
 from service.datasets.descriptions import DatasetDetail, DatasetSummary, Split, StagedSequence
 from core.settings import Settings, get_settings
@@ -47,10 +45,6 @@ LayoutName = Annotated[str | None, Query(
                 "generic); other than denoiser, an archive holds one folder per sequence with the renderer's frame "
                 "EXRs and optionally references/ (as denoiser import reads them)", examples=["blender-cycles"])]
 
-_STATUS = {errors.InvalidUpload: 400, errors.UnknownDataset: 404, errors.UploadConflict: 409,
-           errors.UploadTooLarge: 413, errors.FrameTooLargeUpload: 413}
-
-
 _BAD_UPLOAD = documented_error("not a valid archive or dataset (the message names the member or file)",
                                "missing_manifest", "sequence folder kitchen_7 has no manifest.json")
 _NOT_FOUND = documented_error("no such dataset", "not_found", "dataset 'kitchens' does not exist")
@@ -71,15 +65,6 @@ def _binary_body(types: tuple[str, ...], description: str) -> dict:
     schema = {"type": "string", "format": "binary"}
     return {"requestBody": {"required": True, "description": description,
                             "content": {kind: {"schema": schema} for kind in types}}}
-
-
-@contextmanager
-def _api_errors() -> Iterator[None]:
-    try:
-        yield
-    except errors.UploadError as error:
-        status = next((code for kind, code in _STATUS.items() if isinstance(error, kind)), 400)
-        raise ApiError(status, error.code, error.message, error.details) from None
 
 
 def _check_content_type(request: Request, accepted: tuple[str, ...]) -> None:
@@ -116,9 +101,9 @@ async def _receive_archive(request: Request, response: Response, storage: Storag
                            layout: str | None) -> DatasetDetail:
     _check_content_type(request, ARCHIVE_TYPES)
     notes = UploadNotes()
-    with _api_errors():
+    with domain_errors():
         chosen = _layout(layout)
-    with upload_slots(settings.max_concurrent_uploads).take(), _api_errors(), \
+    with upload_slots(settings.max_concurrent_uploads).take(), domain_errors(), \
             dataset_lock.workspace(storage, "upload") as work:
         archive = work / "upload.bin"
         await receive.save_stream(request.stream(), archive, settings.max_upload_bytes, "upload",
@@ -158,7 +143,7 @@ async def upload_dataset(
 ) -> DatasetDetail:
     """The body is streamed to staging, unpacked (links, absolute paths and `..` refused), every frame is read
     and checked against its manifest, and only then is the dataset moved into place: a failure stores nothing."""
-    with _api_errors():
+    with domain_errors():
         dataset_id = catalog.new_dataset_id(name)
         if catalog.dataset_exists(storage, dataset_id):  # fail before receiving the body
             raise errors.UploadConflict("dataset_exists", f"dataset {dataset_id!r} already exists; add sequences "
@@ -179,14 +164,14 @@ def list_datasets(storage: StorageDep) -> list[DatasetSummary]:
             responses={400: _BAD_NAME, 404: _NOT_FOUND})
 def get_dataset(dataset_id: DatasetId, storage: StorageDep) -> DatasetDetail:
     """Scenes, splits and every sequence with its split, frame count, buffers, resolution and scales."""
-    with _api_errors():
+    with domain_errors():
         return catalog.describe_dataset(storage, dataset_id)
 
 
 @router.delete("/{dataset_id}", status_code=204, summary="Delete a dataset",
                responses={400: _BAD_NAME, 404: _NOT_FOUND})
 def delete_dataset(dataset_id: DatasetId, storage: StorageDep) -> Response:
-    with _api_errors():
+    with domain_errors():
         catalog.delete_dataset(storage, dataset_id)
     return Response(status_code=204)
 
@@ -213,7 +198,7 @@ async def add_sequences(
     layout: LayoutName = None,
 ) -> DatasetDetail:
     """Like POST /datasets, into an existing dataset: all of the archive's sequences are added, or none."""
-    with _api_errors():
+    with domain_errors():
         if not catalog.dataset_exists(storage, dataset_id):
             raise errors.UnknownDataset("not_found", f"dataset {dataset_id!r} does not exist")
     detail = await _receive_archive(request, response, storage, settings, dataset_id, create=False, split=split,
@@ -251,7 +236,7 @@ async def upload_frame(
     """Frames must come in order from frame_index 0; the sequence is held in staging until
     POST .../commit moves it into the dataset (which is created then if it does not exist yet)."""
     _check_content_type(request, FRAME_TYPES)
-    with _api_errors():
+    with domain_errors():
         catalog.checked_dataset_id(dataset_id)
         catalog.checked_sequence_name(sequence)
         expected_scales = _parse_scales(scales)
@@ -288,7 +273,7 @@ def _parse_scales(values: list[str] | None) -> list[int] | None:
                                             "no frames of sequence 'kitchen_7' are staged for dataset 'kitchens'")})
 def get_staged_sequence(dataset_id: DatasetId, sequence: SequenceName, storage: StorageDep) -> StagedSequence:
     """How many frames arrived and which frame_index comes next (to resume an interrupted upload)."""
-    with _api_errors():
+    with domain_errors():
         return staged.staged_sequence(storage, dataset_id, sequence)
 
 
@@ -296,7 +281,7 @@ def get_staged_sequence(dataset_id: DatasetId, sequence: SequenceName, storage: 
                summary="Discard a sequence being uploaded frame by frame",
                responses={400: _BAD_NAME, 404: _NOT_FOUND})
 def discard_staged_sequence(dataset_id: DatasetId, sequence: SequenceName, storage: StorageDep) -> Response:
-    with _api_errors():
+    with domain_errors():
         staged.discard_staged_sequence(storage, dataset_id, sequence)
     return Response(status_code=204)
 
@@ -319,7 +304,7 @@ def commit_sequence(
     replace: Annotated[bool, Query(description="replace a stored sequence of the same name instead of 409")]
     = False,
 ) -> DatasetDetail:
-    with _api_errors():
+    with domain_errors():
         detail = staged.commit_staged_sequence(storage, dataset_id, sequence, replace=replace)
     response.headers["Location"] = f"/datasets/{dataset_id}"
     return detail

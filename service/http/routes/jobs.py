@@ -23,9 +23,9 @@ from fastapi.responses import FileResponse, StreamingResponse
 from model.io.dataset import frame_file_name
 from model.fit.report import LADDER_JSON, LADDER_MARKDOWN
 from service.http.dispatch import get_dispatcher
-from service.http.errors import ApiError, documented_error
+from service.http.errors import ApiError, documented_error, domain_errors
 from service.http.schemas.jobs import Job, JobCreate, JobLogs, JobResults
-from core.job_store import JobFinished, JobNotFound, JobStore, store_for
+from core.job_store import JobStore, store_for
 from core.jobs.checks import invalid
 from core.jobs.dispatch import CeleryDispatcher
 from core.jobs.files import CHART as QUALITY_SPEED_CHART
@@ -150,12 +150,8 @@ def get_job(job_id: JobId, store: StoreDep) -> Job:
 def cancel_job(job_id: JobId, store: StoreDep, dispatcher: DispatcherDep) -> Job:
     """A queued job is cancelled at once (and its message revoked); a running one is flagged and stops at its
     next progress point (DDP ranks are stopped as a whole): its state turns `cancelled` shortly after."""
-    try:
+    with domain_errors():
         record = store.request_cancel(job_id)
-    except JobNotFound:
-        raise ApiError(404, "not_found", f"job {job_id!r} does not exist") from None
-    except JobFinished as error:
-        raise ApiError(409, "job_finished", str(error), {"state": error.state}) from None
     if record["state"] == "cancelled":
         try:
             dispatcher.revoke(job_id)

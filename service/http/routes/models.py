@@ -1,25 +1,21 @@
 """/models: registered models (MLflow registry), their versions with tags and metrics, and aliases.
 
-HTTP only: core.registry does the work; its UnknownModelError becomes 404, ValueError (a malformed version or
-alias name) 422, RegistryUnavailable 503.
+HTTP only: core.registry does the work; its errors get their status from service.http.errors (UnknownModelError 404,
+ValueError, a malformed version or alias name, 422, RegistryUnavailable 503).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path as FilePath
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Response
 
-from service.http.errors import ApiError, documented_error
+from service.http.errors import documented_error, domain_errors
 from core.registry import (
     ModelVersionInfo,
     RegisteredModelInfo,
     Registry,
-    RegistryUnavailable,
-    UnknownModelError,
     registry_for,
 )
 from service.http.schemas.models import AliasIn, AliasOut, ModelDetail, ModelSummary, ModelVersionOut
@@ -47,19 +43,6 @@ _UNAVAILABLE = documented_error("the MLflow tracking store cannot be reached", "
                                 "model registry error for registered models: connection refused")
 
 
-@contextmanager
-def registry_errors() -> Iterator[None]:
-    """The registry's errors as API errors (also used by /sessions, which resolves models)."""
-    try:
-        yield
-    except UnknownModelError as error:
-        raise ApiError(404, "not_found", str(error)) from None
-    except ValueError as error:
-        raise ApiError(422, "invalid_request", str(error)) from None
-    except RegistryUnavailable as error:
-        raise ApiError(503, "registry_unavailable", str(error)) from None
-
-
 def version_out(info: ModelVersionInfo) -> ModelVersionOut:
     return ModelVersionOut(name=info.name, version=info.version, run_id=info.run_id, created_at=info.created_at,
                            method=info.method, preset=info.preset, scale=info.scale, params=info.params,
@@ -79,7 +62,7 @@ def _alias_out(name: str, alias: str, info: ModelVersionInfo) -> AliasOut:
 @router.get("", response_model=list[ModelSummary], summary="List registered models",
             responses={503: _UNAVAILABLE})
 def list_models(registry: RegistryDep) -> list[ModelSummary]:
-    with registry_errors():
+    with domain_errors():
         return [_summary(info) for info in registry.list_models()]
 
 
@@ -88,7 +71,7 @@ def list_models(registry: RegistryDep) -> list[ModelSummary]:
 def get_model(name: ModelName, registry: RegistryDep) -> ModelDetail:
     """Versions oldest first, each with method, preset, scale, parameter count, FLOPs per pixel and the metrics
     recorded on it (validation PSNR from training, ms per frame from a benchmark, when known)."""
-    with registry_errors():
+    with domain_errors():
         info = registry.get_model(name)
     return ModelDetail(**_summary(info).model_dump(), versions=[version_out(v) for v in info.versions])
 
@@ -96,7 +79,7 @@ def get_model(name: ModelName, registry: RegistryDep) -> ModelDetail:
 @router.get("/{name}/versions/{version}", response_model=ModelVersionOut, summary="One version of a model",
             responses={404: _NOT_FOUND, 422: _INVALID, 503: _UNAVAILABLE})
 def get_version(name: ModelName, version: VersionNumber, registry: RegistryDep) -> ModelVersionOut:
-    with registry_errors():
+    with domain_errors():
         return version_out(registry.get_version(name, version))
 
 
@@ -105,7 +88,7 @@ def get_version(name: ModelName, version: VersionNumber, registry: RegistryDep) 
 def delete_version(name: ModelName, version: VersionNumber, registry: RegistryDep) -> Response:
     """Also drops the aliases that pointed at it and its cached checkpoint. Sessions already open on it go on
     with the weights they loaded; new sessions and jobs answer 404 for it."""
-    with registry_errors():
+    with domain_errors():
         registry.delete_version(name, version)
     return Response(status_code=204)
 
@@ -114,7 +97,7 @@ def delete_version(name: ModelName, version: VersionNumber, registry: RegistryDe
                responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
 def delete_model(name: ModelName, registry: RegistryDep) -> Response:
     """Every version, alias and cached checkpoint of the model; open sessions keep their loaded weights."""
-    with registry_errors():
+    with domain_errors():
         registry.delete_model(name)
     return Response(status_code=204)
 
@@ -129,20 +112,20 @@ def delete_model(name: ModelName, registry: RegistryDep) -> Response:
 def set_alias(name: ModelName, alias: AliasName, body: AliasIn, registry: RegistryDep) -> AliasOut:
     """Creates the alias or moves it. Sessions resolve an alias once, when they are created: moving it changes
     the model of new sessions only."""
-    with registry_errors():
+    with domain_errors():
         return _alias_out(name, alias, registry.set_alias(name, alias, body.version))
 
 
 @router.get("/{name}/aliases/{alias}", response_model=AliasOut, summary="The version an alias points at",
             responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
 def get_alias(name: ModelName, alias: AliasName, registry: RegistryDep) -> AliasOut:
-    with registry_errors():
+    with domain_errors():
         return _alias_out(name, alias, registry.get_alias(name, alias))
 
 
 @router.delete("/{name}/aliases/{alias}", status_code=204, summary="Remove an alias",
                responses={404: _NOT_FOUND, 503: _UNAVAILABLE})
 def delete_alias(name: ModelName, alias: AliasName, registry: RegistryDep) -> Response:
-    with registry_errors():
+    with domain_errors():
         registry.delete_alias(name, alias)
     return Response(status_code=204)

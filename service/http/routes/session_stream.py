@@ -33,9 +33,9 @@ from starlette.concurrency import run_in_threadpool
 
 from model.io.frames import FrameError
 from service.http.auth import API_KEY_HEADER, require_api_key
-from service.http.errors import ApiError
+from service.http.errors import ApiError, api_error, domain_errors, frame_error_details
 from service.http.request_limits import frame_budget
-from service.http.routes.sessions import SESSION_TOKEN_HEADER, check_owner, session_errors
+from service.http.routes.sessions import SESSION_TOKEN_HEADER, check_owner
 from service.sessions.store import ReadFrame, SessionStore, get_session_store
 from core.settings import Settings, get_settings
 from service.sessions.stream_batch import stream_frame_batch
@@ -110,7 +110,7 @@ class _FrameFailed(Exception):
 def _admit(store: SessionStore, settings: Settings, session_id: str, key: str | None, token: str | None) -> None:
     """The REST API's checks: the API key, the session's existence, its owner token (ApiError otherwise)."""
     require_api_key(settings, key)
-    with session_errors():
+    with domain_errors():
         store.get(session_id)
     check_owner(store, session_id, token)
 
@@ -137,18 +137,16 @@ def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: in
     try:
         message = decode_frame(data, max_pixels=max_pixels)
     except StreamMessageError as error:
-        status = {"frame_too_large": 413}.get(error.code, 400)
-        raise _FrameFailed(ApiError(status, error.code, error.message, error.details)) from None
+        raise _FrameFailed(api_error(error)) from None
     index = message.frame_index
     try:
         read = store.read_frame(lambda device: stream_frame_batch(message, device, STREAM_SOURCE))
     except FrameError as error:
-        raise _FrameFailed(ApiError(400, "invalid_frame", str(error), {"buffer": error.buffer,
-                                                                       "problem": error.problem}), index) from None
+        raise _FrameFailed(api_error(error, frame_error_details(error)), index) from None
     frame = ReadFrame(index or 0, message.width, message.height, message.camera_cut, read.batch,
                       plainly_valid=read.plainly_valid, output_dtype=message.output_dtype)
     try:
-        with session_errors():
+        with domain_errors():
             result = store.process_frame(session_id, frame, start_mirror=False, frame_index_given=index is not None)
     except ApiError as error:
         raise _FrameFailed(error, index) from None

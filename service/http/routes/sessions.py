@@ -12,8 +12,7 @@ from __future__ import annotations
 import hmac
 import secrets
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from datetime import datetime, timezone
 from typing import Annotated
 
@@ -21,27 +20,15 @@ from fastapi import APIRouter, Depends, Header, Path, Request, Response
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
-from model.io.exr import FrameTooLarge, encode_image_exr
+from model.io.exr import encode_image_exr
 from model.io.frames import FrameError
 from model.layouts import LayoutFrame, layout_from_value, read_layout_frame_bytes
 from model.methods.registry import method_buffers
-from service.http.errors import ApiError, documented_error
+from service.http.errors import ApiError, api_error, documented_error, domain_errors, frame_error_details
 from core.names import AUTO_MODEL
 from service.http.request_limits import frame_budget
-from service.http.routes.models import registry_errors
 from service.http.schemas.sessions import SessionIn, SessionModelOut, SessionOut
-from service.sessions.models import SessionModelInvalid, SessionModelNotFound
-from service.sessions.store import (
-    FrameRejected,
-    ModelNotLoadable,
-    Session,
-    SessionLimitReached,
-    SessionNotFound,
-    SessionStore,
-    SessionStoreUnavailable,
-    get_session_store,
-    token_digest,
-)
+from service.sessions.store import Session, SessionStore, get_session_store, token_digest
 from core.settings import Settings, get_settings
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
@@ -68,32 +55,9 @@ _UNAVAILABLE = documented_error("Redis (the session store) or the model registry
                                                              "store (Redis) is unreachable: Connection refused")
 
 
-@contextmanager
-def session_errors() -> Iterator[None]:
-    """The store's and the registry's errors as API errors."""
-    try:
-        with registry_errors():
-            try:
-                yield
-            except SessionModelNotFound as error:  # before registry_errors: it keeps the listing in details
-                raise ApiError(404, "not_found", str(error), error.details) from None
-            except SessionModelInvalid as error:
-                raise ApiError(422, error.code, str(error), error.details) from None
-    except SessionNotFound as error:
-        raise ApiError(404, error.code, error.message, error.details) from None
-    except FrameRejected as error:
-        raise ApiError(409, error.code, error.message, error.details) from None
-    except SessionLimitReached as error:
-        raise ApiError(429, error.code, error.message, error.details) from None
-    except ModelNotLoadable as error:
-        raise ApiError(422, error.code, error.message, error.details) from None
-    except SessionStoreUnavailable as error:
-        raise ApiError(503, error.code, error.message, error.details) from None
-
-
 def check_owner(store: SessionStore, session_id: str, token: str | None) -> None:
     """403 unless ``token`` is the session's owner token (sessions created without one answer any key holder)."""
-    with session_errors():
+    with domain_errors():
         digest = store.owner_digest(session_id)
     if digest is None:
         return
@@ -174,7 +138,7 @@ def create_session(body: SessionIn, response: Response, store: StoreDep, setting
         choice = _choose(store, body)
     token = secrets.token_urlsafe(24) if settings.session_owner_tokens else None
     owner = token_digest(token) if token is not None else None
-    with session_errors():
+    with domain_errors():
         if choice is None:
             session = store.create(body.model, version=body.version, alias=body.alias, on_gap=body.on_gap,
                                    owner_digest=owner, layout=body.layout, scale=body.scale)
@@ -189,21 +153,16 @@ def create_session(body: SessionIn, response: Response, store: StoreDep, setting
 
 def _choose(store: SessionStore, body: SessionIn):
     """The version a model 'auto' session runs (core.registry.choose_auto), or the API error saying why none."""
-    from core.registry import ConstraintNotMet, NoAutoCandidates, choose_auto
+    from core.registry import choose_auto
 
-    with registry_errors():
-        try:
-            return choose_auto(max_ms_per_frame=body.max_ms_per_frame, min_psnr=body.min_psnr, family=body.family,
-                               scale=body.scale, registry=store.registry)
-        except NoAutoCandidates as error:
-            raise ApiError(404, "no_candidate_model", str(error), error.details) from None
-        except ConstraintNotMet as error:
-            raise ApiError(422, "constraint_not_met", str(error), error.details) from None
+    with domain_errors():
+        return choose_auto(max_ms_per_frame=body.max_ms_per_frame, min_psnr=body.min_psnr, family=body.family,
+                           scale=body.scale, registry=store.registry)
 
 
 @router.get("", response_model=list[SessionOut], summary="List live sessions", responses={503: _UNAVAILABLE})
 def list_sessions(store: StoreDep) -> list[SessionOut]:
-    with session_errors():
+    with domain_errors():
         return [session_out(session) for session in store.list()]
 
 
@@ -211,7 +170,7 @@ def list_sessions(store: StoreDep) -> list[SessionOut]:
             responses={403: _FORBIDDEN, 404: _NOT_FOUND, 503: _UNAVAILABLE})
 def get_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> SessionOut:
     check_owner(store, session_id, token)
-    with session_errors():
+    with domain_errors():
         return session_out(store.get(session_id))
 
 
@@ -220,7 +179,7 @@ def get_session(session_id: SessionId, store: StoreDep, token: SessionToken = No
 def reset_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> SessionOut:
     """The next frame starts a new history at any frame_index and may have a new resolution."""
     check_owner(store, session_id, token)
-    with session_errors():
+    with domain_errors():
         return session_out(store.reset(session_id))
 
 
@@ -228,7 +187,7 @@ def reset_session(session_id: SessionId, store: StoreDep, token: SessionToken = 
                responses={403: _FORBIDDEN, 404: _NOT_FOUND, 503: _UNAVAILABLE})
 def delete_session(session_id: SessionId, store: StoreDep, token: SessionToken = None) -> Response:
     check_owner(store, session_id, token)
-    with session_errors():
+    with domain_errors():
         store.delete(session_id)
     return Response(status_code=204)
 
@@ -301,14 +260,14 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
     started = time.perf_counter()
     _check_content_type(request)
     if not store.exists(session_id):  # one in memory is checked against Redis when its frame runs
-        with session_errors():
+        with domain_errors():
             await run_in_threadpool(store.get, session_id)  # 404 before receiving a body for nothing
     await run_in_threadpool(check_owner, store, session_id, token)
     # The body's bytes count against the frame budget from the first byte until the output is encoded: bounds
     # the memory all frames in progress hold, whatever their number.
     with frame_budget(settings.max_buffered_frame_bytes).hold() as hold:
         body = await _read_body(request, settings.max_frame_bytes, hold)
-        with session_errors():
+        with domain_errors():
             result, data, read = await run_in_threadpool(_run_frame, store, session_id, body,
                                                          settings.max_frame_pixels)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
@@ -358,12 +317,8 @@ def _parse_frame(body: bytes, layout: str | dict, max_pixels: int) -> LayoutFram
         # pixel count is checked against ``max_pixels`` before anything is decoded, whatever the layout.
         return read_layout_frame_bytes(body, layout_from_value(layout), FRAME_SOURCE, mode="live",
                                        max_pixels=max_pixels)
-    except FrameTooLarge as error:
-        raise ApiError(413, "frame_too_large", str(error), {"pixels": error.pixels, "limit_pixels": error.limit}) \
-            from None
     except FrameError as error:
-        raise ApiError(400, "invalid_frame", str(error),
-                       {"buffer": error.buffer, "problem": error.problem}) from None
+        raise api_error(error, frame_error_details(error)) from None
 
 
 def _check_content_type(request: Request) -> None:

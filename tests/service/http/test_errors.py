@@ -110,3 +110,71 @@ def test_domain_errors_become_their_status_with_the_one_error_shape(error_type, 
     response = TestClient(app).get("/fails")
     assert response.status_code == status
     assert response.json() == {"error": {"code": "some_code", "message": "what went wrong", "details": {"name": "x"}}}
+
+
+def _errors_of_the_table():
+    from core.job_store import JobFinished, JobNotFound
+    from core.registry import ConstraintNotMet, NoAutoCandidates, RegistryUnavailable, UnknownModelError
+    from service.datasets import errors as upload
+    from service.sessions import store
+    from service.sessions.models import SessionModelInvalid
+
+    return [
+        (UnknownModelError("model 'm' does not exist"), 404, "not_found", None),
+        (NoAutoCandidates("no candidates", {"needed_tags": ["validation_psnr"]}), 404, "no_candidate_model",
+         {"needed_tags": ["validation_psnr"]}),
+        (ConstraintNotMet("none meets it", {"candidates": 2}), 422, "constraint_not_met", {"candidates": 2}),
+        (RegistryUnavailable("down"), 503, "registry_unavailable", None),
+        (JobNotFound("job 'j' does not exist"), 404, "not_found", None),
+        (JobFinished("j", "succeeded"), 409, "job_finished", {"state": "succeeded"}),
+        (SessionModelInvalid("untrained", code="untrained_method"), 422, "untrained_method", None),
+        (store.SessionLimitReached("too many"), 429, "too_many_sessions", None),
+        (store.FrameRejected("gap", code="frame_gap"), 409, "frame_gap", None),
+        (upload.UploadTooLarge("payload_too_large", "too big", {"limit_bytes": 1}), 413, "payload_too_large",
+         {"limit_bytes": 1}),
+        (upload.UnknownDataset("not_found", "no such dataset"), 404, "not_found", None),
+    ]
+
+
+def test_every_route_error_gets_its_status_and_code_from_the_one_table():
+    from fastapi import FastAPI
+    from fastapi.testclient import TestClient
+
+    from service.http.errors import domain_errors, install_error_handlers
+
+    cases = _errors_of_the_table()
+    app = FastAPI()
+    install_error_handlers(app)
+
+    @app.get("/raise/{index}")
+    def raises(index: int) -> None:
+        raise cases[index][0]
+
+    @app.get("/wrapped")
+    def wrapped() -> None:
+        with domain_errors():  # where a route needs the ApiError itself, and a ValueError means bad input
+            raise ValueError("version 'x' is not a positive integer")
+
+    client = TestClient(app)
+    for index, (error, status, code, details) in enumerate(cases):
+        response = client.get(f"/raise/{index}")
+        assert response.status_code == status, (error, response.text)
+        assert response.json()["error"] == {"code": code, "message": str(error), "details": details}
+    wrapped_response = client.get("/wrapped")
+    assert wrapped_response.status_code == 422 and wrapped_response.json()["error"]["code"] == "invalid_request"
+
+
+def test_no_route_keeps_a_map_of_its_own():
+    import re
+    from pathlib import Path
+
+    from service.http.errors import ERROR_STATUS
+
+    names = {cls.__name__ for cls in ERROR_STATUS if cls is not ValueError}
+    routes = Path(__file__).resolve().parents[3] / "service" / "http" / "routes"
+    for path in routes.glob("*.py"):
+        # An error of the table caught and answered with a status written there would be a second map.
+        for caught, handler in re.findall(r"except \(?([\w., ]+?)\)?(?: as \w+)?:\n(?=([^\n]*\n))",
+                                          path.read_text()):
+            classes = {name.strip().split(".")[-1] for name in caught.split(",")}
+            assert not (classes & names and re.search(r"ApiError\(\d", handler)), f"{path.name}: {caught}"
