@@ -54,10 +54,6 @@ FRAME_FIELDS = frozenset({"frame_index", "width", "height", "dtype", "buffers", 
 _KIND_NAMES = {FRAME: "frame", OUTPUT: "output"}
 
 
-class StreamFrameTooLarge(StreamMessageError):
-    """A frame message declaring more pixels than the server's limit (code ``frame_too_large``)."""
-
-
 class StreamMessageError(ValueError):
     """A message that breaks the protocol. ``code``: ``invalid_message`` (not a message of this protocol, or a
     malformed header) or ``invalid_frame`` (the arrays do not match the header; a required buffer is missing), as
@@ -68,6 +64,10 @@ class StreamMessageError(ValueError):
         self.message = message
         self.code = code
         self.details = details
+
+
+class StreamFrameTooLarge(StreamMessageError):
+    """A frame message declaring more pixels than the server's limit (code ``frame_too_large``)."""
 
 
 @dataclass(frozen=True)
