@@ -43,7 +43,8 @@ COPY service ./service
 COPY workers ./workers
 COPY cli ./cli
 COPY client ./client
-# The pretrained models (weights + manifests, model/deployment/pretrained.py); the installed package finds them here.
+# The pretrained models (weights + manifests); the installed package finds them through its settings
+# (DENOISER_PRETRAINED_DIR, core/settings.py).
 COPY pretrained ./pretrained
 ENV DENOISER_PRETRAINED_DIR=/app/pretrained
 # --no-deps: everything is installed above; this adds the packages and the `denoiser` console script.

@@ -44,8 +44,6 @@ if TYPE_CHECKING:  # numpy and the frame library load only when frames are sent
     from client.stream import SessionStream
 
 DEFAULT_URL = "http://127.0.0.1:8000"
-URL_ENV = "DENOISER_URL"
-API_KEY_ENV = "DENOISER_API_KEY"
 API_KEY_HEADER = "X-API-Key"
 SESSION_TOKEN_HEADER = "X-Session-Token"  # owner tokens of sessions (service.http.routes.sessions)
 EXR_MEDIA_TYPE = "image/x-exr"
@@ -150,7 +148,7 @@ class DenoiserClient:
     def __init__(self, url: str | None = None, api_key: str | None = None, timeout: float = 60.0, *,
                  transport: httpx.BaseTransport | None = None, sleep: Callable[[float], None] = time.sleep,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        self.url = (url or os.environ.get(URL_ENV) or DEFAULT_URL).rstrip("/")
+        self.url = (url or DEFAULT_URL).rstrip("/")
         headers = {API_KEY_HEADER: api_key} if api_key else {}
         # One timeout per network operation (connect, each read, each write), not for the whole request, so an
         # upload of several GB or a slow download still finishes while a dead server is noticed.

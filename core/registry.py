@@ -13,9 +13,10 @@ on local disk:
 budget): what a session created with ``{"model": "auto", ...}`` runs.
 
 Checkpoints are downloaded once into ``storage.model(name, version)`` and reused: a registered version never
-changes its files. Errors: ``UnknownModelError`` (a KeyError) for a name, version or alias that does not exist,
-ValueError for a malformed reference, version or alias name, ``RegistryUnavailable`` when the tracking store
-cannot be reached.
+changes its files. ``model_checkpoint`` is how every command turns a model text (a reference above, or a pretrained
+model's name) into a weights file, in the configured registry and pretrained folder. Errors: ``UnknownModelError``
+(a KeyError) for a name, version or alias that does not exist, ValueError for a malformed reference, version or
+alias name, ``RegistryUnavailable`` when the tracking store cannot be reached.
 """
 
 from __future__ import annotations
@@ -362,6 +363,33 @@ def resolve_checkpoint(ref: str) -> Path:
     alias, RegistryUnavailable when the tracking store fails.
     """
     return get_registry().resolve(ref).checkpoint
+
+
+def pretrained_dir() -> Path | None:
+    """The configured folder of the shipped models (``Settings.pretrained_dir``; None: the library's default)."""
+    from core.settings import get_settings
+
+    return get_settings().pretrained_dir
+
+
+def model_checkpoint(text: str, registry: Registry | None = None) -> Path | None:
+    """The weights file on local disk that a model text names, the same for every entry point and whatever the
+    current folder: a registered version (``models:/NAME/VERSION``, ``models:/NAME@ALIAS``, ``models:/NAME``; of
+    ``registry``, else the configured one) or a pretrained model of the configured folder (its sha256 checked).
+    None for any other text (a checkpoint path or a method name: the caller's to judge).
+
+    Raises ValueError for a malformed reference, UnknownModelError (KeyError) for an unknown model, version or
+    alias, RegistryUnavailable when the tracking store fails, ``PretrainedError`` (a ValueError) for shipped
+    weights that fail their check.
+    """
+    from model.deployment.pretrained import get_pretrained, is_pretrained, verify
+
+    if text.startswith("models:/"):
+        return resolve_checkpoint(text) if registry is None else registry.resolve(text).checkpoint
+    root = pretrained_dir()
+    if is_pretrained(text, root):
+        return verify(get_pretrained(text, root))
+    return None
 
 
 # =========================================================================================================

@@ -2,24 +2,56 @@
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from typing import Literal
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+# The folder holding core/: a source checkout when pyproject.toml sits beside it, else an installed package's
+# site-packages (where nothing may be written).
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+SQLITE_PREFIX = "sqlite:///"
+
+
+def default_data_dir() -> Path:
+    """``var/`` of the checkout the code runs from, else the per-user ``$XDG_DATA_HOME/denoiser``
+    (``~/.local/share/denoiser``): the same folder whatever the current one is."""
+    if (PROJECT_ROOT / "pyproject.toml").is_file():
+        return PROJECT_ROOT / "var"
+    base = os.environ.get("XDG_DATA_HOME", "")
+    return (Path(base) if os.path.isabs(base) else Path.home() / ".local" / "share") / "denoiser"
 
 
 class Settings(BaseSettings):
-    """Every knob of the API and the workers. Environment: DENOISER_<FIELD> (e.g. DENOISER_API_KEY)."""
+    """Every knob of the API, the workers and the CLI. Environment: DENOISER_<FIELD> (e.g. DENOISER_API_KEY).
+
+    docs/operations.md ("Where things are stored") describes how the paths resolve.
+    """
 
     model_config = SettingsConfigDict(env_prefix="DENOISER_", extra="ignore")
 
-    data_dir: Path = Field(Path("var"), description="root of everything the service stores (see storage.py)")
+    data_dir: Path = Field(
+        default_factory=default_data_dir,
+        description="root of everything the service stores: datasets, jobs, results, the model cache and (with no "
+                    "tracking_uri) the MLflow store; default: var/ of the source checkout the code runs from, else "
+                    "~/.local/share/denoiser ($XDG_DATA_HOME/denoiser); a relative path is taken from the current "
+                    "folder once, when the settings are read")
     redis_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker, result backend, session mirror")
-    tracking_uri: str | None = Field(None, description="MLflow tracking URI; none: sqlite under data_dir")
+    tracking_uri: str | None = Field(
+        None, description="MLflow tracking and registry URI of the service, the workers and every CLI command; "
+                          "none: the SQLite store data_dir/mlflow/mlflow.db (a relative sqlite:/// path is taken "
+                          "from the current folder once)")
+    pretrained_dir: Path | None = Field(
+        None, description="folder of the shipped pretrained models (one folder per model, a manifest.json each); "
+                          "none: pretrained/ of the source checkout (an installed package needs it set)")
     mlflow_ui_url: str | None = Field(None, description="public URL of the MLflow UI, for links in job records")
-    api_key: str | None = Field(None, description="when set, every request but /health needs X-API-Key")
+    url: str = Field("http://127.0.0.1:8000",
+                     description="address of the REST service that the CLI's client commands talk to (--url)")
+    api_key: str | None = Field(None, description="when set, every request but /health needs X-API-Key; the CLI's "
+                                                  "client commands send it (--api-key)")
     require_api_key: bool = Field(
         False, description="refuse to start without a real api_key (set where the API is reachable from other "
                            "machines; `denoiser serve --host` beyond localhost implies it)")
@@ -74,10 +106,24 @@ class Settings(BaseSettings):
         20.0, ge=0, description="how long a running job retries Redis (with backoff) before its attempt fails")
     job_time_limit_seconds: int = Field(24 * 3600, gt=0, description="longest job; the visibility timeout exceeds it")
 
+    @field_validator("data_dir", "pretrained_dir")
+    @classmethod
+    def _absolute_path(cls, value: Path | None) -> Path | None:
+        return None if value is None else Path(os.path.abspath(value.expanduser()))
+
+    @field_validator("tracking_uri")
+    @classmethod
+    def _absolute_sqlite(cls, value: str | None) -> str | None:
+        if not value:
+            return None
+        if value.startswith(SQLITE_PREFIX) and not os.path.isabs(value[len(SQLITE_PREFIX):]):
+            return SQLITE_PREFIX + os.path.abspath(value[len(SQLITE_PREFIX):])
+        return value
+
     def resolved_tracking_uri(self) -> str:
         if self.tracking_uri:
             return self.tracking_uri
-        return f"sqlite:///{(self.data_dir / 'mlflow' / 'mlflow.db').resolve()}"
+        return f"{SQLITE_PREFIX}{(self.data_dir / 'mlflow' / 'mlflow.db').resolve()}"
 
 
 @lru_cache(maxsize=1)

@@ -6,6 +6,7 @@
     models/<name>/<version>/ checkpoints downloaded from the MLflow registry (cache)
     staging/                uploads being received and validated; moved into place only when complete
     mlflow/                 local MLflow SQLite store and artifacts (when no tracking URI is configured)
+    runs/<name>/            checkpoints of `denoiser train` and `denoiser fit` runs given no --out
 """
 
 from __future__ import annotations
@@ -53,6 +54,10 @@ class Storage:
     @property
     def mlflow(self) -> Path:
         return self.root / "mlflow"
+
+    @property
+    def runs(self) -> Path:
+        return self.root / "runs"
 
     def ensure(self) -> Storage:
         for folder in (self.datasets, self.jobs, self.results, self.models, self.staging, self.mlflow):

@@ -3,11 +3,11 @@
 ``MLflowTracker`` implements ``model.training.train.Tracker`` (the model library itself never imports MLflow). Only rank 0
 of a training job creates one.
 
-Where things go. The tracking URI is one setting: ``TrainConfig.tracking_uri``, else ``$DENOISER_TRACKING_URI``,
-else a SQLite file ``mlruns/mlflow.db`` under the current folder (as an absolute ``sqlite:///`` URI). With a
-SQLite URI, artifacts go to ``artifacts/<experiment>/`` next to the database file (MLflow would otherwise put
-them under the current folder of whichever process created the experiment); a server or PostgreSQL URI keeps
-the server's artifact store.
+Where things go. The tracking URI is one setting: ``TrainConfig.tracking_uri`` when given, else the service's
+(``core.settings.Settings.resolved_tracking_uri``: ``DENOISER_TRACKING_URI``, else the SQLite store under the data
+folder), whatever the current folder. With a SQLite URI, artifacts go to ``artifacts/<experiment>/`` next to the
+database file (MLflow would otherwise put them under the current folder of whichever process created the
+experiment); a server or PostgreSQL URI keeps the server's artifact store.
 
 Models. The final checkpoint (``model.training.checkpoint``, loadable with ``load_method``) is stored as an MLflow 3
 *logged model* of the run in the ``pyfunc`` flavour (``core.pyfunc_model``: an MLmodel file with a signature,
@@ -45,19 +45,16 @@ from mlflow import MlflowClient  # noqa: E402
 from mlflow.entities import Dataset, DatasetInput, InputTag, LoggedModelStatus, Metric, Param, RunStatus  # noqa: E402
 from mlflow.exceptions import MlflowException  # noqa: E402
 
-TRACKING_URI_ENV = "DENOISER_TRACKING_URI"
 CHECKPOINT_ARTIFACT = "checkpoint.pt"
 PARAM_VALUE_LIMIT = 6000  # MLflow refuses longer parameter values
 BATCH_LIMIT = 100  # params per log_batch call (MLflow's limit); metrics are flushed in batches of this size too
 
 
-def default_tracking_uri() -> str:
-    return f"sqlite:///{(Path.cwd() / 'mlruns' / 'mlflow.db').resolve()}"
-
-
 def resolve_tracking_uri(uri: str | None = None) -> str:
-    """The tracking URI to use: ``uri``, else ``$DENOISER_TRACKING_URI``, else ``default_tracking_uri()``."""
-    return uri or os.environ.get(TRACKING_URI_ENV) or default_tracking_uri()
+    """The tracking URI to use: ``uri``, else the settings' (``DENOISER_TRACKING_URI``, else under the data folder)."""
+    from core.settings import get_settings
+
+    return uri or get_settings().resolved_tracking_uri()
 
 
 def sqlite_path(uri: str) -> Path | None:

@@ -2,12 +2,13 @@
 # Starts, stops or reports the local stack (no Docker): Redis (if nothing listens on the host and port of
 # DENOISER_REDIS_URL, and that host is this one; append-only, its files in var/redis), the REST API,
 # one Celery worker (queues cpu, solo pool) and the MLflow UI. Settings: DENOISER_* variables (defaults:
-# data and the MLflow SQLite store under ./var). Logs: var/logs/<name>.log; process ids: var/run/<name>.pid.
+# data and the MLflow SQLite store under the checkout's var/, where every denoiser command finds them from any
+# folder). Logs: var/logs/<name>.log; process ids: var/run/<name>.pid.
 #   bash scripts/services.sh start|stop|restart|status [api|worker|mlflow]
 #   bash scripts/services.sh redis-command      prints Redis's host and port, then the command that would start it
 set -euo pipefail
 cd "$(dirname "$0")/.."
-DATA_DIR=${DENOISER_DATA_DIR:-var}
+DATA_DIR=${DENOISER_DATA_DIR:-$PWD/var}  # absolute: the processes and the CLI resolve it alike wherever they run
 API_PORT=${DENOISER_API_PORT:-8000}
 MLFLOW_PORT=${DENOISER_MLFLOW_PORT:-5000}
 export DENOISER_DATA_DIR=$DATA_DIR

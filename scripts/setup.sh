@@ -9,7 +9,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
-export DENOISER_DATA_DIR=${DENOISER_DATA_DIR:-var}
+export DENOISER_DATA_DIR=${DENOISER_DATA_DIR:-$PWD/var}  # the checkout's var/, the settings' default too
 API_PORT=${DENOISER_API_PORT:-8000}
 MLFLOW_PORT=${DENOISER_MLFLOW_PORT:-5000}
 bash scripts/services.sh start

@@ -9,9 +9,9 @@ from pathlib import Path
 
 from cli.commands.evaluate import add_run_options
 from cli.main import UsageError
+from cli.model_refs import MODEL_REF_PREFIX, model_checkpoint
 from core.names import SPLITS
 
-MODEL_REF_PREFIX = "models:/"
 # OIDN fast / balanced / high, alone and with TAA, are the reference points of every benchmark: a method built on
 # OIDN is compared with both at its own OIDN quality.
 ALWAYS_ALL_PRESETS = ("oidn", "oidn-taa")
@@ -19,8 +19,9 @@ ALWAYS_ALL_PRESETS = ("oidn", "oidn-taa")
 LEARNED_RULE = """\
 learned methods:
   Learned methods (WSKPN, AFN, MUNet, JNDS, ...) are benchmarked only from trained weights that you give with
-  --include-learned: checkpoint files (runs/wskpn-s/best.pt) or registered models (models:/NAME/VERSION,
-  models:/NAME@ALIAS, models:/NAME for the latest version, from --tracking-uri's store). Their
+  --include-learned: checkpoint files (runs/wskpn-s/best.pt), pretrained models (fused-balanced-x1) or
+  registered models (models:/NAME/VERSION, models:/NAME@ALIAS, models:/NAME for the latest version, from the
+  service's registry or --tracking-uri's). Their
   registry presets are never run: untrained, they would be timed and scored as if they were trained, so
   --method refuses a learned method (exit 2). A checkpoint runs at every requested scale it supports: one
   whose network works at render resolution (WSKPN, AFN) also runs at 2x as "method + bicubic" with the same
@@ -60,11 +61,12 @@ def add_commands(commands) -> None:
     parser.add_argument("--all-presets", action="store_true",
                         help="every preset of each non-learned method (of the --method ones when given)")
     parser.add_argument("--include-learned", nargs="+", action="extend", default=[], metavar="CHECKPOINT",
-                        help="trained models to benchmark: checkpoint files or models:/ references "
-                             "(the only way learned methods are run)")
+                        help="trained models to benchmark: checkpoint files, models:/ references or pretrained "
+                             "models (the only way learned methods are run)")
     parser.add_argument("--tracking-uri", default=None, metavar="URI",
-                        help="MLflow store of the models:/ references; none given: $DENOISER_TRACKING_URI, "
-                             "else sqlite:///./mlruns/mlflow.db (where 'denoiser train' registers)")
+                        help="MLflow store of the models:/ references; none given: the service's "
+                             "(DENOISER_TRACKING_URI, else the SQLite store in DENOISER_DATA_DIR), where "
+                             "'denoiser train' registers")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for the table and charts")
     add_run_options(parser)
     parser.add_argument("--vdp", action="store_true",
@@ -134,34 +136,24 @@ def baseline_entrants(texts: list[str], scales: tuple[int, ...]) -> list[Entrant
     return entrants
 
 
-def registered_checkpoint(ref: str, tracking_uri: str | None) -> Path:
-    """The local checkpoint of ``models:/...`` in the tracking store 'denoiser train' registers into."""
-    from core.registry import registry_for
-    from core.settings import get_settings
-    from core.tracking import resolve_tracking_uri
-
-    uri = resolve_tracking_uri(tracking_uri)
-    try:
-        return registry_for(uri, Path(get_settings().data_dir)).resolve(ref).checkpoint
-    except KeyError as error:  # registry.UnknownModelError
-        raise UsageError(f"--include-learned {ref}: {error.args[0] if error.args else error}") from None
-    except ValueError as error:  # a malformed reference
-        raise UsageError(f"--include-learned {ref}: {error}") from None
-    except RuntimeError as error:  # registry.RegistryUnavailable
-        raise UsageError(f"--include-learned {ref}: model registry at {uri} unavailable: {error}") from None
-
-
 def learned_entrant(text: str, scales: tuple[int, ...], tracking_uri: str | None = None) -> Entrant:
-    """A checkpoint file or model reference, with the requested scales it can run at."""
+    """A checkpoint file, model reference or pretrained model, with the requested scales it can run at (references
+    resolve in the service's registry, or in ``tracking_uri``'s)."""
     from model.training.checkpoint import load_checkpoint
     from model.methods.registry import build_method
 
-    if text.startswith(MODEL_REF_PREFIX):
-        path = registered_checkpoint(text, tracking_uri)
-    else:
-        path = Path(text)
-        if not path.is_file():
-            raise UsageError(f"--include-learned {text}: checkpoint not found")
+    path = Path(text)
+    if not path.is_file():
+        registry = None
+        if tracking_uri is not None:
+            from core.registry import registry_for
+            from core.settings import get_settings
+
+            registry = registry_for(tracking_uri, get_settings().data_dir)
+        path = model_checkpoint(text, "--include-learned", registry)
+        if path is None:
+            raise UsageError(f"--include-learned {text}: checkpoint not found (nor a models:/ reference or "
+                             f"pretrained model)")
     try:
         config = load_checkpoint(path)["method"]
         trained_scale = int(config["scale"])

@@ -1,7 +1,7 @@
 """Subcommands that talk to a running denoiser service over HTTP (client.rest.DenoiserClient).
 
 `upload`, `datasets`, `submit`, `job`, `jobs`, `results`, `models`, `alias`, `stream`. Each takes `--url`
-(default $DENOISER_URL or http://127.0.0.1:8000) and `--api-key` (default $DENOISER_API_KEY). A server that
+and `--api-key` (defaults: the settings ``url`` and ``api_key``, DENOISER_URL and DENOISER_API_KEY). A server that
 cannot be reached and a 4xx answer exit with status 2 and one line naming the URL or quoting the server's
 message; a 5xx exits with 1.
 """
@@ -11,15 +11,15 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import os
 import sys
 import tempfile
 from pathlib import Path
 
 from cli.main import EXIT_FAILURE, UsageError, positive_int
 from core.names import DEVICES, JOB_KINDS, JOB_STATES, SPLITS
+from core.settings import Settings, get_settings
 
-DEFAULT_URL = "http://127.0.0.1:8000"  # as client.rest.DEFAULT_URL; repeated so --help stays import-light
+DEFAULT_URL = Settings.model_fields["url"].default
 
 
 def add_commands(commands) -> None:
@@ -45,9 +45,9 @@ def add_commands(commands) -> None:
 def _client(args):
     from client.rest import DenoiserClient
 
-    url = args.url or os.environ.get("DENOISER_URL") or DEFAULT_URL
-    api_key = args.api_key if args.api_key is not None else os.environ.get("DENOISER_API_KEY")
-    return DenoiserClient(url, api_key=api_key or None, timeout=args.timeout)
+    settings = get_settings()  # DENOISER_URL and DENOISER_API_KEY, read with every other setting
+    api_key = args.api_key if args.api_key is not None else settings.api_key
+    return DenoiserClient(args.url or settings.url, api_key=api_key or None, timeout=args.timeout)
 
 
 def _talks_to_server(run):

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from cli.main import UsageError, device_option, positive_int
+from cli.model_refs import name_sources, runnable_method
 from core.names import SPLITS
 
 
@@ -37,9 +38,9 @@ def _add_evaluate(commands) -> None:
                     "sequence. Speed: median wall time of a step after 2 warm-up frames per sequence, with its "
                     "ratio to OIDN-high timed in the same run on the same frames. Prints a Markdown table.")
     parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset folder")
-    parser.add_argument("--method", action="append", required=True, metavar="NAME[:PRESET]|CHECKPOINT",
-                        help="method from the registry (see 'denoiser methods') or a trained checkpoint file; "
-                             "repeat for several")
+    parser.add_argument("--method", "--model", action="append", required=True, metavar="METHOD",
+                        help="method from the registry (see 'denoiser methods'), a pretrained model, a models:/ "
+                             "reference or a checkpoint file; repeat for several")
     parser.add_argument("--split", choices=SPLITS, default="test", help="split to evaluate on (default: test)")
     parser.add_argument("--scale", type=int, choices=(1, 2), default=1,
                         help="output / render resolution ratio; the data needs references at this scale (default: 1)")
@@ -59,11 +60,12 @@ def _run_evaluate(args) -> int:
     if args.out is not None and args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give a file name such as report.json")
     progress = None if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
-    report = evaluate(args.data, args.method, split=args.split, scale=args.scale, frame_limit=args.frames,
-                      threads=args.threads, vdp=not args.no_vdp,
+    methods = [runnable_method(text, "--method") for text in args.method]
+    report = evaluate(args.data, [runnable for runnable, _ in methods], split=args.split, scale=args.scale,
+                      frame_limit=args.frames, threads=args.threads, vdp=not args.no_vdp,
                       timing_reference=None if args.no_oidn else TIMING_REFERENCE,
-                      device=args.device, progress=progress,
-                        inference_forms=get_settings().inference_forms)
+                      device=args.device, progress=progress, inference_forms=get_settings().inference_forms)
+    name_sources(report["methods"], methods)
     print(format_table(report))
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -85,9 +87,9 @@ def _add_compare(commands) -> None:
     parser.add_argument("--sequence", required=True, metavar="NAME", help="sequence of the dataset")
     parser.add_argument("--frame", type=int, default=-1, metavar="INDEX",
                         help="frame to show; negative counts from the end (default: -1, the last)")
-    parser.add_argument("--method", action="append", required=True, metavar="NAME[:PRESET]|CHECKPOINT[=LABEL]",
-                        help="method or checkpoint as for 'denoiser evaluate', optionally with a panel label "
-                             "after '='; repeat for several")
+    parser.add_argument("--method", "--model", action="append", required=True, metavar="MODEL[=LABEL]",
+                        help="method, pretrained model, models:/ reference or checkpoint as for 'denoiser "
+                             "evaluate', optionally with a panel label after '='; repeat for several")
     parser.add_argument("--scale", type=int, choices=(1, 2), default=1, help="output / render resolution ratio")
     parser.add_argument("--zoom", type=_zoom_option, default=None, metavar="X,Y,SIZE",
                         help="also show the square at output pixel (X, Y) with side SIZE, enlarged")
@@ -125,7 +127,7 @@ def _run_compare(args) -> int:
     methods, labels = [], []
     for text in args.method:
         method, _, label = text.partition("=")
-        methods.append(method)
+        methods.append(runnable_method(method, "--method")[0])
         labels.append(label or None)
     panels = comparison_panels(sequence, methods, index, args.scale, labels, device=args.device)
     title = f"{sequence.name}, frame {index}: {sequence[index].width}x{sequence[index].height} -> x{args.scale}"

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from cli.main import UsageError, size_option
+from cli.model_refs import model_checkpoint
 
 
 def add_commands(commands) -> None:
@@ -36,16 +37,12 @@ def load_model(text: str):
     """The trained method MODEL names (checkpoint file, pretrained name, models:/ reference, or a registry name to
     say why it cannot be exported)."""
     from model.training.checkpoint import load_method
-    from model.deployment.pretrained import is_pretrained, load_pretrained
 
     if Path(text).is_file():
         return load_method(text)
-    if is_pretrained(text):
-        return load_pretrained(text)
-    if text.startswith("models:/"):
-        from core.registry import resolve_checkpoint
-
-        return load_method(resolve_checkpoint(text))
+    path = model_checkpoint(text, "MODEL")
+    if path is not None:
+        return load_method(path)
     from model.methods.registry import build_method
 
     try:

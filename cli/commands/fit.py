@@ -50,10 +50,12 @@ def add_commands(commands) -> None:
     parser.add_argument("--device", choices=TRAIN_DEVICES, default="auto",
                         help="where presets train, run and are timed")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
-                        help="presets train into DIR/PRESET-KEY/ (default: runs/fit-FAMILY-xSCALE)")
+                        help="presets train into DIR/PRESET-KEY/ (default: runs/fit-FAMILY-xSCALE in the data "
+                             "folder, DENOISER_DATA_DIR)")
     parser.add_argument("--alias", default="fitted", help="alias pointed at the chosen version")
     parser.add_argument("--tracking-uri", default=None, metavar="URI",
-                        help="MLflow tracking URI (default: $DENOISER_TRACKING_URI, else sqlite:///./mlruns/mlflow.db)")
+                        help="MLflow tracking URI (default: the service's: DENOISER_TRACKING_URI, else the SQLite "
+                             "store in DENOISER_DATA_DIR)")
     parser.add_argument("--no-tracking", action="store_true",
                         help="no MLflow: nothing registered or aliased, no registry reuse (checkpoints under OUT "
                              "are still reused)")
@@ -74,13 +76,16 @@ def _run_fit(args) -> int:
     from model.fit.report import format_ladder
     from model.fit.runner import fit
     from model.fit.target import parse_resolution
+    from core.storage import get_storage
 
     family = args.method
     training = settings_from_args(FitTrainingSettings, args)
     config = FitConfig(
         **training.model_dump(), family=family, data=str(args.data), target=args.target,
         presets=args.presets, time_at=parse_resolution(args.time_at), timing_frames=args.timing_frames,
-        device=args.device, out=str(args.out or Path("runs") / f"fit-{family}-x{training.scale}"), alias=args.alias,
+        # No --out: the data folder's runs/, not the current folder, so a rerun from anywhere reuses its presets.
+        device=args.device, out=str(args.out or get_storage().runs / f"fit-{family}-x{training.scale}"),
+        alias=args.alias,
         tracking_uri=args.tracking_uri)
     if args.json is not None and args.json.is_dir():
         raise UsageError(f"--json {args.json} is a folder; give a file name such as ladder.json")

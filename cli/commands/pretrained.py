@@ -33,7 +33,7 @@ def _peer(model, label: str) -> dict | None:
 
 def _same_quality_taa(model) -> str:
     """OIDN + TAA's held-out PSNR at the model's OIDN quality (a fused preset is one), else at high, with the
-    quality: the bar the quality issue sets each model."""
+    quality: the bar each shipped model is held to."""
     from model.methods.oidn import QUALITIES
 
     quality = model.preset if model.preset in QUALITIES else "high"
@@ -60,17 +60,19 @@ def markdown_table(models) -> str:
 
 
 def _run_pretrained(args) -> int:
+    from core.registry import pretrained_dir
     from model.deployment.pretrained import PretrainedError, get_pretrained, pretrained_names, verify
     from cli.commands.client import _print_table
 
+    root = pretrained_dir()
     if args.markdown:
-        print(markdown_table([get_pretrained(name) for name in pretrained_names()]))
+        print(markdown_table([get_pretrained(name, root) for name in pretrained_names(root)]))
         return 0
 
     rows, broken, models = [], [], []
-    for name in pretrained_names():
+    for name in pretrained_names(root):
         try:
-            model = get_pretrained(name)
+            model = get_pretrained(name, root)
             verify(model)
             check = "ok"
         except PretrainedError as error:

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from cli.main import UsageError, device_option, positive_int, size_option
+from cli.model_refs import name_sources, runnable_method
 
 # As model.evaluation.stability.SCENARIOS; repeated so --help stays import-light (a test checks they agree).
 SCENARIOS = ("moving_object", "moving_light", "camera_cut", "fast_camera", "metals", "glass", "dark_fireflies",
@@ -34,8 +35,9 @@ def add_commands(commands) -> None:
     source.add_argument("--generate", action="store_true",
                         help=f"render the scenes with Mitsuba 3 into OUT/{GENERATED_DATA} first (reused when there)")
     parser.add_argument("--out", type=Path, required=True, metavar="REPORT_DIR", help="folder for the report")
-    parser.add_argument("--method", action="append", required=True, metavar="NAME[:PRESET]|CHECKPOINT",
-                        help="method from the registry or a trained checkpoint; repeat for several")
+    parser.add_argument("--method", action="append", required=True, metavar="METHOD",
+                        help="method from the registry, a pretrained model, a models:/ reference or a checkpoint "
+                             "file; repeat for several")
     parser.add_argument("--scenario", action="append", choices=SCENARIOS, default=None, metavar="NAME",
                         help="run only these scenarios (repeatable; default: all). One of: " + ", ".join(SCENARIOS))
     parser.add_argument("--scale", type=int, choices=(1, 2), default=1, help="output / render resolution ratio")
@@ -71,6 +73,7 @@ def _run_stability(args) -> int:
             if value != default:
                 raise UsageError(f"{option} applies to --generate only")
     names = tuple(dict.fromkeys(args.scenario)) if args.scenario else SCENARIOS
+    methods = [runnable_method(text, "--method") for text in args.method]
     say = (lambda message: None) if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
     data = args.data
     frame_limit = args.frames
@@ -86,8 +89,9 @@ def _run_stability(args) -> int:
     if not scenarios:
         raise UsageError(f"none of the scenarios can be built from {data}: "
                          + "; ".join(f"{m['name']}: {m['reason']}" for m in missing))
-    report = run_suite(scenarios, args.method, args.scale, vdp=args.vdp, device=args.device, threads=args.threads,
-                       progress=say, missing=missing, data=str(data))
+    report = run_suite(scenarios, [runnable for runnable, _ in methods], args.scale, vdp=args.vdp,
+                       device=args.device, threads=args.threads, progress=say, missing=missing, data=str(data))
+    name_sources(report["methods"], methods)
     files = write_report(report, args.out)
     for entry in report["methods"]:
         worst = entry["worst"]

@@ -6,7 +6,8 @@ import re
 import sys
 from pathlib import Path
 
-from cli.main import EXIT_FAILURE, HelpFormatter, UsageError, registered_name
+from cli.main import EXIT_FAILURE, HelpFormatter, registered_name
+from cli.model_refs import model_checkpoint
 from cli.options import add_model_options, settings_from_args
 from model.training.training_settings import TrainConfig
 
@@ -25,9 +26,10 @@ def add_commands(commands) -> None:
     add_model_options(parser, TrainConfig, exclusive=[("steps", "epochs")], aliases={"warmup_steps": ("--warmup",)},
                       overrides={"method": {"metavar": "NAME[:PRESET]"}, "data": {"metavar": "DIR"},
                                  "out": {"metavar": "DIR", "help": "output folder of the checkpoints (default: "
-                                                                   "runs/METHOD[-PRESET])"},
+                                                                   "runs/METHOD[-PRESET] in the data folder, "
+                                                                   "DENOISER_DATA_DIR)"},
                                  "register_as": {"type": registered_name, "metavar": "NAME"},
-                                 "init_from": {"metavar": "CHECKPOINT|PRETRAINED"},
+                                 "init_from": {"metavar": "CHECKPOINT|PRETRAINED|models:/REF"},
                                  "tracking_uri": {"metavar": "URI"}})
     parser.add_argument("--no-tracking", action="store_true", help="do not log to MLflow")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -35,7 +37,10 @@ def add_commands(commands) -> None:
 
 
 def _default_out(method: str) -> Path:
-    return Path("runs") / re.sub(r"[^A-Za-z0-9._-]+", "-", method)
+    """runs/METHOD[-PRESET] in the data folder, not the current one: a rerun from anywhere resumes."""
+    from core.storage import get_storage
+
+    return get_storage().runs / re.sub(r"[^A-Za-z0-9._-]+", "-", method)
 
 
 def _run_train(args) -> int:
@@ -123,12 +128,8 @@ def _print_result(result: dict) -> None:
 
 
 def _initial_weights(text: str | None) -> str | None:
-    """--init-from: a checkpoint file, or a pretrained model's name (its verified weights file)."""
-    from model.deployment.pretrained import PretrainedError, get_pretrained, is_pretrained, verify
-
-    if text is None or Path(text).is_file() or not is_pretrained(text):
+    """--init-from: a checkpoint file, a pretrained model's name or a registered model (their weights file)."""
+    if text is None or Path(text).is_file():
         return text
-    try:
-        return str(verify(get_pretrained(text)))
-    except PretrainedError as error:
-        raise UsageError(str(error)) from None
+    path = model_checkpoint(text, "--init-from")
+    return text if path is None else str(path)

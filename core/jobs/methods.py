@@ -67,21 +67,23 @@ def checkpoint_in_storage(text: str, storage: Storage) -> Path:
 
 def pretrained_checkpoint(name: str) -> Path:
     """The verified weights file of a pretrained model, or Invalid when it fails its check."""
+    from core.registry import pretrained_dir
     from model.deployment.pretrained import PretrainedError, get_pretrained, verify
 
     try:
-        return verify(get_pretrained(name))
+        return verify(get_pretrained(name, pretrained_dir()))
     except PretrainedError as error:
         raise Invalid("invalid_checkpoint", str(error)) from None
 
 
 def checkpoint_source(text: str, storage: Storage) -> Path | None:
     """The checkpoint file ``text`` stands for, or None when it names a registry method."""
+    from core.registry import pretrained_dir
     from model.deployment.pretrained import is_pretrained
 
     if is_model_ref(text):
         return registered_checkpoint(text)
-    if is_pretrained(text):
+    if is_pretrained(text, pretrained_dir()):
         return pretrained_checkpoint(text)
     if looks_like_path(text):
         return checkpoint_in_storage(text, storage)

@@ -34,11 +34,12 @@ def initial_weights(params: TrainParams, storage: Storage) -> Path | None:
         return None
     path = checkpoint_source(params.init_from, storage)
     if path is None:
+        from core.registry import pretrained_dir
         from model.deployment.pretrained import pretrained_names
 
         raise NotFound("init_from_not_found", f"init_from {params.init_from!r} is no registered model "
                   f"(models:/NAME@ALIAS), pretrained model or checkpoint (a method name has no weights); "
-                  f"pretrained models: {', '.join(pretrained_names()) or 'none'}")
+                  f"pretrained models: {', '.join(pretrained_names(pretrained_dir())) or 'none'}")
     source = checkpoint_method(path, f"init_from {params.init_from!r}")
     family = params.method.partition(":")[0]
     if source.get("method") != family or source.get("scale") != params.scale:

@@ -37,9 +37,9 @@ from model.methods.fused import RUN_TIME_SETTINGS  # shipped with the weights un
 from model.methods.history_rectification import HISTORY_SETTINGS  # the seed methods', the same way
 
 PRETRAINED_FORMAT = "denoiser-pretrained/1"
-# The repository's folder; an installed (not editable) package finds it through $DENOISER_PRETRAINED_DIR, which the
-# Docker image sets.
-PRETRAINED_DIR = Path(os.environ.get("DENOISER_PRETRAINED_DIR") or Path(__file__).resolve().parents[2] / "pretrained")
+# Where a ``root`` of None looks: the checkout's folder. The library reads no settings; the entry points pass the
+# configured folder (core.settings.Settings.pretrained_dir, which an installed package's deployment sets).
+PRETRAINED_DIR = Path(__file__).resolve().parents[2] / "pretrained"
 MANIFEST = "manifest.json"
 WEIGHTS = "model.pt"
 NAME = re.compile(r"^[a-z0-9][a-z0-9.-]{0,99}$")

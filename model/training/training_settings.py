@@ -110,8 +110,8 @@ class TrainingSettings(_TrainingChecks):
                                                 "FAMILY-fit-xSCALE)")
     init_from: str | None = Field(None, min_length=1, max_length=500,
                                   description="start from these weights instead of random ones (fine-tuning): a "
-                                              "checkpoint or pretrained model (the service also takes a registered "
-                                              "model, models:/NAME@ALIAS); same method and scale (a float32 JNDS "
+                                              "checkpoint, a pretrained model or a registered model "
+                                              "(models:/NAME@ALIAS); same method and scale (a float32 JNDS "
                                               "starts its -int8 preset for quantization-aware training)")
 
 
@@ -129,8 +129,9 @@ class TrainConfig(TrainingSettings):
     resume: bool = Field(True, description="continue from OUT/last.pt when it exists")
     device: Literal[TRAIN_DEVICES] = Field("auto", description="auto: CUDA when available (NCCL between ranks), "
                                                                "else CPU (gloo)")
-    tracking_uri: str | None = Field(None, description="MLflow tracking URI (none: $DENOISER_TRACKING_URI, else "
-                                                       "sqlite:///./mlruns/mlflow.db)")
+    tracking_uri: str | None = Field(None, description="MLflow tracking URI (none: the service's, "
+                                                       "DENOISER_TRACKING_URI, else the SQLite store in "
+                                                       "DENOISER_DATA_DIR)")
 
     def check(self) -> None:
         """Check the settings again (after fields were changed in place); ValueError naming the field."""

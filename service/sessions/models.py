@@ -25,7 +25,7 @@ import torch
 
 from model.deployment.inference_forms import FormTable, with_inference_forms
 from model.methods.base import Method
-from core.registry import Registry, UnknownModelError
+from core.registry import Registry, UnknownModelError, pretrained_dir
 
 REGISTERED, PRETRAINED, METHOD = "registered", "pretrained", "method"
 SOURCES = (REGISTERED, PRETRAINED, METHOD)
@@ -93,7 +93,7 @@ def available_models(registry: Registry | None) -> dict[str, list[str]]:
             registered = []
     methods = [spec.name + ("" if len(spec.presets) == 1 else f"[:{'|'.join(spec.presets)}]")
                for spec in all_methods() if not spec.learned]
-    return {"registered": registered, "pretrained": pretrained_names(), "methods": methods}
+    return {"registered": registered, "pretrained": pretrained_names(pretrained_dir()), "methods": methods}
 
 
 def _not_found(name: str, registry: Registry | None) -> SessionModelNotFound:
@@ -149,6 +149,7 @@ def resolve_session_model(name: str, registry: Registry, version: str | None = N
     from model.deployment.pretrained import get_pretrained, is_pretrained
 
     check_model_name(name)
+    root = pretrained_dir()
     if ":" in name:
         if version is not None or alias is not None:
             raise SessionModelInvalid(f"{name!r} is a method: version and alias go with registered models only",
@@ -160,7 +161,7 @@ def resolve_session_model(name: str, registry: Registry, version: str | None = N
         if registry.has_model(name):
             raise  # the model exists; its version or alias does not (the message says which)
         if version is not None or alias is not None:
-            if is_pretrained(name):
+            if is_pretrained(name, root):
                 raise UnknownModelError(f"model {name!r} does not exist in the registry (it is a pretrained model: "
                                         f"register the pretrained models with 'denoiser pretrained --register', or "
                                         f"give no version and alias)") from None
@@ -168,8 +169,8 @@ def resolve_session_model(name: str, registry: Registry, version: str | None = N
                 raise SessionModelInvalid(f"{name!r} is a method: version and alias go with registered models only",
                                           code="invalid_request") from None
             raise _not_found(name, registry) from None
-        if is_pretrained(name):
-            pretrained = get_pretrained(name)
+        if is_pretrained(name, root):
+            pretrained = get_pretrained(name, root)
             _fixed_scale(name, pretrained.scale, scale)
             return SessionModelSource(PRETRAINED, name, pretrained.sha256[:12], pretrained.scale)
         return _method_source(name, scale, registry)
@@ -194,10 +195,11 @@ def load_session_method(source: SessionModelSource, checkpoint: Path | None, dev
     if source.source == REGISTERED:
         method = load_method(checkpoint, device)
     elif source.source == PRETRAINED:
-        if get_pretrained(source.name).sha256[:12] != source.version:
+        root = pretrained_dir()
+        if get_pretrained(source.name, root).sha256[:12] != source.version:
             raise ValueError(f"pretrained model {source.name!r} was replaced since this session opened (sha256 "
                              f"{source.version}...); open a new session")
-        method = load_pretrained(source.name, device)
+        method = load_pretrained(source.name, device, root=root)
     elif source.source == METHOD:
         method = build_method(source.name, source.scale).to(device).eval()
     else:

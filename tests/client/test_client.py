@@ -86,11 +86,11 @@ def test_connection_refused_names_the_url():
     assert url in str(info.value) and "refused" in str(info.value)
 
 
-def test_url_defaults_to_the_environment(monkeypatch):
+def test_the_url_is_the_callers_else_the_local_default_never_the_environment(monkeypatch):
+    # The embedding program chooses the address (the CLI passes its settings'); the library reads no variables.
     monkeypatch.setenv("DENOISER_URL", "http://elsewhere.test:9000/")
-    assert DenoiserClient().url == "http://elsewhere.test:9000"
-    monkeypatch.delenv("DENOISER_URL")
     assert DenoiserClient().url == "http://127.0.0.1:8000"
+    assert DenoiserClient("http://there.test:9000/").url == "http://there.test:9000"
 
 
 def test_ids_cannot_address_another_route(client):

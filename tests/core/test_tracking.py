@@ -12,7 +12,6 @@ from tests.builders import write_tiny_dataset
 from tests.model.training_fixtures import TINY_METHOD
 from core.tracking import (
     MLflowTracker,
-    default_tracking_uri,
     download_registered_checkpoint,
     resolve_tracking_uri,
     save_image_grid,
@@ -108,12 +107,20 @@ def test_image_grid_is_a_png_with_a_panel_per_image(tmp_path):
         save_image_grid({}, tmp_path / "empty.png")
 
 
-def test_tracking_uri_is_one_setting(monkeypatch, tmp_path):
+def test_tracking_uri_is_the_settings_one_whatever_the_current_folder(monkeypatch, tmp_path):
+    from core.settings import get_settings
+
     monkeypatch.delenv("DENOISER_TRACKING_URI", raising=False)
-    monkeypatch.chdir(tmp_path)
-    assert resolve_tracking_uri(None) == default_tracking_uri() == f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
-    monkeypatch.setenv("DENOISER_TRACKING_URI", "postgresql://mlflow@db/mlflow")
-    assert resolve_tracking_uri(None) == "postgresql://mlflow@db/mlflow"
+    monkeypatch.setenv("DENOISER_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.chdir(tmp_path / "..")
+    get_settings.cache_clear()
+    try:
+        assert resolve_tracking_uri(None) == f"sqlite:///{tmp_path / 'data' / 'mlflow' / 'mlflow.db'}"
+        monkeypatch.setenv("DENOISER_TRACKING_URI", "postgresql://mlflow@db/mlflow")
+        get_settings.cache_clear()
+        assert resolve_tracking_uri(None) == "postgresql://mlflow@db/mlflow"
+    finally:
+        get_settings.cache_clear()
     assert resolve_tracking_uri("sqlite:////x/y.db") == "sqlite:////x/y.db"
     assert sqlite_path("sqlite:////x/y.db").as_posix() == "/x/y.db" and sqlite_path("http://host:5000") is None
 
