@@ -15,7 +15,7 @@ import sys
 COMMAND_MODULES = ("cli.commands.data", "cli.commands.evaluate", "cli.commands.train",
                    "cli.commands.client", "cli.commands.serve", "cli.commands.stability",
                    "cli.commands.benchmark", "cli.commands.fit", "cli.commands.pretrained",
-                   "cli.commands.export")
+                   "cli.commands.export", "cli.commands.infer")
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1

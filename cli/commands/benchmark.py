@@ -7,14 +7,12 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cli.commands.evaluate import add_run_options
+from cli.commands.evaluate import FILLED, add_run_options
 from cli.main import UsageError
 from cli.model_refs import MODEL_REF_PREFIX, model_checkpoint
-from core.names import SPLITS
-
-# OIDN fast / balanced / high, alone and with TAA, are the reference points of every benchmark: a method built on
-# OIDN is compared with both at its own OIDN quality.
-ALWAYS_ALL_PRESETS = ("oidn", "oidn-taa")
+from cli.options import add_model_options, params_from_args
+from core.jobs.evaluate import baseline_methods, benchmark_scales
+from core.jobs.specs import BenchmarkParams
 
 LEARNED_RULE = """\
 learned methods:
@@ -41,39 +39,34 @@ outputs (in --out):
 
 def add_commands(commands) -> None:
     parser = commands.add_parser(
-        "benchmark", help="speed against accuracy: every method and preset at 1x and 2x, table and charts",
-        description="Run the evaluation protocol ('denoiser evaluate') once per output scale on the held-out "
-                    "sequences of a split, for the non-learned baselines (identity, accumulation, SVGF: every "
-                    "non-learned registry method), OIDN fast / balanced / high, and the trained models you "
-                    "include. "
+        "benchmark", help="speed against accuracy: every method and preset at 1x, 2x or both, table and charts",
+        description="Run the evaluation protocol ('denoiser evaluate') once per output scale (--scale both: 1 and "
+                    "2) on the held-out sequences of a split, for the non-learned baselines (identity, "
+                    "accumulation, SVGF: every non-learned registry method), OIDN and OIDN + TAA fast / balanced / "
+                    "high, and the trained models you include. "
                     "OIDN-high is timed in each run on the same frames and every row carries its time ratio "
                     "to it. Writes a JSON and a Markdown table and two charts (see below).",
         epilog=LEARNED_RULE, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset folder")
-    parser.add_argument("--split", choices=SPLITS, default="test", help="split to benchmark on (default: test)")
-    parser.add_argument("--scale", choices=("1", "2", "both"), default="both",
-                        help="output / render resolution ratio; 'both' runs 1 and 2 (default); the data needs "
-                             "references at every scale run")
-    parser.add_argument("--method", action="append", default=None, metavar="NAME[:PRESET]",
-                        help="a non-learned registry method to run (repeatable; default: every non-learned "
-                             "method at its default preset, and the three presets of oidn and oidn-taa); "
-                             "see 'denoiser methods'")
-    parser.add_argument("--all-presets", action="store_true",
-                        help="every preset of each non-learned method (of the --method ones when given)")
-    parser.add_argument("--include-learned", nargs="+", action="extend", default=[], metavar="CHECKPOINT",
-                        help="trained models to benchmark: checkpoint files, models:/ references or pretrained "
-                             "models (the only way learned methods are run)")
+    # The benchmark job's parameters (core.jobs.specs.BenchmarkParams): names, defaults and checks as in the API.
+    add_model_options(parser, BenchmarkParams, exclude=FILLED,
+                      aliases={"methods": ("--method",), "oidn_timing": ("--no-oidn",)},
+                      overrides={"methods": {"metavar": "NAME[:PRESET]",
+                                             "help": "non-learned registry methods to run (repeatable; default: "
+                                                     "every non-learned method at its default preset, and the three "
+                                                     "presets of oidn and oidn-taa); see 'denoiser methods'"},
+                                 "include_learned": {"metavar": "CHECKPOINT",
+                                                     "help": "trained models to benchmark: checkpoint files, "
+                                                             "models:/ references or pretrained models (the only "
+                                                             "way learned methods are run)"},
+                                 "vdp": {"help": "compute FovVideoVDP JOD (on by default, as in benchmark jobs; "
+                                                 "slow on a CPU: --no-vdp skips it and the column is then '-')"}})
     parser.add_argument("--tracking-uri", default=None, metavar="URI",
                         help="MLflow store of the models:/ references; none given: the service's "
                              "(DENOISER_TRACKING_URI, else the SQLite store in DENOISER_DATA_DIR), where "
                              "'denoiser train' registers")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for the table and charts")
     add_run_options(parser)
-    parser.add_argument("--vdp", action="store_true",
-                        help="also compute FovVideoVDP JOD (slow on a CPU; off by default, the column is then '-')")
-    parser.add_argument("--no-oidn-timing", action="store_true",
-                        help="do not time OIDN-high as the speed reference (ratios are then null); OIDN presets "
-                             "in the method list still run")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.set_defaults(run=_run_benchmark)
 
@@ -91,36 +84,31 @@ class Entrant:
     skipped: dict[int, str] = field(default_factory=dict)  # scale -> why it is not run there
 
 
-def _scales(text: str) -> tuple[int, ...]:
-    return (1, 2) if text == "both" else (int(text),)
+def job_params(args) -> BenchmarkParams:
+    return params_from_args(BenchmarkParams, args)
 
 
 def baseline_texts(methods: list[str] | None, all_presets: bool) -> list[str]:
     """The non-learned ``NAME:PRESET`` texts to run; UsageError for a learned method, KeyError for unknown ones."""
-    from model.methods.registry import all_methods, method_spec, parse_method_name
+    from model.methods.registry import method_spec, parse_method_name
 
+    if methods is None:  # the benchmark jobs' defaults
+        return baseline_methods(None, all_presets)
     texts: list[str] = []
-    if methods is None:
-        for spec in all_methods():
-            if spec.learned:
-                continue
-            presets = spec.presets if all_presets or spec.name in ALWAYS_ALL_PRESETS else (spec.default_preset,)
-            texts += [f"{spec.name}:{preset}" for preset in presets]
-    else:
-        for text in methods:
-            if text.startswith(MODEL_REF_PREFIX) or Path(text).suffix in (".pt", ".pth", ".ckpt") or "/" in text:
-                raise UsageError(f"--method {text}: checkpoints and model references go to --include-learned")
-            name, preset = parse_method_name(text)
-            spec = method_spec(name)
-            if spec.learned:
-                raise UsageError(f"--method {text}: {name!r} is a learned method; its presets are untrained and "
-                                 f"would be benchmarked as if trained. Give trained weights with "
-                                 f"--include-learned CHECKPOINT or models:/NAME/VERSION")
-            preset = preset or spec.default_preset
-            if preset not in spec.presets:
-                raise KeyError(f"method {name!r} has no preset {preset!r}; presets: {', '.join(spec.presets)}")
-            presets = spec.presets if all_presets and ":" not in text else (preset,)
-            texts += [f"{name}:{p}" for p in presets]
+    for text in methods:
+        if text.startswith(MODEL_REF_PREFIX) or Path(text).suffix in (".pt", ".pth", ".ckpt") or "/" in text:
+            raise UsageError(f"--method {text}: checkpoints and model references go to --include-learned")
+        name, preset = parse_method_name(text)
+        spec = method_spec(name)
+        if spec.learned:
+            raise UsageError(f"--method {text}: {name!r} is a learned method; its presets are untrained and "
+                             f"would be benchmarked as if trained. Give trained weights with "
+                             f"--include-learned CHECKPOINT or models:/NAME/VERSION")
+        preset = preset or spec.default_preset
+        if preset not in spec.presets:
+            raise KeyError(f"method {name!r} has no preset {preset!r}; presets: {', '.join(spec.presets)}")
+        presets = spec.presets if all_presets and ":" not in text else (preset,)
+        texts += [f"{name}:{p}" for p in presets]
     return list(dict.fromkeys(texts))  # in order, once each
 
 
@@ -178,14 +166,16 @@ def _run_benchmark(args) -> int:
 
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder")
-    scales = _scales(args.scale)
+    params = job_params(args)
+    scales = benchmark_scales(params.scale)
     # Everything that can be wrong with the input is found before the first frame is run.
     for scale in scales:
-        load_split(args.data, args.split, scale)
-    entrants = baseline_entrants(baseline_texts(args.method, args.all_presets), scales)
-    entrants += [learned_entrant(text, scales, args.tracking_uri) for text in dict.fromkeys(args.include_learned)]
+        load_split(args.data, params.split, scale)
+    entrants = baseline_entrants(baseline_texts(params.methods, params.all_presets), scales)
+    entrants += [learned_entrant(text, scales, args.tracking_uri)
+                 for text in dict.fromkeys(params.include_learned or [])]
     if not any(e.scales for e in entrants):
-        raise UsageError(f"none of the methods runs at scale {args.scale}: "
+        raise UsageError(f"none of the methods runs at scale {params.scale}: "
                          + "; ".join(reason for e in entrants for reason in e.skipped.values()))
 
     reports = []
@@ -196,9 +186,9 @@ def _run_benchmark(args) -> int:
             continue
         progress = None if args.quiet else (
             lambda message, scale=scale: print(f"[x{scale}] {message}", file=sys.stderr, flush=True))
-        report = evaluate(args.data, [e.runnable for e in running], split=args.split, scale=scale,
-                          frame_limit=args.frames, threads=args.threads, vdp=args.vdp,
-                          timing_reference=None if args.no_oidn_timing else TIMING_REFERENCE,
+        report = evaluate(args.data, [e.runnable for e in running], split=params.split, scale=scale,
+                          frame_limit=params.frames, threads=params.threads, vdp=params.vdp,
+                          timing_reference=TIMING_REFERENCE if params.oidn_timing else None,
                           device=args.device, progress=progress,
                           inference_forms=get_settings().inference_forms)
         for entry, entrant in zip(report["methods"], running):

@@ -6,19 +6,26 @@ import json
 import sys
 from pathlib import Path
 
-from cli.main import UsageError, device_option, positive_int
+from cli.main import UsageError, device_option
 from cli.model_refs import name_sources, runnable_method
-from core.names import SPLITS
+from cli.options import add_model_options, params_from_args
+from core.jobs.specs import EvaluateParams
+
+# Fields of the evaluate job's parameters the command fills itself (the parity test lists them too): a local
+# run reads the dataset folder --data and writes files, it does not log to MLflow.
+FILLED = ("dataset", "track")
+METHODS_HELP = ("method from the registry (see 'denoiser methods'), a pretrained model, a models:/ reference or a "
+                "checkpoint file; repeat for several")
 
 
 def add_run_options(parser) -> None:
-    """The options of how methods are run, shared by evaluate and benchmark (the protocol is the same)."""
-    parser.add_argument("--frames", type=positive_int, default=None, metavar="N",
-                        help="only the first N frames of each sequence (default: all)")
-    parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
-                        help="torch thread count for the runs (default: torch's own); stated in the table")
+    """The local-only options of how methods are run, shared by evaluate, benchmark and stability."""
     parser.add_argument("--device", type=device_option, default="cpu",
                         help="torch device the methods run on: cpu (default), cuda, cuda:1")
+
+
+def job_params(args) -> EvaluateParams:
+    return params_from_args(EvaluateParams, args)
 
 
 def add_commands(commands) -> None:
@@ -38,17 +45,12 @@ def _add_evaluate(commands) -> None:
                     "sequence. Speed: median wall time of a step after 2 warm-up frames per sequence, with its "
                     "ratio to OIDN-high timed in the same run on the same frames. Prints a Markdown table.")
     parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset folder")
-    parser.add_argument("--method", "--model", action="append", required=True, metavar="METHOD",
-                        help="method from the registry (see 'denoiser methods'), a pretrained model, a models:/ "
-                             "reference or a checkpoint file; repeat for several")
-    parser.add_argument("--split", choices=SPLITS, default="test", help="split to evaluate on (default: test)")
-    parser.add_argument("--scale", type=int, choices=(1, 2), default=1,
-                        help="output / render resolution ratio; the data needs references at this scale (default: 1)")
+    # The evaluate job's parameters (core.jobs.specs.EvaluateParams): names, defaults and checks as in the API.
+    add_model_options(parser, EvaluateParams, exclude=FILLED,
+                      aliases={"methods": ("--method", "--model"), "oidn_timing": ("--no-oidn",)},
+                      overrides={"methods": {"metavar": "METHOD", "help": METHODS_HELP}})
     parser.add_argument("--out", type=Path, default=None, metavar="FILE.json", help="write the full report here")
     add_run_options(parser)
-    parser.add_argument("--no-vdp", action="store_true", help="skip FovVideoVDP (the slowest metric)")
-    parser.add_argument("--no-oidn", action="store_true",
-                        help="do not time OIDN-high as the speed reference (time ratios are then null)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.set_defaults(run=_run_evaluate)
 
@@ -59,11 +61,12 @@ def _run_evaluate(args) -> int:
 
     if args.out is not None and args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give a file name such as report.json")
+    params = job_params(args)
     progress = None if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
-    methods = [runnable_method(text, "--method") for text in args.method]
-    report = evaluate(args.data, [runnable for runnable, _ in methods], split=args.split, scale=args.scale,
-                      frame_limit=args.frames, threads=args.threads, vdp=not args.no_vdp,
-                      timing_reference=None if args.no_oidn else TIMING_REFERENCE,
+    methods = [runnable_method(text, "--method") for text in params.methods]
+    report = evaluate(args.data, [runnable for runnable, _ in methods], split=params.split, scale=params.scale,
+                      frame_limit=params.frames, threads=params.threads, vdp=params.vdp,
+                      timing_reference=TIMING_REFERENCE if params.oidn_timing else None,
                       device=args.device, progress=progress, inference_forms=get_settings().inference_forms)
     name_sources(report["methods"], methods)
     print(format_table(report))

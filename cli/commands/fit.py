@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
-from cli.main import HelpFormatter, EXIT_FAILURE, UsageError, positive_int, registered_name
-from cli.options import add_model_options, settings_from_args
+from cli.main import HelpFormatter, EXIT_FAILURE, UsageError, registered_name, size_list
+from cli.options import add_model_options, params_from_args
+from core.jobs.specs import FitParams
 from model.names import TRAIN_DEVICES
 from model.training.training_settings import FitTrainingSettings
 
@@ -28,64 +28,56 @@ def add_commands(commands) -> None:
                     "writes OUT/ladder.json and OUT/ladder.md; logs one MLflow run with the ladder.",
         formatter_class=HelpFormatter)
     parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="dataset folder")
-    parser.add_argument("--method", required=True, metavar="FAMILY",
-                        help="learned method family from the registry, without a preset (e.g. wskpn)")
-    parser.add_argument("--presets", type=_preset_list, default=None, metavar="P1,P2,...",
-                        help="presets on the ladder (default: the family's presets without a variant suffix)")
-    parser.add_argument("--target", required=True, metavar="psnr=DB|flip=E|ms=MS[@WxH]|within=DB",
-                        help="what the chosen preset must achieve")
-    # The training options of every preset: the fields of model.training.training_settings.FitTrainingSettings.
-    add_model_options(parser, FitTrainingSettings, exclusive=[("steps", "epochs")],
-                      aliases={"warmup_steps": ("--warmup",)},
-                      overrides={"register_as": {"type": registered_name, "metavar": "NAME",
+    # The fit job's parameters (core.jobs.specs.FitParams: the training options of every preset are the fields of
+    # model.training.training_settings.FitTrainingSettings), but the dataset id, which is --data here.
+    add_model_options(parser, FitParams, exclude=("dataset",), exclusive=[("steps", "epochs")],
+                      aliases={"warmup_steps": ("--warmup",), "track": ("--no-tracking",)},
+                      overrides={"method": {"metavar": "FAMILY"},
+                                 "presets": {"metavar": "P1,P2,..."},
+                                 "target": {"metavar": "psnr=DB|flip=E|ms=MS[@WxH]|within=DB"},
+                                 "time_at": {"type": size_list, "metavar": "WxH", "shown_default": "256x256",
+                                             "help": "render resolution the presets are timed at (WxH or N for "
+                                                     "NxN); an ms target's own @WxH takes precedence"},
+                                 "register_as": {"type": registered_name, "metavar": "NAME",
                                                  "help": "registered model of the ladder's versions (default: "
                                                          "FAMILY-fit-xSCALE)"},
                                  "validation_split": {"help": "split the presets are measured on (must not be "
-                                                              "empty; default: validation)"}})
-    parser.add_argument("--time-at", default="256x256", metavar="WxH",
-                        help="render resolution the presets are timed at (WxH or N for NxN); an ms target's own "
-                             "@WxH takes precedence")
-    parser.add_argument("--timing-frames", type=positive_int, default=10, metavar="N",
-                        help="frames timed per preset, after 3 warm-up frames")
+                                                              "empty)"},
+                                 "track": {"help": "log to MLflow, register versions and set the alias (no: "
+                                                   "nothing registered or aliased, no registry reuse; checkpoints "
+                                                   "under OUT are still reused)"}})
     parser.add_argument("--device", choices=TRAIN_DEVICES, default="auto",
                         help="where presets train, run and are timed")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="presets train into DIR/PRESET-KEY/ (default: runs/fit-FAMILY-xSCALE in the data "
                              "folder, DENOISER_DATA_DIR)")
-    parser.add_argument("--alias", default="fitted", help="alias pointed at the chosen version")
     parser.add_argument("--tracking-uri", default=None, metavar="URI",
                         help="MLflow tracking URI (default: the service's: DENOISER_TRACKING_URI, else the SQLite "
                              "store in DENOISER_DATA_DIR)")
-    parser.add_argument("--no-tracking", action="store_true",
-                        help="no MLflow: nothing registered or aliased, no registry reuse (checkpoints under OUT "
-                             "are still reused)")
     parser.add_argument("--json", type=Path, default=None, metavar="FILE", help="also write the ladder JSON here")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.set_defaults(run=_run_fit)
 
 
-def _preset_list(text: str) -> list[str]:
-    presets = [p.strip() for p in text.split(",") if p.strip()]
-    if not presets:
-        raise argparse.ArgumentTypeError(f"expected presets like xs,s,m,l; got {text!r}")
-    return presets
+def job_params(args) -> FitParams:
+    return params_from_args(FitParams, args)
 
 
 def _run_fit(args) -> int:
     from model.fit.plan import FitConfig, plan_fit
     from model.fit.report import format_ladder
     from model.fit.runner import fit
-    from model.fit.target import parse_resolution
     from core.storage import get_storage
 
-    family = args.method
-    training = settings_from_args(FitTrainingSettings, args)
+    params = job_params(args)
+    family = params.method
+    training = FitTrainingSettings(**params.model_dump(include=set(FitTrainingSettings.model_fields)))
     config = FitConfig(
-        **training.model_dump(), family=family, data=str(args.data), target=args.target,
-        presets=args.presets, time_at=parse_resolution(args.time_at), timing_frames=args.timing_frames,
+        **training.model_dump(), family=family, data=str(args.data), target=params.target,
+        presets=params.presets, time_at=tuple(params.time_at), timing_frames=params.timing_frames,
         # No --out: the data folder's runs/, not the current folder, so a rerun from anywhere reuses its presets.
         device=args.device, out=str(args.out or get_storage().runs / f"fit-{family}-x{training.scale}"),
-        alias=args.alias,
+        alias=params.alias,
         tracking_uri=args.tracking_uri)
     if args.json is not None and args.json.is_dir():
         raise UsageError(f"--json {args.json} is a folder; give a file name such as ladder.json")
@@ -94,7 +86,7 @@ def _run_fit(args) -> int:
     say = (lambda message: None) if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
     progress = None if args.quiet else _StepPrinter()
     recorder = None
-    if not args.no_tracking:
+    if params.track:
         from core.fit_tracking import start_fit_run
 
         recorder = start_fit_run(config, args.tracking_uri, f"fit {family} {plan.target}")

@@ -5,14 +5,19 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from cli.main import UsageError, device_option, positive_int, size_option
+from cli.commands.evaluate import FILLED, METHODS_HELP, add_run_options
+from cli.main import UsageError, positive_int, size_option
 from cli.model_refs import name_sources, runnable_method
+from cli.options import add_model_options, params_from_args
+from core.jobs.specs import StabilityParams
+from core.jobs.stability import scenario_names
+from model.names import STABILITY_SCENARIOS as SCENARIOS
 
-# As model.evaluation.stability.SCENARIOS; repeated so --help stays import-light (a test checks they agree).
-SCENARIOS = ("moving_object", "moving_light", "camera_cut", "fast_camera", "metals", "glass", "dark_fireflies",
-             "visible_emitter", "orbiting_light", "sliding_over_texture", "clean", "first_frames", "exposure_bright", "exposure_dark", "nan_inf_color", "nan_inf_guides",
-             "zero_motion", "garbage_motion", "missing_buffers")
 GENERATED_DATA = "data"  # folder inside --out that --generate renders into
+
+
+def job_params(args) -> StabilityParams:
+    return params_from_args(StabilityParams, args)
 
 
 def add_commands(commands) -> None:
@@ -35,28 +40,23 @@ def add_commands(commands) -> None:
     source.add_argument("--generate", action="store_true",
                         help=f"render the scenes with Mitsuba 3 into OUT/{GENERATED_DATA} first (reused when there)")
     parser.add_argument("--out", type=Path, required=True, metavar="REPORT_DIR", help="folder for the report")
-    parser.add_argument("--method", action="append", required=True, metavar="METHOD",
-                        help="method from the registry, a pretrained model, a models:/ reference or a checkpoint "
-                             "file; repeat for several")
-    parser.add_argument("--scenario", action="append", choices=SCENARIOS, default=None, metavar="NAME",
-                        help="run only these scenarios (repeatable; default: all). One of: " + ", ".join(SCENARIOS))
-    parser.add_argument("--scale", type=int, choices=(1, 2), default=1, help="output / render resolution ratio")
-    parser.add_argument("--vdp", action="store_true", help="also compute FovVideoVDP JOD (slow on a CPU)")
-    parser.add_argument("--base", default=None, metavar="SEQUENCE",
-                        help="clean sequence the derived scenarios are made from (default: a diffuse_room one)")
-    parser.add_argument("--frames", type=positive_int, default=None, metavar="N",
-                        help="with --data: use the first N frames of each sequence (default: all); "
-                             "with --generate: frames to render (default: 8)")
+    # The stability job's parameters (core.jobs.specs.StabilityParams): names, defaults and checks as in the API.
+    add_model_options(parser, StabilityParams, exclude=FILLED,
+                      aliases={"methods": ("--method",), "scenarios": ("--scenario",)},
+                      overrides={"methods": {"metavar": "METHOD", "help": METHODS_HELP},
+                                 "scenarios": {"metavar": "NAME", "help": "run only these scenarios (repeatable; "
+                                               "default: all). One of: " + ", ".join(SCENARIOS)},
+                                 "base": {"metavar": "SEQUENCE"},
+                                 "frames": {"help": "with --data: use the first N frames of each sequence (default: "
+                                                    "all); with --generate: frames to render (default: 8)"},
+                                 "seed": {"help": "seeds the corruptions; with --generate, also the scenes"}})
     parser.add_argument("--size", type=size_option, default=(64, 64), metavar="N|WxH",
                         help="--generate: render resolution (default: 64)")
     parser.add_argument("--ref-spp", type=positive_int, default=64, metavar="N",
                         help="--generate: samples per pixel of the references (default: 64)")
-    parser.add_argument("--seed", type=int, default=0, help="--generate: scene seed; also seeds the corruptions")
     parser.add_argument("--variant", choices=("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb"), default=None,
                         help="--generate: Mitsuba variant (default: the fastest available)")
-    parser.add_argument("--device", type=device_option, default="cpu",
-                        help="torch device the methods run on: cpu (default), cuda")
-    parser.add_argument("--threads", type=positive_int, default=None, metavar="N", help="torch thread count")
+    add_run_options(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.set_defaults(run=_run_stability)
 
@@ -72,25 +72,26 @@ def _run_stability(args) -> int:
                                        ("--variant", None, args.variant)):
             if value != default:
                 raise UsageError(f"{option} applies to --generate only")
-    names = tuple(dict.fromkeys(args.scenario)) if args.scenario else SCENARIOS
-    methods = [runnable_method(text, "--method") for text in args.method]
+    params = job_params(args)
+    names = scenario_names(params)
+    methods = [runnable_method(text, "--method") for text in params.methods]
     say = (lambda message: None) if args.quiet else (lambda message: print(message, file=sys.stderr, flush=True))
     data = args.data
-    frame_limit = args.frames
+    frame_limit = params.frames
     if args.generate:
-        data = generate_scenarios(args.out / GENERATED_DATA, size=args.size, frames=args.frames or 8,
-                                  ref_spp=args.ref_spp, scale=args.scale, seed=args.seed, names=names,
+        data = generate_scenarios(args.out / GENERATED_DATA, size=args.size, frames=params.frames or 8,
+                                  ref_spp=args.ref_spp, scale=params.scale, seed=params.seed, names=names,
                                   variant=args.variant, progress=say)
         frame_limit = None
-    scenarios, missing = build_scenarios(data, args.scale, names=names, base=args.base, frame_limit=frame_limit,
-                                         seed=args.seed)
+    scenarios, missing = build_scenarios(data, params.scale, names=names, base=params.base,
+                                         frame_limit=frame_limit, seed=params.seed)
     for entry in missing:
         say(f"skipping {entry['name']}: {entry['reason']}")
     if not scenarios:
         raise UsageError(f"none of the scenarios can be built from {data}: "
                          + "; ".join(f"{m['name']}: {m['reason']}" for m in missing))
-    report = run_suite(scenarios, [runnable for runnable, _ in methods], args.scale, vdp=args.vdp,
-                       device=args.device, threads=args.threads, progress=say, missing=missing, data=str(data))
+    report = run_suite(scenarios, [runnable for runnable, _ in methods], params.scale, vdp=params.vdp,
+                       device=args.device, threads=params.threads, progress=say, missing=missing, data=str(data))
     name_sources(report["methods"], methods)
     files = write_report(report, args.out)
     for entry in report["methods"]:

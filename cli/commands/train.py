@@ -8,8 +8,9 @@ from pathlib import Path
 
 from cli.main import EXIT_FAILURE, HelpFormatter, registered_name
 from cli.model_refs import model_checkpoint
-from cli.options import add_model_options, settings_from_args
-from model.training.training_settings import TrainConfig
+from cli.options import add_model_options, params_from_args, settings_from_args
+from core.jobs.specs import TrainParams
+from model.training.training_settings import TrainConfig, TrainingSettings
 
 
 def add_commands(commands) -> None:
@@ -31,9 +32,15 @@ def add_commands(commands) -> None:
                                  "register_as": {"type": registered_name, "metavar": "NAME"},
                                  "init_from": {"metavar": "CHECKPOINT|PRETRAINED|models:/REF"},
                                  "tracking_uri": {"metavar": "URI"}})
-    parser.add_argument("--no-tracking", action="store_true", help="do not log to MLflow")
+    # The train job's one field beyond the settings (its dataset is --data here).
+    add_model_options(parser, TrainParams, exclude=("dataset", *TrainingSettings.model_fields),
+                      aliases={"track": ("--no-tracking",)})
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(run=_run_train)
+
+
+def job_params(args) -> TrainParams:
+    return params_from_args(TrainParams, args)
 
 
 def _default_out(method: str) -> Path:
@@ -62,7 +69,7 @@ def _run_train(args) -> int:
 
     progress = _ProgressBar(disabled=args.quiet)
     try:
-        result = _train(config, track=not args.no_tracking, progress=progress)
+        result = _train(config, track=job_params(args).track, progress=progress)
     except RankError as error:
         progress.close()
         print(f"denoiser train: error: {error}", file=sys.stderr)

@@ -80,7 +80,7 @@ class TrainParams(TrainingSettings):
          "lr": 0.0001, "schedule": "constant", "warmup_steps": 0, "temporal_weight": 0.5,
          "register_as": "jnds-s-int8-rooms"}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN)
+    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
     track: bool = Field(True, description="log to MLflow and register the model")
     _register_as_not_auto = field_validator("register_as")(_registrable)
 
@@ -92,7 +92,7 @@ class EvaluateParams(BaseModel):
         "dataset": "rooms", "split": "test", "scale": 1,
         "methods": ["identity", "oidn:high", "models:/wskpn-s-rooms@champion"], "frames": 32}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN)
+    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
     split: JobSplit = Field("test", description="split to evaluate on")
     scale: Literal[1, 2] = Field(1, description="output / render resolution ratio; the data needs references at it")
     methods: list[str] = Field(min_length=1, max_length=64, description="registry NAME[:PRESET], model refs "
@@ -130,7 +130,7 @@ class InferParams(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "model": "models:/wskpn-s-rooms@champion", "split": "test"}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN)
+    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
     model: str = Field(min_length=1, max_length=500, description="model ref, registry NAME[:PRESET] or checkpoint")
     split: JobSplit | None = Field(None, description="every sequence of this split")
     sequences: list[str] | None = Field(None, min_length=1, max_length=10_000, description="these sequences")
@@ -157,7 +157,7 @@ class FitParams(FitTrainingSettings):
          "steps": 2000, "register_as": "wskpn-rooms-fit", "alias": "fitted"},
         {"dataset": "rooms", "method": "wskpn", "target": "ms=20@128x128", "steps": 2000, "threads": 2}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN)
+    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
     method: str = Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_]+$",
                         description="learned registry method family (no preset), e.g. wskpn")
     presets: list[str] | None = Field(None, min_length=1, max_length=32,
@@ -194,7 +194,7 @@ class StabilityParams(BaseModel):
         "dataset": "rooms", "methods": ["svgf", "oidn-taa:high", "models:/wskpn-s-rooms@champion"],
         "scenarios": ["moving_light", "clean", "nan_inf_color"], "frames": 8}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN)
+    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
     methods: list[str] = Field(min_length=1, max_length=64, description="as for evaluate: registry NAME[:PRESET], "
                                "model references, pretrained model names or checkpoints")
     scenarios: list[Literal[STABILITY_SCENARIOS]] | None = Field(None, min_length=1, description="scenarios to "

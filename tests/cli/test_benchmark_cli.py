@@ -13,7 +13,7 @@ from cli.main import main
 from tests.builders import write_gradient_dataset
 from tests.model.training_fixtures import TINY_METHOD
 
-FAST = ["--frames", "3", "--threads", "1", "--quiet"]
+FAST = ["--frames", "3", "--threads", "1", "--quiet", "--no-vdp"]
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def checkpoint(tmp_path_factory) -> Path:
 def test_benchmark_at_both_scales_writes_tables_and_charts(dataset_dir, checkpoint, tmp_path, capsys):
     out = tmp_path / "bench"
     argv = ["benchmark", "--data", str(dataset_dir), "--method", "identity", "--method", "accumulation",
-            "--include-learned", str(checkpoint), "--out", str(out), "--no-oidn-timing"] + FAST
+            "--include-learned", str(checkpoint), "--out", str(out), "--scale", "both", "--no-oidn-timing"] + FAST
     assert main(argv) == 0
     printed = capsys.readouterr().out
     for name in ("benchmark.json", "benchmark.md", "quality_speed.png", "quality_cost.png"):
@@ -71,7 +71,8 @@ def test_bad_input_exits_2_with_a_message(dataset_dir, tmp_path, argv, message, 
 def test_missing_scale_and_wrong_scale_checkpoint_exit_2(dataset_dir, tmp_path, checkpoint, capsys):
     only_scale_one = write_gradient_dataset(tmp_path / "scale1", scales=(1,))
     base = ["benchmark", "--out", str(tmp_path / "out"), "--no-oidn-timing"] + FAST
-    assert main(base + ["--data", str(only_scale_one), "--method", "identity"]) == 2  # 'both' needs 2x references
+    argv = ["--data", str(only_scale_one), "--method", "identity", "--scale", "both"]
+    assert main(base + argv) == 2  # 'both' needs 2x references
     assert "has no references at scale 2" in capsys.readouterr().err
     argv = ["--data", str(dataset_dir), "--scale", "2", "--method", "identity", "--include-learned", str(checkpoint)]
     assert main(base + argv) == 2
@@ -83,7 +84,7 @@ def test_missing_scale_and_wrong_scale_checkpoint_exit_2(dataset_dir, tmp_path, 
 
 
 def test_invalid_option_values_and_help(dataset_dir, capsys):
-    for extra in (["--scale", "3"], ["--threads", "0"], ["--split", "holdout"], []):
+    for extra in (["--scale", "3"], ["--threads", "0"], ["--split", "holdout"], ["--methods"], []):
         argv = ["benchmark", "--data", str(dataset_dir)] + extra  # [] lacks the required --out
         with pytest.raises(SystemExit) as exit_info:
             main(argv)

@@ -21,7 +21,7 @@ from model.training.training_settings import (
 )
 
 # Fields only the REST parameters have: the stored dataset (the CLI takes a folder, --data) and whether to track
-# (the CLI's --no-tracking).
+# (the CLI's --track / --no-track, from the job parameters).
 REST_ONLY = {"dataset", "track"}
 
 
@@ -66,7 +66,7 @@ def test_train_options_are_the_config_fields_with_the_same_names_and_defaults():
         assert option_name(name) in options[name].option_strings, name
         assert options[name].required == field.is_required(), name
     # Options not given take the model's defaults: what the CLI trains with is TrainConfig's default.
-    assert set(options) - set(TrainConfig.model_fields) == {"help", "no_tracking", "quiet"}
+    assert set(options) - set(TrainConfig.model_fields) == {"help", "track", "quiet"}
 
 
 def test_fit_options_include_every_fit_training_setting():
@@ -79,6 +79,18 @@ def test_fit_options_include_every_fit_training_setting():
 def test_the_old_warmup_spelling_still_works():
     assert "--warmup" in command_options("train")["warmup_steps"].option_strings
     assert "--warmup" in command_options("fit")["warmup_steps"].option_strings
+
+
+@pytest.mark.parametrize("command", ["train", "fit"])
+def test_no_tracking_is_still_the_negative_of_track(tmp_path, command):
+    from cli.main import build_parser
+    from cli.options import params_from_args
+
+    required = ["--method", "wskpn"] + (["--target", "psnr=30"] if command == "fit" else [])
+    model = TrainParams if command == "train" else FitParams
+    for flag, expected in ((["--no-tracking"], False), (["--no-track"], False), ([], True), (["--track"], True)):
+        args = build_parser().parse_args([command, "--data", str(tmp_path), *required, *flag])
+        assert params_from_args(model, args).track is expected, flag
 
 
 @pytest.mark.parametrize("command, argv, words", [
