@@ -707,9 +707,8 @@ def _write_atomically(path: Path, data: bytes) -> Path:
 
 
 # Lossless OpenEXR compressions a frame can be sent with (the server reads any of them). Uncompressed by default:
-# a 128x128 frame bundle of noisy float32 buffers takes ~1 to 2 ms to write and ~1 ms for the server to read that
-# way, ~7 to 10 ms and ~3 ms with ZIP, which saves a third to two thirds of the bytes (more on smooth buffers):
-# worth it only on a link slower than about 1 Gbit/s.
+# ZIP saves a third to two thirds of a noisy frame's bytes (more on smooth buffers) but makes writing and reading a
+# frame several times slower, which pays only on a link slower than about 1 Gbit/s.
 FRAME_COMPRESSIONS = ("none", "rle", "zips", "zip", "piz")
 FRAME_COMPRESSION = "none"
 

@@ -393,7 +393,7 @@ def model_checkpoint(text: str, registry: Registry | None = None) -> Path | None
 
 
 # =========================================================================================================
-# Automatic choice: sessions created with {"model": "auto", ...} (README, "Right-sizing")
+# Automatic choice: sessions created with {"model": "auto", ...} (docs/service.md, "Choosing the model: auto")
 # =========================================================================================================
 
 _FAMILY = re.compile(r"^[A-Za-z0-9_]+$")

@@ -147,7 +147,7 @@ class InferParams(BaseModel):
 
 class FitParams(FitTrainingSettings):
     """Train (or reuse) a ladder of a learned family's presets, measure each on the validation split and in ms per
-    frame, and register the smallest that meets the target with an alias (see README, Right-sizing).
+    frame, and register the smallest that meets the target with an alias (docs/fit.md).
 
     The training options are ``model.training.training_settings.FitTrainingSettings``' (those of a train job but the
     method, world_size, validate_every and init_from), as the CLI's ``denoiser fit``."""

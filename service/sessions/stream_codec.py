@@ -1,10 +1,7 @@
 """The session stream's binary messages (GET /sessions/{id}/stream, a WebSocket): pack and unpack, NumPy only.
 
 Shared by the server (service.http.routes.session_stream) and the client (client.stream), so it imports neither torch
-nor anything of the server: a client that only streams frames needs NumPy. The README ("Streaming a session over a
-WebSocket") documents the same layout for clients in other languages.
-
-Every binary message, either way, is
+nor anything of the server: a client that only streams frames needs NumPy. Every binary message, either way, is
 
     offset 0   4 bytes  magic b"DNST"
     offset 4   uint8    protocol version, 1
@@ -12,20 +9,11 @@ Every binary message, either way, is
     offset 6   uint16   0 (reserved)
     offset 8   uint32   N: length of the JSON header in bytes (little-endian, as every number here)
     offset 12  N bytes  the JSON header, UTF-8 (padded with spaces so the arrays start at a multiple of 16)
-    offset 12 + N       the arrays: raw little-endian float16 or float32, planar (all of a buffer's first
-                        component, row by row from the top, then its second component, ...), buffer after buffer
-                        in the header's order; nothing after them
+    offset 12 + N       the arrays: raw little-endian float16 or float32, planar, buffer after buffer in the
+                        header's order; nothing after them
 
-A frame's header: ``frame_index`` (int >= 0, or null: the session's next frame), ``width`` and ``height`` (render
-resolution), ``dtype`` ("float16" or "float32", of every array), ``buffers`` (names from STREAM_BUFFERS, each at
-most once, the required ones always), ``jitter`` ([x, y]), ``camera_cut`` (bool, default false) and
-``output_dtype`` (the dtype of the answer, default float32). Buffers are in the frame bundle's conventions
-(model.io.frames): color R G B, normal X Y Z, depth Z, motion X Y, ...
-
-An output's header: ``frame_index``, ``width`` and ``height`` (the output resolution: render x scale),
-``dtype``, ``server_ms`` (the message in the server, from its arrival to the answer's bytes), ``inference_ms``
-(method.step), ``history`` (as X-History), ``sanitized_pixels`` (as X-Sanitized-Pixels) and, only when there is
-something to say, ``sanitized`` (as X-Sanitized) and ``repairs`` (as X-Repairs). Its arrays: R, G, B planes.
+The fields of a frame's and of an output's header, for clients in other languages: docs/service.md, "Streaming
+over a WebSocket".
 """
 
 from __future__ import annotations

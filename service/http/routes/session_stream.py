@@ -4,7 +4,7 @@ The same session, frame rules and model step as POST /sessions/{id}/frames (serv
 process_frame, the frame read as the ``denoiser`` layout reads it in live mode: service.sessions.stream_batch, which gives
 what model.layouts.read_bundle_buffers does, from the message's planes, as torch tensors), without the per-frame
 HTTP request and the EXR encode and decode on either side. Messages are packed by
-service.sessions.stream_codec (the protocol is described there and in the README, "Streaming a session over a WebSocket").
+service.sessions.stream_codec (the protocol: docs/service.md, "Streaming over a WebSocket").
 
 One connection drives one session; its binary messages are frames, answered in order, one output message each. A
 frame the session refuses (bad input, frame order, a busy server) is answered with a JSON text message in the API's

@@ -128,7 +128,7 @@ def create_session(body: SessionIn, response: Response, store: StoreDep, setting
     sessions of the same model) before the session is answered. An unknown name is 404 listing what exists; a
     malformed one 422 `invalid_model_name`; a learned method by name 422 `untrained_method`.
 
-    `"model": "auto"` chooses among registered versions by their tags (README, "Right-sizing"): with `min_psnr`
+    `"model": "auto"` chooses among registered versions by their tags (docs/service.md): with `min_psnr`
     the smallest (FLOPs per pixel) whose validation PSNR is at least that, with `max_ms_per_frame` alone the best
     validation PSNR among those whose recorded ms per frame is within it, with both the smallest that meets both;
     `family` and `scale` narrow the candidates. The response's `choice` names the version and why. 404
