@@ -2,9 +2,10 @@
 
 - ``denoiser``: the frame bundle itself (``model.io.frames``): channels ``<buffer>.<component>``, reference parts
   ``reference_x{s}``, the 'jitter' attribute.
-- ``blender-cycles``: a multilayer EXR as Blender 5 writes it from Cycles (one part per pass, channels
-  ``ViewLayer.<Pass>.<component>``). Conventions measured on Cycles output (tests/model/layouts/
-  test_blender_cycles.py proves each on the committed fixture): ``Vector.X/Y`` is the offset to the previous
+- ``blender-cycles``: a multilayer EXR as Blender writes it from Cycles, channels ``ViewLayer.<Pass>.<component>``:
+  Blender 5 (one part per pass; ``Diffuse Color``, ``Glossy Color``) and Blender 4.x (one part; the same passes
+  named ``DiffCol``, ``GlossCol``). Conventions measured on Cycles output (tests/model/layouts/
+  test_blender_cycles.py proves each on the committed fixtures of both): ``Vector.X/Y`` is the offset to the previous
   frame's position in pixels with y up (``Vector.Z/W`` looks at the next frame: unused); ``Depth.Z`` is planar
   (along the view axis), 1e10 where nothing is hit; ``Normal`` is world space; with a 0.01 px pixel filter the
   one sample sits at the pixel centre, unless the note carries ``jitter=X,Y`` (``scripts/render_blender.py
@@ -28,6 +29,10 @@ def _own_names(buffer: str) -> list[str]:
     return list(BUFFERS[buffer].channels)
 
 
+def _blender_pass(name: str) -> list[str]:
+    return [f"ViewLayer.{name}.{component}" for component in "RGB"]
+
+
 DENOISER = {
     "name": "denoiser",
     "description": "the frame bundle: <buffer>.<component> channels, reference_x<s> parts, 'jitter' attribute",
@@ -37,13 +42,16 @@ DENOISER = {
 
 BLENDER_CYCLES = {
     "name": "blender-cycles",
-    "description": "Blender 5 multilayer EXR from Cycles (view layer 'ViewLayer'), default pass names",
+    "description": "Blender 5 or 4.x multilayer EXR from Cycles (view layer 'ViewLayer'), default pass names",
     "hint": "in Blender, enable the passes Combined, Z, Normal, Vector and Diffuse Color (View Layer Properties > "
-            "Passes; Vector needs motion blur off) and save as OpenEXR MultiLayer, as scripts/render_blender.py does",
+            "Passes; Vector needs motion blur off) and save as OpenEXR MultiLayer, as scripts/render_blender.py does; "
+            "Blender 5 names them Combined, Depth, Normal, Vector, Diffuse Color and Glossy Color, Blender 4.x "
+            "Combined, Depth, Normal, Vector, DiffCol and GlossCol (either is read)",
     "channels": {
         "color": ["ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B"],
-        "albedo": ["ViewLayer.Diffuse Color.R", "ViewLayer.Diffuse Color.G", "ViewLayer.Diffuse Color.B"],
-        "specular_albedo": ["ViewLayer.Glossy Color.R", "ViewLayer.Glossy Color.G", "ViewLayer.Glossy Color.B"],
+        # Blender 5's pass names first, then Blender 4.x's (DNA_scene_enums.h before 5.0: DiffCol, GlossCol).
+        "albedo": [_blender_pass("Diffuse Color"), _blender_pass("DiffCol")],
+        "specular_albedo": [_blender_pass("Glossy Color"), _blender_pass("GlossCol")],
         "normal": ["ViewLayer.Normal.X", "ViewLayer.Normal.Y", "ViewLayer.Normal.Z"],
         "depth": ["ViewLayer.Depth.Z"],
         "motion": ["ViewLayer.Vector.X", "ViewLayer.Vector.Y"],

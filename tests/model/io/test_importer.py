@@ -8,6 +8,7 @@ import json
 import shutil
 
 import numpy as np
+import OpenEXR
 import pytest
 
 from model.io.dataset import Dataset, DatasetError
@@ -17,7 +18,7 @@ from model.layouts import BUILTIN_LAYOUTS, read_layout_frame
 from model.layouts.builtin import BLENDER_CYCLES
 from cli.main import main
 from tests.builders import synthetic_frame
-from tests.model.layouts.exr_builders import BLENDER_ORBIT, bundle_channels, write_channels
+from tests.model.layouts.exr_builders import BLENDER_ORBIT, BLENDER_ORBIT_4_5, bundle_channels, write_channels
 
 CYCLES, GENERIC = BUILTIN_LAYOUTS["blender-cycles"], BUILTIN_LAYOUTS["generic"]
 
@@ -37,6 +38,35 @@ def test_a_blender_cycles_folder_imports_as_a_dataset_sequence(tmp_path):
     manifest = json.loads((tmp_path / "data" / "orbit" / "manifest.json").read_text())
     assert manifest["metadata"]["layout"] == "blender-cycles"
     assert manifest["metadata"]["references"].endswith("references")
+
+
+def test_blender_4_5_frames_import_with_no_extra_flags_as_an_independent_conversion_reads_them(tmp_path, capsys):
+    """Blender 4.x names the albedo passes DiffCol and GlossCol (5.x: Diffuse Color, Glossy Color) and writes one
+    part: the built-in layout reads them as they are. Motion and depth are checked against a conversion written here
+    from the raw passes and the recorded cameras: Vector.X/Y with y flipped, and the planar Depth.Z scaled to the
+    length of each pixel-centre ray (from the cameras' horizontal and vertical fields of view)."""
+    out = tmp_path / "data"
+    assert main(["import", "--layout", "blender-cycles", str(BLENDER_ORBIT_4_5), "--out", str(out), "--name",
+                 "o45"]) == 0
+    printed = capsys.readouterr()
+    assert "imported 3 frames" in printed.out and "warning" not in printed.err
+    cameras = json.loads((BLENDER_ORBIT_4_5 / "cameras.json").read_text())
+    for index, frame in enumerate(Dataset(out).sequence("o45")):
+        raw = {name: channel.pixels.astype(np.float64) for part in
+               OpenEXR.File(str(BLENDER_ORBIT_4_5 / f"frame_{index:04d}.exr"), separate_channels=True).parts
+               for name, channel in part.channels.items()}
+        np.testing.assert_array_equal(frame.motion, np.stack([raw["ViewLayer.Vector.X"], -raw["ViewLayer.Vector.Y"]],
+                                                             axis=-1).astype(np.float32))
+        camera = cameras[index]
+        ys, xs = np.mgrid[0:32, 0:32] + 0.5
+        ray = np.stack([(xs / 16 - 1) * np.tan(camera["fov_x"] / 2), (1 - ys / 16) * np.tan(camera["fov_y"] / 2),
+                        -np.ones_like(xs)], axis=-1)  # per unit of distance along the view axis
+        planar = raw["ViewLayer.Depth.Z"]
+        assert planar.max() < 100  # the floor and the wall fill the view: every ray hits
+        np.testing.assert_allclose(frame.depth, planar * np.linalg.norm(ray, axis=-1), rtol=1e-5)
+        assert np.abs(frame.depth - planar).max() > 0.5  # the rays off the view axis are longer
+        np.testing.assert_array_equal(frame.albedo[..., 0], raw["ViewLayer.DiffCol.R"].astype(np.float32))
+        np.testing.assert_array_equal(frame.specular_albedo[..., 2], raw["ViewLayer.GlossCol.B"].astype(np.float32))
 
 
 def _generic_folder(folder, count: int, reference_scale: int | None, extra_channel: bool = False):

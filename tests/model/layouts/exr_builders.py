@@ -14,6 +14,7 @@ from model.io.frames import BUFFERS, FrameBundle
 FIXTURES = Path(__file__).parent / "data"
 BLENDER_ORBIT = FIXTURES / "blender_orbit"  # 4 frames, 32x32, rendered by scripts/render_blender.py --seed 0
 BLENDER_ORBIT_JITTERED = FIXTURES / "blender_orbit_jittered"  # the same, --jitter halton
+BLENDER_ORBIT_4_5 = FIXTURES / "blender_orbit_4_5"  # 3 frames of the same clip by Blender 4.5 LTS (DiffCol, ...)
 
 
 def bundle_channels(frame: FrameBundle, rename: dict[str, str] | None = None) -> dict[str, np.ndarray]:

@@ -68,17 +68,22 @@ def test_arnold_style_rgba_n_z_reads_with_the_generic_layout(tmp_path, frame):
         read_layout_frame(tmp_path / "f.exr", DENOISER)
 
 
-def test_a_blender_render_without_a_needed_pass_says_which_to_enable(tmp_path):
-    from tests.model.layouts.exr_builders import BLENDER_ORBIT
+@pytest.mark.parametrize("fixture, albedo_pass", [("blender_orbit", "ViewLayer.Diffuse Color"),
+                                                  ("blender_orbit_4_5", "ViewLayer.DiffCol")], ids=["5.0", "4.5"])
+def test_a_blender_render_without_a_needed_pass_says_which_to_enable(tmp_path, fixture, albedo_pass):
+    from tests.model.layouts.exr_builders import FIXTURES
 
     channels = {}
-    for part in OpenEXR.File(str(BLENDER_ORBIT / "frame_0001.exr"), separate_channels=True).parts:
+    for part in OpenEXR.File(str(FIXTURES / fixture / "frame_0001.exr"), separate_channels=True).parts:
         channels.update({name: channel.pixels for name, channel in part.channels.items()
-                         if not name.startswith("ViewLayer.Diffuse Color")})
+                         if not name.startswith(albedo_pass)})
     path = write_channels(tmp_path / "f.exr", channels, {"Note": "fov_y_degrees=40"})
+    # Both generations' names for the pass: what was looked for and what to enable.
     with pytest.raises(FrameFormatError, match=r"buffer 'albedo': required buffer is missing: layout 'blender-cycles' "
-                                               r"reads it from ViewLayer.Diffuse Color.R.*enable the passes Combined, "
-                                               r"Z, Normal, Vector and Diffuse Color"):
+                                               r"reads it from ViewLayer.Diffuse Color.R, ViewLayer.Diffuse Color.G, "
+                                               r"ViewLayer.Diffuse Color.B \| ViewLayer.DiffCol.R, .*enable the passes "
+                                               r"Combined, Z, Normal, Vector and Diffuse Color.*Blender 5 names them "
+                                               r".*Diffuse Color.*Blender 4.x .*DiffCol"):
         read_layout_frame(path, BUILTIN_LAYOUTS["blender-cycles"])
 
 
