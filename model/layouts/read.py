@@ -231,7 +231,25 @@ def _fov_y(headers: list[dict], layout: Layout, override: float | None, source: 
         f"layout '{layout.name}' stores planar depth, which needs the vertical field of view to become the distance "
         f"along each ray, and {where or 'the file '}gives none; give it (denoiser import --fov-y DEGREES, or "
         f"depth.fov_y_degrees in a layout file)"
-        + (" or stamp the note 'fov_y_degrees=...' into the render's metadata" if attribute == "Note" else ""))
+        + (" or stamp the note 'fov_y_degrees=...' into the render's metadata (Blender: Output Properties > "
+           "Metadata > Note)" if attribute == "Note" else "") + _fov_from_lens(headers))
+
+
+def _fov_from_lens(headers: list[dict]) -> str:
+    """For an error without a field of view: what Blender's 'Lens' stamp (focal length in mm, when enabled) gives
+    with its default 36 mm sensor fitted to the wider side. Only a suggestion: the header holds no sensor size."""
+    lens, window = _attribute(headers, "Lens"), _attribute(headers, "dataWindow")
+    try:
+        focal = float(str(lens).removesuffix("mm").strip())
+        width, height = (int(high - low + 1) for low, high in zip(*window))
+    except (TypeError, ValueError):
+        return ""
+    if not (focal > 0 and width > 0 and height > 0):
+        return ""
+    half_wide = 18.0 / focal  # tan of half the field of view across the wider side
+    fov_y = 2 * math.degrees(math.atan(half_wide * min(1.0, height / width)))
+    return (f"; the header's Lens is {focal:g} mm: with Blender's default 36 mm sensor (Sensor Fit Auto) that is "
+            f"--fov-y {fov_y:.4f} for this {width}x{height} image, if the camera's sensor is the default")
 
 
 def _is_number(text: str) -> bool:

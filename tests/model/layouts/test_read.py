@@ -87,6 +87,32 @@ def test_a_blender_render_without_a_needed_pass_says_which_to_enable(tmp_path, f
         read_layout_frame(path, BUILTIN_LAYOUTS["blender-cycles"])
 
 
+def test_a_blender_render_without_a_field_of_view_says_how_to_give_one_and_what_its_lens_stamp_gives(tmp_path):
+    """A frame saved from Blender itself, not by scripts/render_blender.py: no note, and (with Output Properties >
+    Metadata > Lens on) the focal length as Blender 4.5 writes it, "30.00". The fixture's camera: 30 mm, default
+    36 mm sensor, 32x32."""
+    import json
+
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT_4_5
+
+    layout = BUILTIN_LAYOUTS["blender-cycles"]
+    fixture = BLENDER_ORBIT_4_5 / "frame_0001.exr"
+    channels = {name: channel.pixels for part in OpenEXR.File(str(fixture), separate_channels=True).parts
+                for name, channel in part.channels.items()}
+    fov_y = np.degrees(json.loads((BLENDER_ORBIT_4_5 / "cameras.json").read_text())[1]["fov_y"])
+    bare = write_channels(tmp_path / "bare.exr", channels, {"Frame": "2"})
+    with pytest.raises(FrameFormatError, match=r"needs the vertical field of view.*--fov-y DEGREES.*Output Properties "
+                                               r"> Metadata > Note\)$"):
+        read_layout_frame(bare, layout)
+    lens = write_channels(tmp_path / "lens.exr", channels, {"Frame": "2", "Lens": "30.00"})
+    with pytest.raises(FrameFormatError, match=rf"the header's Lens is 30 mm: .* that is --fov-y {fov_y:.4f} for "
+                                               rf"this 32x32 image"):
+        read_layout_frame(lens, layout)
+    # Given that way, the depth is what the stamped note gives.
+    np.testing.assert_allclose(read_layout_frame(lens, layout, fov_y_degrees=round(fov_y, 4)).frame.depth,
+                               read_layout_frame(fixture, layout).frame.depth, rtol=1e-5)
+
+
 def test_missing_jitter_is_zero_in_a_session_and_a_clear_error_for_stored_data(tmp_path, frame):
     path = write_channels(tmp_path / "f.exr", bundle_channels(frame), {"frame_index": 1})
     live = read_layout_frame(path, DENOISER, mode="live")
