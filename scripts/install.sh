@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Installs everything the project needs into .venv (idempotent: a second run with an unchanged
 # pyproject.toml only checks). System packages: libLLVM-19 for Mitsuba's vectorized CPU backend.
-# Usage: scripts/install.sh [--blender]
+# Usage: scripts/install.sh [--blender] [--browser]
 #   --blender  also Blender as a Python module (the 'blender' extra of pyproject.toml, for scripts/render_blender.py),
 #              installed without its dependencies: bpy's metadata pins numpy<2, and the project's numpy 2 renders fine.
+#   --browser  also Chromium (Debian package chromium), for the test that renders /docs and /redoc headless.
 # PIP (default: .venv/bin/python -m pip) is the pip the Blender step asks and installs with.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -11,11 +12,13 @@ cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
 LLVM19=/usr/lib/x86_64-linux-gnu/libLLVM-19.so
 blender=0
+browser=0
 for arg in "$@"; do
   case "$arg" in
     --blender) blender=1 ;;
-    -h|--help) sed -n '2,7p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
-    *) echo "[install] unknown option '$arg' (options: --blender)" >&2; exit 2 ;;
+    --browser) browser=1 ;;
+    -h|--help) sed -n '2,8p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) echo "[install] unknown option '$arg' (options: --blender, --browser)" >&2; exit 2 ;;
   esac
 done
 
@@ -62,5 +65,18 @@ print(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependenci
   $pip install -q --no-deps "$requirement"
 }
 
+install_browser() {
+  if command -v chromium >/dev/null 2>&1; then
+    echo "[install] chromium is installed"
+    return
+  fi
+  echo "[install] installing Debian package chromium (the headless browser test of /docs and /redoc)"
+  if ! { as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }; then
+    echo "[install] could not install chromium (needs root or sudo, and Debian's package lists)" >&2
+    return 1
+  fi
+}
+
 install_project
 if [ "$blender" = 1 ]; then install_blender; fi
+if [ "$browser" = 1 ]; then install_browser; fi

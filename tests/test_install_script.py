@@ -78,3 +78,22 @@ def test_without_the_option_blender_is_left_alone(tmp_path):
     result, calls = run_with_pip(tmp_path, None)
     assert result.returncode == 0, result.stderr
     assert calls == []
+
+
+def test_the_browser_option_is_listed_among_the_options(tmp_path):
+    result, _ = run_with_pip(tmp_path, None, "--browsr")
+    assert result.returncode == 2 and "--browser" in result.stderr
+
+
+@needs_the_project
+def test_a_chromium_already_on_the_path_is_only_checked(tmp_path):
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    for name in ("chromium", "apt-get"):  # apt-get must not run: it would record a call
+        (stubs / name).write_text(f'#!/usr/bin/env bash\necho "{name} $*" >> {tmp_path / "apt"}\n')
+        (stubs / name).chmod(0o755)
+    result = subprocess.run(["bash", str(SCRIPT), "--browser"], capture_output=True, text=True,
+                            env={**os.environ, "PATH": f"{stubs}:{os.environ['PATH']}"})
+    assert result.returncode == 0, result.stderr
+    assert "chromium is installed" in result.stdout
+    assert not (tmp_path / "apt").exists()

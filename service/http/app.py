@@ -10,6 +10,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI
 
+from service.http.api_docs import install_api_docs
 from service.http.auth import UNAUTHORIZED_RESPONSE, require_api_key
 from service.http.errors import install_error_handlers
 from service.http.request_limits import BodyReadTimeout
@@ -51,8 +52,11 @@ async def _lifespan(app: FastAPI):
 
 
 def create_app() -> FastAPI:
-    app = FastAPI(title="denoiser-service", version=API_VERSION, description=DESCRIPTION, lifespan=_lifespan)
+    # FastAPI's own /docs and /redoc load their scripts from a CDN; install_api_docs serves them from the app.
+    app = FastAPI(title="denoiser-service", version=API_VERSION, description=DESCRIPTION, lifespan=_lifespan,
+                  docs_url=None, redoc_url=None)
     install_error_handlers(app)
+    install_api_docs(app)
     app.add_middleware(BodyReadTimeout, timeout_seconds=get_settings().body_read_timeout_seconds)
     app.include_router(health.router)
     protected = [Depends(require_api_key)]
