@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Installs everything the project needs into .venv (idempotent: a second run with an unchanged
 # pyproject.toml only checks). System packages: libLLVM-19 for Mitsuba's vectorized CPU backend.
-# Usage: scripts/install.sh [--blender] [--browser]
+# Usage: scripts/install.sh [--blender[=4.5]] [--browser]
 #   --blender  also Blender as a Python module (the 'blender' extra of pyproject.toml, for scripts/render_blender.py),
 #              installed without its dependencies: bpy's metadata pins numpy<2, and the project's numpy 2 renders fine.
+#   --blender=4.5  Blender 4.5 LTS instead (the 'blender-4-5' extra), the same way; --blender=5 is --blender.
 #   --browser  also Chromium (Debian package chromium), for the test that renders /docs and /redoc headless.
 # PIP (default: .venv/bin/python -m pip) is the pip the Blender step asks and installs with.
 set -euo pipefail
@@ -11,13 +12,16 @@ cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
 LLVM19=/usr/lib/x86_64-linux-gnu/libLLVM-19.so
-blender=0
+blender=""  # the extra of pyproject.toml to install bpy from
 browser=0
 for arg in "$@"; do
   case "$arg" in
-    --blender) blender=1 ;;
+    --blender|--blender=5) blender=blender ;;
+    --blender=4.5) blender=blender-4-5 ;;
+    --blender=*) echo "[install] unknown Blender version '${arg#--blender=}' (--blender: 5.0, --blender=4.5: 4.5 LTS)" >&2
+                 exit 2 ;;
     --browser) browser=1 ;;
-    -h|--help) sed -n '2,8p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h|--help) sed -n '2,9p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "[install] unknown option '$arg' (options: --blender, --browser)" >&2; exit 2 ;;
   esac
 done
@@ -49,10 +53,10 @@ install_project() {
 }
 
 install_blender() {
-  # The one pin is the extra's in pyproject.toml.
+  # The one pin is the extra's in pyproject.toml ($1: blender or blender-4-5).
   local requirement version pip shown
-  requirement=$(.venv/bin/python -c 'import tomllib
-print(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["blender"][0])')
+  requirement=$(.venv/bin/python -c 'import sys, tomllib
+print(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"][sys.argv[1]][0])' "$1")
   version=${requirement#*==}
   pip=${PIP:-.venv/bin/python -m pip}
   # pip's answer is read whole first: grep -q stops reading at its match, and pipefail would count pip's SIGPIPE
@@ -78,5 +82,5 @@ install_browser() {
 }
 
 install_project
-if [ "$blender" = 1 ]; then install_blender; fi
+if [ -n "$blender" ]; then install_blender "$blender"; fi
 if [ "$browser" = 1 ]; then install_browser; fi

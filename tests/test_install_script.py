@@ -14,9 +14,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "install.sh"
 
 
-def blender_requirement() -> str:
+def blender_requirement(extra: str = "blender") -> str:
     with open(ROOT / "pyproject.toml", "rb") as file:
-        return tomllib.load(file)["project"]["optional-dependencies"]["blender"][0]
+        return tomllib.load(file)["project"]["optional-dependencies"][extra][0]
 
 
 def project_installed() -> bool:
@@ -78,6 +78,23 @@ def test_without_the_option_blender_is_left_alone(tmp_path):
     result, calls = run_with_pip(tmp_path, None)
     assert result.returncode == 0, result.stderr
     assert calls == []
+
+
+def test_an_unknown_blender_version_is_refused_before_anything_is_installed(tmp_path):
+    result, calls = run_with_pip(tmp_path, None, "--blender=4.4")
+    assert result.returncode == 2
+    assert "unknown Blender version '4.4'" in result.stderr and "--blender=4.5" in result.stderr
+    assert calls == []
+
+
+@needs_the_project
+@pytest.mark.parametrize("option, extra", [("--blender=4.5", "blender-4-5"), ("--blender=5", "blender")])
+def test_a_blender_version_is_installed_at_its_extras_pin_replacing_the_other(tmp_path, option, extra):
+    assert blender_requirement("blender-4-5").startswith("bpy==4.5.")
+    other = "5.0.1" if extra == "blender-4-5" else "4.5.15"
+    result, calls = run_with_pip(tmp_path, other, option)
+    assert result.returncode == 0, result.stderr
+    assert calls == ["show bpy", f"install -q --no-deps {blender_requirement(extra)}"]
 
 
 def test_the_browser_option_is_listed_among_the_options(tmp_path):

@@ -90,3 +90,26 @@ def test_a_room_with_a_circling_light_imports_with_still_geometry_and_changing_l
     first, second = (read_layout_reference(out / "references" / f"frame_000{i}.exr", LAYOUT)["reference"]
                      for i in (0, 1))
     assert np.abs(second - first).mean() > 0.01  # the light moved
+
+
+def test_the_orbit_clip_renders_as_the_committed_fixture_of_this_blender_generation(tmp_path):
+    """The layout fixtures are this script's output: rendered again by the installed Blender (5.0 or 4.5 LTS, whose
+    pass names differ), the clip reads as the committed one of that generation."""
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT, BLENDER_ORBIT_4_5
+
+    version = subprocess.run([sys.executable, "-c", "import bpy; print(*bpy.app.version[:2])"], check=True,
+                             capture_output=True, text=True, timeout=300).stdout.split()[-2:]
+    fixture = {("5", "0"): BLENDER_ORBIT, ("4", "5"): BLENDER_ORBIT_4_5}.get(tuple(version))
+    if fixture is None:
+        pytest.skip(f"no committed fixture for Blender {'.'.join(version)}")
+    out = tmp_path / "orbit"
+    subprocess.run([sys.executable, str(SCRIPT), "--out", str(out), "--frames", "3", "--size", "32", "--ref-spp",
+                    "256"], check=True, capture_output=True, timeout=300)
+    for index in range(3):
+        name = f"frame_{index:04d}.exr"
+        rendered, committed = (read_layout_frame(folder / name, LAYOUT).frame for folder in (out, fixture))
+        for buffer in ("motion", "depth", "normal", "albedo", "specular_albedo"):
+            np.testing.assert_allclose(getattr(rendered, buffer), getattr(committed, buffer), atol=1e-3)
+        references = [read_layout_reference(folder / "references" / name, LAYOUT)["reference"]
+                      for folder in (out, fixture)]
+        assert np.abs(references[0] - references[1]).mean() < 0.01
