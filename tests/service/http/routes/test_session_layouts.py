@@ -8,24 +8,27 @@ import pytest
 from model.io.exr import decode_image_exr
 from model.layouts.builtin import BLENDER_CYCLES
 from tests.builders import error_message
-from tests.model.layouts.exr_builders import BLENDER_ORBIT, blender_like_bomb, bundle_channels, write_channels
+from tests.model.layouts.exr_builders import BLENDER_ORBIT, BLENDER_ORBIT_4_5, blender_like_bomb, bundle_channels, \
+    write_channels
 from tests.service.session_fixtures import api, create, post_frame, stream_frames  # noqa: F401 (api: a fixture)
 
 
-def test_raw_blender_cycles_files_stream_through_a_blender_cycles_session(api):  # noqa: F811
+@pytest.mark.parametrize("clip", [BLENDER_ORBIT, BLENDER_ORBIT_4_5], ids=["blender-5.0", "blender-4.5"])
+def test_raw_blender_cycles_files_stream_through_a_blender_cycles_session(api, clip):  # noqa: F811
     client, _ = api()
     session = create(client, layout="blender-cycles")
     assert session["layout"] == "blender-cycles"
-    answers = [post_frame(client, session["id"], path.read_bytes())
-               for path in sorted(BLENDER_ORBIT.glob("frame_*.exr"))]
-    assert [r.status_code for r in answers] == [200] * 4, answers[0].text
-    assert [r.headers["X-Frame-Index"] for r in answers] == ["1", "2", "3", "4"]  # Blender's frame numbers
-    assert [r.headers["X-History"] for r in answers] == ["started", "continued", "continued", "continued"]
+    paths = sorted(clip.glob("frame_*.exr"))  # Blender 4.x names the albedo passes DiffCol and GlossCol
+    answers = [post_frame(client, session["id"], path.read_bytes()) for path in paths]
+    assert [r.status_code for r in answers] == [200] * len(paths), answers[0].text
+    # Blender's frame numbers, from 1
+    assert [r.headers["X-Frame-Index"] for r in answers] == [str(index + 1) for index in range(len(paths))]
+    assert [r.headers["X-History"] for r in answers] == ["started"] + ["continued"] * (len(paths) - 1)
     assert all("X-Ignored-Channels" not in r.headers and "X-Repairs" not in r.headers for r in answers)
     assert all(np.isfinite(decode_image_exr(r.content)).all() for r in answers)
     # The same files in a session of our own layout: refused, naming the layout to use.
     plain = create(client)["id"]
-    message = error_message(post_frame(client, plain, (BLENDER_ORBIT / "frame_0000.exr").read_bytes()), 400,
+    message = error_message(post_frame(client, plain, (clip / "frame_0000.exr").read_bytes()), 400,
                        "invalid_frame")
     assert "layout 'denoiser' reads it from color.R" in message and "blender-cycles" in message
 
