@@ -4,12 +4,14 @@
 
     with DenoiserClient("http://127.0.0.1:8000", api_key="...") as client:
         dataset = client.upload_dataset("data/demo")                    # a folder is tarred on the fly
-        job = client.submit_job("train", {"dataset": dataset["id"], "method": "wskpn:xs", "steps": 200})
-        job = client.wait_job(job["id"], on_progress=lambda j: print(j["progress"]))
+        job = client.submit_job("train", {"dataset": dataset.id, "method": "wskpn:xs", "steps": 200})
+        job = client.wait_job(job.id, on_progress=lambda j: print(j.progress.current))
         session = client.create_session("wskpn-xs", alias="champion")
-        summary = client.stream_sequence(session["id"], "data/demo/glass_s2", "out/glass_s2")
+        summary = client.stream_sequence(session.id, "data/demo/glass_s2", "out/glass_s2")
+        image, info = client.send_arrays(session.id, color=..., albedo=..., normal=..., depth=..., motion=...)
 
-Every non-2xx answer raises ``ApiClientError(status, code, message, details)`` built from the server's error
+Answers are typed (client.answers: Session, Job, Dataset, Model, ...) and still read as dicts. Frames are read and
+written with client.frames (NumPy, OpenEXR), never torch or the model library. Every non-2xx answer raises ``ApiClientError(status, code, message, details)`` built from the server's error
 shape ``{"error": {"code", "message", "details"}}``; a server that cannot be reached at all raises
 ``ServerUnreachable`` naming the URL. The client holds no state besides its connection pool, so one instance can
 be shared by threads (httpx.Client is thread-safe).
@@ -18,7 +20,6 @@ be shared by threads (httpx.Client is thread-safe).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import os
 import shutil
@@ -35,12 +36,13 @@ from urllib.parse import quote
 
 import httpx
 
+from client.answers import Dataset, FrameResult, Job, Model, ModelVersion, Session
 from core.names import FINISHED_STATES
 
-if TYPE_CHECKING:  # numpy and the frame library load only when frames are sent
+if TYPE_CHECKING:  # numpy and OpenEXR load only when frames are sent
     import numpy as np
 
-    from model.io.frames import FrameBundle
+    from client.frames import Frame
     from client.stream import SessionStream
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -49,6 +51,11 @@ SESSION_TOKEN_HEADER = "X-Session-Token"  # owner tokens of sessions (service.ht
 EXR_MEDIA_TYPE = "image/x-exr"
 MANIFEST = "manifest.json"
 STREAM_TRANSPORTS = ("http", "websocket")  # how stream_sequence sends frames
+# Lossless OpenEXR compressions a frame can be sent with (the server reads any of them). Uncompressed by default:
+# ZIP saves a third to two thirds of a noisy frame's bytes (more on smooth buffers) but makes writing and reading a
+# frame several times slower, which pays only on a link slower than about 1 Gbit/s.
+FRAME_COMPRESSIONS = ("none", "rle", "zips", "zip", "piz")
+FRAME_COMPRESSION = "none"
 # Archive suffix -> Content-Type. The server sniffs magic bytes anyway; the header is a courtesy.
 ARCHIVE_TYPES = {".zip": "application/zip", ".tar": "application/x-tar", ".tgz": "application/gzip",
                  ".tar.gz": "application/gzip", ".gz": "application/gzip"}
@@ -106,13 +113,16 @@ class FrameInfo:
 
 @dataclass
 class StreamSummary:
-    """The result of ``stream_sequence``: one FrameInfo per frame, the files written, and medians."""
+    """The result of ``stream_sequence``: one FrameInfo per frame, the files written, and medians. ``ignored``: the
+    files of the folder that are not frames (a renderer's own manifest.json, previews), which were not sent."""
 
     session_id: str
     out_dir: Path
     frames: list[FrameInfo]
     files: list[Path]
     wall_seconds: float
+    ignored: list[str] = field(default_factory=list)
+    pngs: list[Path] = field(default_factory=list)
 
     def median(self, attribute: str) -> float | None:
         values = [getattr(frame, attribute) for frame in self.frames if getattr(frame, attribute) is not None]
@@ -126,7 +136,8 @@ class StreamSummary:
                 "wall_seconds": round(self.wall_seconds, 3),
                 "frames_per_second": round(len(self.frames) / self.wall_seconds, 3) if self.wall_seconds else None,
                 "median_inference_ms": self.median("inference_ms"), "median_server_ms": self.median("server_ms"),
-                "median_round_trip_ms": self.median("round_trip_ms"), "history": histories}
+                "median_round_trip_ms": self.median("round_trip_ms"), "history": histories,
+                **({"ignored": self.ignored} if self.ignored else {}), **({"pngs": len(self.pngs)} if self.pngs else {})}
 
 
 def _optional(kind: type, text: str | None):
@@ -179,15 +190,7 @@ class DenoiserClient:
         return response
 
     def _json(self, method: str, path: str, **kwargs) -> Any:
-        response = self.request(method, path, **kwargs)
-        if response.status_code == 204 or not response.content:
-            return None
-        try:
-            return response.json()
-        except ValueError:
-            raise ApiClientError(response.status_code, "invalid_response",
-                                 f"{method} {path}: expected JSON, got {response.headers.get('content-type')!r}: "
-                                 f"{response.text[:200]!r}") from None
+        return _decoded(self.request(method, path, **kwargs), method, path)
 
     def _download(self, path: str, destination: Path, params: dict | None = None) -> Path:
         """Stream a response body to ``destination`` (written under a temporary name, then renamed)."""
@@ -225,13 +228,15 @@ class DenoiserClient:
     # --- datasets ------------------------------------------------------------------------------------------
 
     def upload_dataset(self, source: str | os.PathLike, name: str | None = None, split: str = "train",
-                       skipped: list[str] | None = None, layout: str | None = None) -> dict:
+                       skipped: list[str] | None = None, layout: str | None = None) -> Dataset:
         """Upload a dataset folder, a sequence folder, a folder of sequence folders, or a zip / tar(.gz).
 
         A folder is packed into a temporary uncompressed tar (frames are ZIP-compressed EXRs already) holding
         only what the manifests list, so stray files (previews, reports, half-written ``.partial`` folders)
-        do not make the server refuse the upload; their paths are appended to ``skipped`` when given. The
-        archive is streamed from disk, never held in memory. Returns the new dataset (201 body).
+        do not make the server refuse the upload; their paths are appended to ``skipped`` when given, as are the
+        files the server left out of a renderer's folders (X-Ignored-Files). A manifest.json is read as this
+        project's only when its ``format`` is (denoiser-sequence/1 or denoiser-dataset/1); a renderer's own is one
+        more file left out. The archive is streamed from disk, never held in memory. Returns the new dataset.
 
         ``layout``: a built-in layout other than ``denoiser`` sends a renderer's sequence folder (frame EXRs and
         ``references/``), or a folder of them, for the server to convert (``?layout=``).
@@ -249,53 +254,58 @@ class DenoiserClient:
                 left_out = pack_renderer_folder(source, archive) if renderer_frames else pack_folder(source, archive)
                 if skipped is not None:
                     skipped.extend(left_out)
-                return self._upload_archive(archive, "application/x-tar", params)
+                return self._upload_archive(archive, "application/x-tar", params, skipped)
         if not source.is_file():
             raise FileNotFoundError(f"{source}: no such file or folder to upload")
-        return self._upload_archive(source, archive_media_type(source), params)
+        return self._upload_archive(source, archive_media_type(source), params, skipped)
 
-    def _upload_archive(self, archive: Path, media_type: str, params: dict) -> dict:
+    def _upload_archive(self, archive: Path, media_type: str, params: dict, skipped: list[str] | None) -> Dataset:
         with archive.open("rb") as file:
             # A file object is sent in chunks with a Content-Length taken from the file's size.
-            return self._json("POST", "/datasets", params=params, content=file,
-                              headers={"Content-Type": media_type})
+            response = self.request("POST", "/datasets", params=params, content=file,
+                                    headers={"Content-Type": media_type})
+        ignored = response.headers.get("X-Ignored-Files")
+        if ignored and skipped is not None:
+            skipped.extend(name.strip() for name in ignored.split(", ") if name.strip())
+        return Dataset.from_dict(_decoded(response, "POST", "/datasets"))
 
-    def list_datasets(self) -> list[dict]:
-        return _items(self._json("GET", "/datasets"))
+    def list_datasets(self) -> list[Dataset]:
+        return [Dataset.from_dict(item) for item in _items(self._json("GET", "/datasets"))]
 
-    def get_dataset(self, dataset_id: str) -> dict:
-        return self._json("GET", f"/datasets/{_segment(dataset_id)}")
+    def get_dataset(self, dataset_id: str) -> Dataset:
+        return Dataset.from_dict(self._json("GET", f"/datasets/{_segment(dataset_id)}"))
 
     def delete_dataset(self, dataset_id: str) -> None:
         self.request("DELETE", f"/datasets/{_segment(dataset_id)}")
 
     # --- jobs ----------------------------------------------------------------------------------------------
 
-    def submit_job(self, kind: str, params: dict | None = None, device: str = "cpu") -> dict:
+    def submit_job(self, kind: str, params: dict | None = None, device: str = "cpu") -> Job:
         """POST /jobs; returns the queued Job (its ``id`` is what the other job calls take)."""
-        return self._json("POST", "/jobs", json={"kind": kind, "params": params or {}, "device": device})
+        return Job.from_dict(self._json("POST", "/jobs", json={"kind": kind, "params": params or {}, "device": device}))
 
     def list_jobs(self, kind: str | None = None, state: str | None = None, limit: int | None = None,
-                  offset: int | None = None) -> list[dict]:
+                  offset: int | None = None) -> list[Job]:
         params = {key: value for key, value in
                   {"kind": kind, "state": state, "limit": limit, "offset": offset}.items() if value is not None}
-        return _items(self._json("GET", "/jobs", params=params))
+        return [Job.from_dict(item) for item in _items(self._json("GET", "/jobs", params=params))]
 
-    def get_job(self, job_id: str) -> dict:
-        return self._json("GET", f"/jobs/{_segment(job_id)}")
+    def get_job(self, job_id: str) -> Job:
+        return Job.from_dict(self._json("GET", f"/jobs/{_segment(job_id)}"))
 
-    def cancel_job(self, job_id: str) -> dict | None:
+    def cancel_job(self, job_id: str) -> Job | None:
         """Ask for cooperative cancellation (202); the job reaches ``cancelled`` when its worker notices."""
-        return self._json("POST", f"/jobs/{_segment(job_id)}/cancel")
+        body = self._json("POST", f"/jobs/{_segment(job_id)}/cancel")
+        return Job.from_dict(body) if isinstance(body, dict) else body
 
     def job_logs(self, job_id: str, lines: int | None = None) -> list[str]:
         params = {"lines": lines} if lines is not None else None
         body = self._json("GET", f"/jobs/{_segment(job_id)}/logs", params=params)
         return list(body.get("lines", [])) if isinstance(body, dict) else list(body or [])
 
-    def wait_job(self, job_id: str, on_progress: Callable[[dict], None] | None = None, *,
+    def wait_job(self, job_id: str, on_progress: Callable[[Job], None] | None = None, *,
                  timeout: float | None = None, interval: float = 0.5, max_interval: float = 5.0,
-                 backoff: float = 1.5, unreachable_retries: int = 5) -> dict:
+                 backoff: float = 1.5, unreachable_retries: int = 5) -> Job:
         """Poll the job until it is succeeded, failed or cancelled; return its final record.
 
         The wait between polls grows by ``backoff`` from ``interval`` up to ``max_interval`` while nothing
@@ -309,7 +319,7 @@ class DenoiserClient:
         delay = interval
         seen = None
         failures = 0
-        job: dict = {"state": "unknown"}
+        job = Job.from_dict({"state": "unknown"})
         while True:
             try:
                 job = self.get_job(job_id)
@@ -334,11 +344,11 @@ class DenoiserClient:
             self._check_deadline(job_id, job, started, delay, timeout)
             self._sleep(delay)
 
-    def _check_deadline(self, job_id: str, job: dict, started: float, delay: float, timeout: float | None) -> None:
+    def _check_deadline(self, job_id: str, job: Job, started: float, delay: float, timeout: float | None) -> None:
         if timeout is not None and self._clock() - started + delay > timeout:
             raise TimeoutError(f"job {job_id} is still {job.get('state')} after {timeout:g} s")
 
-    def follow_job(self, job_id: str, on_progress: Callable[[dict], None], **options) -> dict:
+    def follow_job(self, job_id: str, on_progress: Callable[[Job], None], **options) -> Job:
         """``wait_job`` with a progress callback (the CLI's --follow)."""
         return self.wait_job(job_id, on_progress, **options)
 
@@ -364,14 +374,14 @@ class DenoiserClient:
 
     # --- models --------------------------------------------------------------------------------------------
 
-    def list_models(self) -> list[dict]:
-        return _items(self._json("GET", "/models"))
+    def list_models(self) -> list[Model]:
+        return [Model.from_dict(item) for item in _items(self._json("GET", "/models"))]
 
-    def get_model(self, name: str) -> dict:
-        return self._json("GET", f"/models/{_segment(name)}")
+    def get_model(self, name: str) -> Model:
+        return Model.from_dict(self._json("GET", f"/models/{_segment(name)}"))
 
-    def get_model_version(self, name: str, version: str | int) -> dict:
-        return self._json("GET", f"/models/{_segment(name)}/versions/{_segment(str(version))}")
+    def get_model_version(self, name: str, version: str | int) -> ModelVersion:
+        return ModelVersion.from_dict(self._json("GET", f"/models/{_segment(name)}/versions/{_segment(str(version))}"))
 
     def set_alias(self, name: str, alias: str, version: str | int) -> dict | None:
         return self._json("PUT", f"/models/{_segment(name)}/aliases/{_segment(alias)}",
@@ -392,7 +402,7 @@ class DenoiserClient:
     # --- sessions ------------------------------------------------------------------------------------------
 
     def create_session(self, model: str, version: str | int | None = None, alias: str | None = None,
-                       on_gap: str = "reset", layout: str | dict | None = None, scale: int | None = None) -> dict:
+                       on_gap: str = "reset", layout: str | dict | None = None, scale: int | None = None) -> Session:
         """``model``: a registered model, a pretrained model or a method without weights (``oidn:high``);
         ``layout``: a built-in layout's name or a layout mapping (the keys of a layout file); default denoiser;
         ``scale``: a method's output scale (default 1)."""
@@ -404,7 +414,7 @@ class DenoiserClient:
             body["layout"] = layout
         if scale is not None:
             body["scale"] = scale
-        session = self._json("POST", "/sessions", json=body)
+        session = Session.from_dict(self._json("POST", "/sessions", json=body))
         if session.get("token"):  # the server has owner tokens on: every later request on it sends this one
             self._session_tokens[session["id"]] = session["token"]
         return session
@@ -413,20 +423,20 @@ class DenoiserClient:
         token = self._session_tokens.get(session_id)
         return {SESSION_TOKEN_HEADER: token} if token else {}
 
-    def list_sessions(self) -> list[dict]:
-        return _items(self._json("GET", "/sessions"))
+    def list_sessions(self) -> list[Session]:
+        return [Session.from_dict(item) for item in _items(self._json("GET", "/sessions"))]
 
-    def get_session(self, session_id: str) -> dict:
-        return self._json("GET", f"/sessions/{_segment(session_id)}", headers=self._owner(session_id))
+    def get_session(self, session_id: str) -> Session:
+        return Session.from_dict(self._json("GET", f"/sessions/{_segment(session_id)}", headers=self._owner(session_id)))
 
-    def reset_session(self, session_id: str) -> dict | None:
-        return self._json("POST", f"/sessions/{_segment(session_id)}/reset", headers=self._owner(session_id))
+    def reset_session(self, session_id: str) -> Session | None:
+        body = self._json("POST", f"/sessions/{_segment(session_id)}/reset", headers=self._owner(session_id))
+        return Session.from_dict(body) if isinstance(body, dict) else body
 
     def delete_session(self, session_id: str) -> None:
         self.request("DELETE", f"/sessions/{_segment(session_id)}", headers=self._owner(session_id))
 
-    def send_frame_raw(self, session_id: str,
-                       frame: bytes | FrameBundle | str | os.PathLike) -> tuple[bytes, FrameInfo]:
+    def send_frame_raw(self, session_id: str, frame: bytes | Frame | str | os.PathLike) -> tuple[bytes, FrameInfo]:
         """POST one frame bundle; return the output EXR's bytes as received and the frame's FrameInfo."""
         body = frame if isinstance(frame, (bytes, bytearray, memoryview)) else frame_bytes(frame)
         started = time.perf_counter()
@@ -436,15 +446,30 @@ class DenoiserClient:
         round_trip_ms = (time.perf_counter() - started) * 1000.0
         return response.content, FrameInfo.from_response(response, round_trip_ms)
 
-    def send_frame(self, session_id: str,
-                   frame: bytes | FrameBundle | str | os.PathLike) -> tuple[np.ndarray, FrameInfo]:
-        """Denoise one frame in the session: ``frame`` is EXR bytes, a FrameBundle, or a frame file path.
+    def send_frame(self, session_id: str, frame: bytes | Frame | str | os.PathLike) -> FrameResult:
+        """Denoise one frame in the session: ``frame`` is EXR bytes, a client.frames.Frame (or a model FrameBundle),
+        or a frame file path.
 
-        Returns the output as a float32 (H, W, 3) RGB array (scale x render resolution) and the FrameInfo
-        (X-Frame-Index, X-Inference-Ms, X-Server-Ms, X-History, round-trip time; ``.headers`` has them all).
+        Returns a FrameResult: ``image``, the output as a float32 (H, W, 3) RGB array (scale x render resolution),
+        and ``info``, its FrameInfo (X-Frame-Index, X-Inference-Ms, X-Server-Ms, X-History, round-trip time;
+        ``.headers`` has them all).
         """
         data, info = self.send_frame_raw(session_id, frame)
-        return decode_rgb_exr(data), info
+        return FrameResult(decode_rgb_exr(data), info)
+
+    def send_arrays(self, session_id: str, *, color: np.ndarray, albedo: np.ndarray, normal: np.ndarray,
+                    depth: np.ndarray, motion: np.ndarray, jitter: tuple[float, float] = (0.0, 0.0),
+                    frame_index: int | None = None, camera_cut: bool = False, compression: str = FRAME_COMPRESSION,
+                    **optional: np.ndarray) -> FrameResult:
+        """Denoise a frame a renderer holds in memory, no file written: (H, W, 3) color, albedo, normal, (H, W)
+        depth, (H, W, 2) motion in the frame bundle's conventions (docs/frame-format.md), and optionally
+        specular_albedo, diffuse, specular, roughness. Sent as an in-memory EXR; ``frame_index`` None lets the
+        session number it. ``open_stream(...).send_arrays`` sends the same over the WebSocket."""
+        from client.frames import make_frame
+
+        frame = make_frame(color=color, albedo=albedo, normal=normal, depth=depth, motion=motion, jitter=jitter,
+                           frame_index=frame_index, camera_cut=camera_cut, **optional)
+        return self.send_frame(session_id, frame_bytes(frame, compression=compression))
 
     def open_stream(self, session_id: str, *, dtype: str = "float32", output_dtype: str = "float32",
                     all_buffers: bool = False) -> SessionStream:
@@ -467,36 +492,39 @@ class DenoiserClient:
     def stream_sequence(self, session_id: str, sequence_dir: str | os.PathLike, out_dir: str | os.PathLike, *,
                         strip_references: bool = True,
                         on_frame: Callable[[FrameInfo, Path], None] | None = None, transport: str = "http",
-                        layout: str | dict | None = None) -> StreamSummary:
+                        layout: str | dict | None = None, png: bool = False) -> StreamSummary:
         """Send every frame of a sequence folder in order; write each output to ``out_dir/frame_%04d.exr``.
 
         ``transport="http"``: each frame is POSTed; the outputs are the server's EXRs byte for byte (written under
         a temporary name, then renamed). The server ignores references, so with ``strip_references`` (default)
         frames that carry them are re-encoded without them first: a scale-2 reference alone is 4x the size of the
-        noisy color. A folder without manifest.json is a renderer's plain folder of EXRs: its files are sent as
-        they are, in name order, for the session to read in its layout.
+        noisy color. A folder without this project's manifest.json (one whose ``format`` is denoiser-sequence/1) is a
+        renderer's plain folder of EXRs: its .exr files are sent as they are, in name order, for the session to read
+        in its layout; its other files (a renderer's own manifest.json, previews) are named in ``ignored``.
 
         ``transport="websocket"``: the frames are read here (a plain folder's in ``layout``, the session's, default
         denoiser) and sent over one WebSocket as float32 arrays (``open_stream``); each output is written as a
         float32 RGB EXR with the same pixels as the server's (references are never sent).
+
+        ``png``: each output is also written as ``frame_%04d.png``, display-encoded (clip(x, 0, 1) ** (1/2.2), 8 bit).
         """
         if transport not in STREAM_TRANSPORTS:
             raise ValueError(f"transport must be one of {', '.join(STREAM_TRANSPORTS)}, got {transport!r}")
-        from model.io.dataset import Sequence, frame_file_name
+        from client.frames import (encode_png, frame_file_name, is_sequence_folder, renderer_frame_files,
+                                   sequence_frame_files)
 
         out_dir = Path(out_dir)
-        bundles = (Path(sequence_dir) / MANIFEST).is_file()
+        bundles = is_sequence_folder(sequence_dir)
+        ignored: list[str] = []
         if bundles:
-            sequence = Sequence(sequence_dir)
-            paths = [sequence.frame_path(index) for index in range(len(sequence))]
-            reencode = strip_references and bool(sequence.scales)
+            paths, has_references = sequence_frame_files(sequence_dir)
+            reencode = strip_references and has_references
         else:
-            from model.io.importer import frame_files
-
-            paths, reencode = frame_files(Path(sequence_dir)), False
+            (paths, ignored), reencode = renderer_frame_files(sequence_dir), False
         out_dir.mkdir(parents=True, exist_ok=True)
         infos: list[FrameInfo] = []
         files: list[Path] = []
+        pngs: list[Path] = []
         with contextlib.ExitStack() as stack:
             if transport == "websocket":
                 from client.stream import file_sender
@@ -511,11 +539,13 @@ class DenoiserClient:
             for index, frame_path in enumerate(paths):
                 data, info = send(frame_path)
                 path = _write_atomically(out_dir / frame_file_name(index), data)
+                if png:
+                    pngs.append(_write_atomically(path.with_suffix(".png"), encode_png(decode_rgb_exr(data))))
                 infos.append(info)
                 files.append(path)
                 if on_frame is not None:
                     on_frame(info, path)
-        return StreamSummary(session_id, out_dir, infos, files, time.perf_counter() - started)
+        return StreamSummary(session_id, out_dir, infos, files, time.perf_counter() - started, ignored, pngs)
 
 
 # --- errors --------------------------------------------------------------------------------------------------
@@ -544,6 +574,18 @@ def _raise_for_status(response: httpx.Response) -> None:
     if details is None and isinstance(body, dict) and "error" not in body:
         details = body
     raise ApiClientError(status, code, message, details)
+
+
+def _decoded(response: httpx.Response, method: str, path: str) -> Any:
+    """A 2xx answer's JSON body (None for an empty one); ApiClientError when it is not JSON."""
+    if response.status_code == 204 or not response.content:
+        return None
+    try:
+        return response.json()
+    except ValueError:
+        raise ApiClientError(response.status_code, "invalid_response",
+                             f"{method} {path}: expected JSON, got {response.headers.get('content-type')!r}: "
+                             f"{response.text[:200]!r}") from None
 
 
 def _transport_reason(error: httpx.TransportError) -> str:
@@ -587,17 +629,21 @@ def archive_media_type(path: Path) -> str:
 
 def _sequence_files(folder: Path) -> list[Path]:
     """The manifest and the frame files a sequence folder's manifest lists (reads the manifest only)."""
-    from model.io.dataset import Sequence
+    from client.frames import sequence_frame_files
 
-    sequence = Sequence(folder)
-    return [folder / MANIFEST] + [sequence.frame_path(index) for index in range(len(sequence))]
+    return [folder / MANIFEST] + sequence_frame_files(folder)[0]
 
 
-def _manifest_format(path: Path) -> str | None:
+def _dataset_names(manifest: Path) -> list[str]:
+    from client.frames import FrameFileError
+
     try:
-        return json.loads(path.read_text()).get("format")
+        sequences = json.loads(manifest.read_text()).get("sequences")
     except (OSError, ValueError, AttributeError):
-        return None
+        sequences = None
+    if not isinstance(sequences, dict):
+        raise FrameFileError(f"{manifest}: not a readable dataset manifest (no 'sequences' object)")
+    return sorted(sequences)
 
 
 def folder_members(folder: str | os.PathLike) -> tuple[list[Path], list[str]]:
@@ -606,33 +652,31 @@ def folder_members(folder: str | os.PathLike) -> tuple[list[Path], list[str]]:
     - a dataset folder (manifest.json, format denoiser-dataset/1): its manifest and the sequences it lists;
     - a sequence folder (format denoiser-sequence/1): its manifest and listed frames;
     - any other folder: every sub-folder holding a sequence manifest.
-    Everything else (hidden files, pictures, reports, unlisted frames) is left out and named in the second list.
+    Everything else (hidden files, pictures, reports, unlisted frames, a manifest.json of another format, such as a
+    renderer's own) is left out and named in the second list.
     """
-    from model.io.dataset import DATASET_FORMAT, SEQUENCE_FORMAT, Dataset
+    from client.frames import DATASET_FORMAT, SEQUENCE_FORMAT, manifest_format
 
     root = Path(folder)
     manifest = root / MANIFEST
-    kind = _manifest_format(manifest) if manifest.is_file() else None
+    kind = manifest_format(manifest) if manifest.is_file() else None
     if kind == DATASET_FORMAT:
         members = [manifest]
-        for name in Dataset(root).names():
+        for name in _dataset_names(manifest):
             members += _sequence_files(root / name)
     elif kind == SEQUENCE_FORMAT:
         members = _sequence_files(root)
-    elif manifest.is_file():
-        from model.io.dataset import DatasetError
-
-        raise DatasetError(f"{manifest}: field 'format' is {kind!r}, expected {DATASET_FORMAT!r} or "
-                           f"{SEQUENCE_FORMAT!r}")
     else:
         members = []
         for entry in sorted(root.iterdir()):
             if entry.is_dir() and not entry.name.startswith(".") and \
-                    _manifest_format(entry / MANIFEST) == SEQUENCE_FORMAT:
+                    manifest_format(entry / MANIFEST) == SEQUENCE_FORMAT:
                 members += _sequence_files(entry)
         if not members:
-            raise FileNotFoundError(f"{root}: no manifest.json and no sequence folders (each with a manifest.json) "
-                                    f"inside; nothing to upload")
+            foreign = f" ({MANIFEST} there is not this project's: its format is {kind!r})" if manifest.is_file() else ""
+            raise FileNotFoundError(f"{root}: no {SEQUENCE_FORMAT} or {DATASET_FORMAT} manifest and no sequence "
+                                    f"folders (each with one) inside{foreign}; nothing to upload (a renderer's "
+                                    f"frames: give their layout)")
     kept = set(members)
     left_out = sorted(str(path.relative_to(root)) for path in root.rglob("*") if path.is_file() and path not in kept)
     return members, left_out
@@ -706,38 +750,29 @@ def _write_atomically(path: Path, data: bytes) -> Path:
 # --- EXR -----------------------------------------------------------------------------------------------------
 
 
-# Lossless OpenEXR compressions a frame can be sent with (the server reads any of them). Uncompressed by default:
-# ZIP saves a third to two thirds of a noisy frame's bytes (more on smooth buffers) but makes writing and reading a
-# frame several times slower, which pays only on a link slower than about 1 Gbit/s.
-FRAME_COMPRESSIONS = ("none", "rle", "zips", "zip", "piz")
-FRAME_COMPRESSION = "none"
 
-
-def frame_bytes(frame: FrameBundle | str | os.PathLike, *, strip_references: bool = True,
+def frame_bytes(frame: Frame | str | os.PathLike, *, strip_references: bool = True,
                 compression: str = FRAME_COMPRESSION) -> bytes:
-    """A frame bundle EXR as bytes (what POST /sessions/{id}/frames takes), validated as write_frame does, except
-    that NaN, Inf and out-of-range values pass: a session repairs them and says so (X-Sanitized-Pixels).
+    """A frame bundle EXR as bytes (what POST /sessions/{id}/frames takes) of a client.frames.Frame, any object
+    with the buffers as attributes (a model FrameBundle), or a frame file. Shapes are checked here; values are the
+    server's to check: a session repairs NaN, Inf and out-of-range values and says so (X-Sanitized-Pixels).
 
-    A path is read as a frame first (leniently as well). References are dropped by default: the server ignores
-    them. ``compression`` is one of FRAME_COMPRESSIONS.
+    A path is read as a frame first; its references are dropped (the server ignores them), so a file is sent as it
+    is only with ``strip_references=False``. ``compression`` is one of FRAME_COMPRESSIONS.
     """
-    import OpenEXR
-
-    from model.io.exr import encode_frame_exr, read_frame
-    from model.io.frames import FrameBundle
+    from client.frames import encode_frame_exr, read_frame_exr
 
     if compression not in FRAME_COMPRESSIONS:
         raise ValueError(f"compression must be one of {', '.join(FRAME_COMPRESSIONS)}, got {compression!r}")
-    if not isinstance(frame, FrameBundle):
-        frame = read_frame(frame, sanitizable=True)
-    if strip_references:
-        frame = dataclasses.replace(frame, references={}, reference_albedos={}, reference_specular_albedos={})
-    name = "NO" if compression == "none" else compression.upper()
-    return encode_frame_exr(frame, compression=getattr(OpenEXR, f"{name}_COMPRESSION"), sanitizable=True)
+    if isinstance(frame, (str, os.PathLike)):
+        if not strip_references:
+            return Path(frame).read_bytes()
+        frame = read_frame_exr(frame)
+    return encode_frame_exr(frame, compression=compression)
 
 
 def decode_rgb_exr(data: bytes) -> np.ndarray:
-    """The (H, W, 3) float32 RGB of the server's output EXR; a ValueError (FrameFormatError) if it is not one."""
-    from model.io.exr import decode_image_exr
+    """The (H, W, 3) float32 RGB of the server's output EXR; a ValueError (FrameFileError) if it is not one."""
+    from client.frames import decode_image_exr
 
     return decode_image_exr(data, source="the server's output")

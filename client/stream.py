@@ -1,14 +1,15 @@
 """The client side of a session's WebSocket (GET /sessions/{id}/stream): ``DenoiserClient.open_stream`` returns one.
 
-    with client.open_stream(session["id"], dtype="float16") as stream:
-        for frame in frames:                      # model.io.frames.FrameBundle
+    with client.open_stream(session.id, dtype="float16") as stream:
+        for frame in frames:                      # client.frames.Frame (or a model FrameBundle)
             image, info = stream.send(frame)      # (H*s, W*s, 3) float32, FrameInfo as send_frame gives it
+        image, info = stream.send_arrays(color=..., albedo=..., normal=..., depth=..., motion=..., jitter=...)
 
 One frame in flight at a time: ``send`` returns once the frame's output has arrived. A frame the session refuses
 raises ApiClientError (with the status the REST API gives the same error, its code and message) and the stream
 stays usable; an error that ends the stream (the session is gone, the API key or owner token is wrong) raises
-ApiClientError too and closes it. Built on ``websockets.sync.client``; a frame call packs and unpacks messages with
-service.sessions.stream_codec (NumPy only, never torch), imported when the call is made, as client.rest reads EXR frames.
+ApiClientError too and closes it. Built on ``websockets.sync.client``; messages are packed and unpacked by
+client.codec (NumPy only), which the server imports too.
 """
 
 from __future__ import annotations
@@ -21,18 +22,19 @@ from typing import TYPE_CHECKING, Any
 
 import httpx
 
+from client.answers import FrameResult
 from client.rest import API_KEY_HEADER, ApiClientError, FrameInfo, ServerUnreachable
 
 if TYPE_CHECKING:
     import numpy as np
 
-    from model.io.frames import FrameBundle
+    from client.frames import Frame
 
 STREAM_PATH = "/sessions/{session_id}/stream"
 # A close code 4000 + status carries the REST API's status for the error that ended the stream.
 APPLICATION_CLOSE_CODES = range(4000, 5000)
 MESSAGE_TOO_BIG = 1009
-STREAM_DTYPES = ("float16", "float32")  # service.sessions.stream_codec.DTYPES, named here so opening a stream needs no NumPy
+STREAM_DTYPES = ("float16", "float32")  # client.codec.DTYPES, named here so opening a stream needs no NumPy
 
 
 def websocket_url(http_url: str, path: str) -> str:
@@ -80,13 +82,14 @@ class SessionStream:
             raise ServerUnreachable(self.url, str(error) or type(error).__name__) from error
         self._timeout = timeout
 
-    def send(self, frame: FrameBundle | bytes, frame_index: int | None | bool = True) -> tuple[np.ndarray, FrameInfo]:
-        """Denoise one frame: a FrameBundle (sent in ``dtype``; ``frame_index`` True sends its own index, None
-        leaves it to the session) or a message packed already (service.sessions.stream_codec.encode_frame). Returns the
-        (H, W, 3) float32 output and its FrameInfo (round trip: from sending until the output was read)."""
+    def send(self, frame: Frame | bytes, frame_index: int | None | bool = True) -> FrameResult:
+        """Denoise one frame: a client.frames.Frame or a model FrameBundle (sent in ``dtype``; ``frame_index`` True
+        sends its own index, None leaves it to the session) or a message packed already (client.codec.encode_frame).
+        Returns a FrameResult: the (H, W, 3) float32 output and its FrameInfo (round trip: from sending until the
+        output was read)."""
         from websockets.exceptions import ConnectionClosed
 
-        from service.sessions.stream_codec import decode_output, encode_bundle
+        from client.codec import decode_output, encode_bundle
 
         data = frame if isinstance(frame, (bytes, bytearray, memoryview)) else encode_bundle(
             frame, dtype=self.dtype, output_dtype=self.output_dtype, frame_index=frame_index, buffers=self.buffers)
@@ -103,7 +106,17 @@ class SessionStream:
         if isinstance(answer, str):
             raise _answer_error(answer)
         output = decode_output(answer)
-        return output.image, _frame_info(output.header, round_trip_ms)
+        return FrameResult(output.image, _frame_info(output.header, round_trip_ms))
+
+    def send_arrays(self, *, color: np.ndarray, albedo: np.ndarray, normal: np.ndarray, depth: np.ndarray,
+                    motion: np.ndarray, jitter: tuple[float, float] = (0.0, 0.0), frame_index: int | None = None,
+                    camera_cut: bool = False, **optional: np.ndarray) -> FrameResult:
+        """``DenoiserClient.send_arrays`` over this WebSocket: a renderer's arrays, packed as they are (no EXR)."""
+        from client.frames import make_frame
+
+        frame = make_frame(color=color, albedo=albedo, normal=normal, depth=depth, motion=motion, jitter=jitter,
+                           frame_index=frame_index, camera_cut=camera_cut, **optional)
+        return self.send(frame, frame_index=frame_index)
 
     def close(self) -> None:
         self._socket.close()
@@ -154,23 +167,33 @@ def _closed_error(error) -> ApiClientError:
 def file_sender(stream: SessionStream, bundles: bool,
                 layout: str | dict | None) -> Callable[[Path], tuple[bytes, FrameInfo]]:
     """For DenoiserClient.stream_sequence: frame file -> (the output as a float32 RGB EXR, its FrameInfo). Frame
-    bundle files (``bundles``) are read leniently (the session repairs NaN / Inf), a renderer's files in ``layout``
-    (default denoiser) in live mode, as the session would read them; a file without a frame index leaves it to the
-    session."""
-    from model.io.exr import encode_image_exr, read_frame
-    from model.layouts import layout_from_value, read_layout_frame
+    bundle files (``bundles``) are read as they are (the session repairs NaN / Inf; client.frames), a renderer's files
+    in ``layout`` (default denoiser) in live mode, as the session would read them; a file without a frame index
+    leaves it to the session.
 
-    reader = None if bundles else layout_from_value(layout or "denoiser")
+    A layout other than ``denoiser`` is read by the model library's layout readers (model.layouts: NumPy and
+    OpenEXR, never torch; tests/test_layers.py proves it), the one part of the model library the client imports:
+    every renderer's channel names and conventions are known there once. Frame bundles need no model import."""
+    from client.frames import encode_image_exr, read_frame_exr
+
+    if bundles or layout in (None, "denoiser"):
+        def read(path: Path):
+            frame = read_frame_exr(path)
+            return frame, bundles or frame.frame_index is not None
+    else:
+        from model.layouts import layout_from_value, read_layout_frame
+
+        reader = layout_from_value(layout)
+
+        def read(path: Path):
+            result = read_layout_frame(path, reader, mode="live")
+            return result.frame, result.frame_index_given
 
     def send(path: Path) -> tuple[bytes, FrameInfo]:
-        if reader is None:
-            frame, given = read_frame(path, sanitizable=True), True
-        else:
-            read = read_layout_frame(path, reader, mode="live")
-            frame, given = read.frame, read.frame_index_given
+        frame, given = read(path)
         image, info = stream.send(frame, frame_index=True if given else None)
         attributes = {"frame_index": info.frame_index, "sequence": frame.sequence,
                       "scale": image.shape[0] // frame.height}
-        return encode_image_exr(image, attributes), info
+        return encode_image_exr(image, {key: value for key, value in attributes.items() if value is not None}), info
 
     return send

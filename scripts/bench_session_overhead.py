@@ -44,7 +44,7 @@ from model.deployment.malloc import tune_for_large_frames  # noqa: E402
 from model.methods.base import FrameBatch  # noqa: E402
 from model.methods.registry import build_method  # noqa: E402
 from client.rest import FRAME_COMPRESSIONS, DenoiserClient, frame_bytes  # noqa: E402
-from service.sessions.stream_codec import DTYPES, encode_bundle  # noqa: E402
+from client.codec import DTYPES, encode_bundle  # noqa: E402
 from model.io.synthetic import moving_pattern_frames  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

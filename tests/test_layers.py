@@ -27,17 +27,16 @@ FORBIDDEN = {
     "service-domain": {"workers", "cli", SERVICE_HTTP, "fastapi", "starlette", "uvicorn"},
     "workers": {"service", "cli", "fastapi", "starlette"},
     "cli": {"service", "workers"},
-    "client": {"torch", "model", "core", "service", "workers", "cli", "numpy", "mlflow"},
+    "client": {"torch", "model", "core", "service", "workers", "cli", "mlflow"},
 }
 # Imports a layer may make inside a function only (never when the module is imported), with the reason.
 DEFERRED = {
-    # Sending and receiving frames: the client encodes and decodes EXR frame bundles with the model library's
-    # readers (numpy, OpenEXR; never torch) when, and only when, a frames call is made. `import client.rest`
-    # loads none of it (the subprocess test below proves it with torch and model blocked).
-    ("client", "model.io.exr"), ("client", "model.io.frames"), ("client", "model.io.dataset"), ("client", "model.io.importer"),
-    # A session's WebSocket (client.stream): its messages are packed by the codec the API shares (NumPy only), and
-    # a renderer's frames are read in their layout on the client before they are sent.
-    ("client", "service.sessions.stream_codec"), ("client", "model.layouts"),
+    # The client reads and writes frame bundles itself (client.frames) and owns the WebSocket's wire format
+    # (client.codec, which the server imports). The one thing it borrows: streaming a renderer's folder over the
+    # WebSocket in a layout other than denoiser reads the frames with the library's layout readers, which hold every
+    # renderer's channel names and conventions once; model.layouts loads NumPy and OpenEXR, never torch (the
+    # subprocess test below proves it). Frame bundles, arrays and the HTTP transport need no model import at all.
+    ("client", "model.layouts"),
 }
 # What a forbidden package may still import, each with its reason.
 ALLOWED = {
@@ -144,7 +143,7 @@ def test_the_service_splits_into_its_http_layer_and_its_domain():
     ("service-domain", "service.datasets.catalog", False),
     ("service-domain", "core.registry", False),
     ("workers", "service.sessions.store", True),
-    ("model", "service.sessions.stream_codec", True),
+    ("model", "client.codec", True),
     ("workers", "service.http.errors", True),
     ("core", "celery", True),
     ("core", "fastapi.responses", True),
@@ -153,7 +152,10 @@ def test_the_service_splits_into_its_http_layer_and_its_domain():
     ("client", "torch", True),
     ("client", "model.io.exr", True),
     ("client", "core.names", False),
-    ("client", "numpy", True),
+    ("client", "numpy", False),
+    ("client", "model.io.exr", True),
+    ("client", "service.sessions.store", True),
+    ("service-domain", "client.codec", False),
     ("cli", "workers.ddp", False),
     ("cli", "workers.tasks.jobs", True),
     ("service", "core.celery_app", False),
@@ -171,10 +173,20 @@ def test_only_the_celery_app_module_of_core_imports_celery():
     assert breaks_rule("core", "fastapi", module="core/celery_app.py")
 
 
-def test_the_client_reads_frames_with_the_library_only_inside_a_function():
-    assert breaks_rule("client", "model.io.exr.read_frame", in_function=False)
-    assert not breaks_rule("client", "model.io.exr.read_frame", in_function=True)
+def test_the_client_reads_a_renderers_layout_with_the_library_only_inside_a_function():
+    assert breaks_rule("client", "model.layouts.read_layout_frame", in_function=False)
+    assert not breaks_rule("client", "model.layouts.read_layout_frame", in_function=True)
+    assert breaks_rule("client", "model.io.exr.read_frame", in_function=True)
     assert breaks_rule("client", "torch", in_function=True)
+
+
+def test_the_layout_readers_the_client_borrows_never_load_torch():
+    probe = ("import sys\n"
+             "import model.layouts\n"
+             "from client.stream import file_sender\n"
+             "assert 'torch' not in sys.modules, sorted(m for m in sys.modules if m.startswith('torch'))[:5]\n")
+    result = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
 
 
 def test_imports_are_read_everywhere_in_a_module(tmp_path):
@@ -193,7 +205,7 @@ def test_the_api_process_never_loads_celery_tasks_and_the_client_never_loads_tor
              "        if name.split('.')[0] in ('torch', 'model'):\n"
              "            raise ImportError(f'blocked: {name}')\n"
              "sys.meta_path.insert(0, Block())\n"
-             "import client.rest\n"
+             "import client.rest, client.stream, client.frames, client.codec, client.answers\n"
              "sys.meta_path.pop(0)\n"
              "import service.http.app\n"
              "from service.http.dispatch import get_dispatcher\n"
@@ -202,3 +214,9 @@ def test_the_api_process_never_loads_celery_tasks_and_the_client_never_loads_tor
              "assert not loaded, loaded\n")
     result = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_the_pyfunc_wrapper_imports_only_the_library_of_ours():
+    # It travels inside each logged model with a copy of model/ and nothing else of ours (core.tracking).
+    ours = [name for _, name in imports_of(ROOT / "core" / "pyfunc_model.py") if name.split(".")[0] in OURS]
+    assert ours and all(name.split(".")[0] == "model" for name in ours), ours

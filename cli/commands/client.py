@@ -73,7 +73,8 @@ def _talks_to_server(run):
 
 
 def _print_json(value) -> None:
-    print(json.dumps(value, indent=2, default=str))
+    """The client's typed answers print as the JSON the server sent (to_dict)."""
+    print(json.dumps(value, indent=2, default=lambda item: item.to_dict() if hasattr(item, "to_dict") else str(item)))
 
 
 # --------------------------------------------------------------------------------------------- datasets
@@ -525,7 +526,8 @@ def _add_stream(commands, common) -> None:
                     "The session is deleted at the end.")
     parser.add_argument("sequence_dir", type=Path, metavar="SEQUENCE_DIR",
                         help="sequence folder (manifest.json + frame EXRs), or a plain folder of a renderer's frame "
-                             "EXRs (sent in name order)")
+                             "EXRs (sent in name order; its other files, a manifest.json of another format "
+                             "included, are ignored and named)")
     parser.add_argument("--layout", default=None, metavar="NAME|FILE",
                         help="how the session reads the frames: a built-in layout (denoiser, blender-cycles, "
                              "generic) or a layout file (.toml, .json); default denoiser")
@@ -547,24 +549,27 @@ def _add_stream(commands, common) -> None:
                         help="websocket (default): the frames go as raw arrays over one WebSocket, read here (a plain "
                              "folder in --layout); http: each frame is POSTed as an EXR file, for the session to "
                              "read")
+    parser.add_argument("--png", action="store_true",
+                        help="also write OUT/frame_NNNN.png, display-encoded (clip(x, 0, 1) ** (1/2.2), 8 bit)")
     parser.add_argument("--quiet", action="store_true", help="print only the summary")
     parser.set_defaults(run=_talks_to_server(_run_stream))
 
 
 def _run_stream(args) -> int:
-    from model.io.dataset import Sequence
-
-    from model.io.importer import frame_files
+    from client.frames import FrameFileError, is_sequence_folder, renderer_frame_files, sequence_frame_files
     from model.layouts import BUILTIN_LAYOUTS, LayoutError, read_layout_file
 
     if not args.sequence_dir.is_dir():
         raise UsageError(f"{args.sequence_dir} is not a folder")
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file; give a folder")
-    if (args.sequence_dir / "manifest.json").is_file():
-        frames = len(Sequence(args.sequence_dir))
-    else:
-        frames = len(frame_files(args.sequence_dir))  # DatasetError (exit 2) when there are none
+    try:  # only this project's manifest makes a sequence folder; a renderer's own is one more file to ignore
+        if is_sequence_folder(args.sequence_dir):
+            frames = len(sequence_frame_files(args.sequence_dir)[0])
+        else:
+            frames = len(renderer_frame_files(args.sequence_dir)[0])
+    except FrameFileError as error:
+        raise UsageError(str(error)) from None
     layout = args.layout
     if layout is not None and layout not in BUILTIN_LAYOUTS:
         try:  # a file: the session gets the layout itself (the server cannot read the client's files)
@@ -599,7 +604,7 @@ def _run_stream(args) -> int:
         try:
             summary = client.stream_sequence(session["id"], args.sequence_dir, args.out,
                                              strip_references=not args.keep_references, on_frame=report,
-                                             transport=args.transport, layout=layout)
+                                             transport=args.transport, layout=layout, png=args.png)
         finally:
             if not args.keep_session:
                 _delete_quietly(client, session["id"])
@@ -608,7 +613,12 @@ def _run_stream(args) -> int:
           f"median inference {_ms(numbers['median_inference_ms'])}, server {_ms(numbers['median_server_ms'])}, "
           f"round trip {_ms(numbers['median_round_trip_ms'])}; history: "
           + ", ".join(f"{k} {v}" for k, v in numbers["history"].items()))
-    print(f"wrote {len(summary.files)} EXR(s) to {args.out}")
+    if summary.ignored:
+        shown = ", ".join(summary.ignored[:5]) + (f" and {len(summary.ignored) - 5} more" if len(summary.ignored) > 5
+                                                  else "")
+        print(f"ignored {len(summary.ignored)} file(s) that are not frames: {shown}", file=sys.stderr)
+    print(f"wrote {len(summary.files)} EXR(s)" + (f" and {len(summary.pngs)} PNG(s)" if summary.pngs else "")
+          + f" to {args.out}")
     return 0
 
 

@@ -147,6 +147,8 @@ def _run_import(args) -> int:
           f"(references at scales: {scales})")
     if report.ignored_channels:
         print(f"ignored channels: {', '.join(report.ignored_channels)}")
+    if report.ignored_files:  # a renderer's own manifest.json, previews: not frames, not read
+        print(f"ignored {len(report.ignored_files)} file(s) that are not frames: {', '.join(report.ignored_files)}")
     for repair in report.repairs:
         print(f"repaired {repair}")
     for warning in report.warnings:

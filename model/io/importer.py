@@ -1,6 +1,7 @@
 """Importing a renderer's frames: a folder of EXRs in some layout -> one validated sequence of a dataset.
 
-A renderer's sequence folder holds one EXR per frame (``*.exr``, in name order; other files are skipped) and,
+A renderer's sequence folder holds one EXR per frame (``*.exr``, in name order; other files, a renderer's or a
+pipeline's own manifest.json among them, are skipped and named in the report) and,
 optionally, high-sample renders of the same frames under the same names in a ``references/`` subfolder (or
 another folder given as ``references``). Each frame is read in the layout (``model.layouts``, mode "import":
 lossy-compressed normals are renormalised), numbered by its position, given its reference (a render at an integer
@@ -34,6 +35,7 @@ class ImportReport:
     ignored_channels: list[str] = field(default_factory=list)
     repairs: list[str] = field(default_factory=list)  # "frame_0003.exr: normal: 12 pixels renormalised ..."
     warnings: list[str] = field(default_factory=list)
+    ignored_files: list[str] = field(default_factory=list)  # files of the folder that are not frames
 
 
 def frame_files(folder: Path) -> list[Path]:
@@ -45,6 +47,12 @@ def frame_files(folder: Path) -> list[Path]:
     if not files:
         raise DatasetError(f"{folder} holds no .exr files")
     return files
+
+
+def ignored_files(folder: Path, frames: list[Path]) -> list[str]:
+    """The files directly in ``folder`` that are not among ``frames`` (a renderer's manifest.json, previews)."""
+    chosen = set(frames)
+    return sorted(path.name for path in folder.iterdir() if path.is_file() and path not in chosen)
 
 
 def reference_files(frames: list[Path], references: Path | None) -> list[Path] | None:
@@ -98,7 +106,7 @@ def import_sequence(source: str | Path, layout: Layout, out: str | Path, *, name
     target = dataset.root / name
     if target.exists() and not overwrite:
         raise FileExistsError(f"sequence {target} already exists; pass overwrite to replace it")
-    report = ImportReport(sequence=target)
+    report = ImportReport(sequence=target, ignored_files=ignored_files(source, files))
     checks = SequenceChecks(hints=layout.name)
     ignored: set[str] = set()
     metadata = {"imported_from": str(source), "layout": layout.name,

@@ -11,12 +11,13 @@ Errors are the library's (FrameError, DatasetError); ``service.datasets.ingest``
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import OpenEXR
 
-from model.io.dataset import MANIFEST, DatasetError
+from model.io.dataset import DATASET_FORMAT, MANIFEST, SEQUENCE_FORMAT, DatasetError
 from model.io.exr import CHANNEL_SLOTS, REFERENCE_PART_PATTERN, write_frame
 from model.io.importer import import_sequence
 from model.layouts import BUILTIN_LAYOUTS, Layout, read_layout_frame
@@ -28,6 +29,7 @@ class UploadNotes:
 
     ignored_channels: set[str] = field(default_factory=set)
     warnings: list[str] = field(default_factory=list)
+    ignored_files: list[str] = field(default_factory=list)  # upload paths that are not frames, left out
 
 
 def _has_only_frame_channels(path: Path) -> bool:
@@ -55,6 +57,13 @@ def strip_unused_channels(root: Path, notes: UploadNotes) -> None:
         write_frame(path, read.frame)
 
 
+def _manifest_format(path: Path):
+    try:
+        return json.loads(path.read_text()).get("format")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def _holds_frames(folder: Path) -> bool:
     return any(path.suffix.lower() == ".exr" for path in folder.iterdir() if path.is_file())
 
@@ -65,10 +74,13 @@ def import_renderer_folders(root: Path, top: Path, destination: Path, layout: La
     ``destination``; return it.
 
     ``top`` (``root`` or a single folder it wraps) is one sequence folder (its frames directly inside) or a folder
-    of them; a sequence is named after its folder."""
-    if (top / MANIFEST).is_file():
-        raise DatasetError(f"the upload holds {MANIFEST} (the frame bundle format); upload it without layout= (or "
-                           f"layout=denoiser)")
+    of them; a sequence is named after its folder. A manifest.json is this project's only when its ``format`` says
+    so; a renderer's or a pipeline's own, like any file that is not a frame EXR, is left out and named in ``notes``."""
+    ours = [folder for folder in [top, *sorted(p for p in top.iterdir() if p.is_dir())]
+            if _manifest_format(folder / MANIFEST) in (SEQUENCE_FORMAT, DATASET_FORMAT)]
+    if ours:
+        raise DatasetError(f"the upload holds {ours[0].relative_to(root) / MANIFEST} (the frame bundle format); "
+                           f"upload it without layout= (or layout=denoiser)")
     if _holds_frames(top):
         if top == root:
             raise DatasetError("the archive holds frame EXRs at its top level; put each sequence's frames in a "
@@ -81,6 +93,7 @@ def import_renderer_folders(root: Path, top: Path, destination: Path, layout: La
                                f"sequence holding its frames, and optionally references/)")
     for folder in folders:
         report = import_sequence(folder, layout, destination, split=split)
+        notes.ignored_files.extend(str((folder / name).relative_to(root)) for name in report.ignored_files)
         notes.ignored_channels.update(report.ignored_channels)
         notes.warnings.extend(f"{folder.name}: {warning}" for warning in report.warnings)
     return destination

@@ -32,7 +32,7 @@ from model.io.frames import FrameError
 from service.datasets import errors as upload
 from service.sessions import store as sessions
 from service.sessions.models import SessionModelInvalid, SessionModelNotFound
-from service.sessions.stream_codec import StreamFrameTooLarge, StreamMessageError
+from client.codec import StreamFrameTooLarge, StreamMessageError
 
 log = logging.getLogger("denoiser.api")
 

@@ -1,4 +1,4 @@
-"""A session stream's frame message (service.sessions.stream_codec.StreamFrame) straight to the FrameBatch a step takes.
+"""A session stream's frame message (client.codec.StreamFrame) straight to the FrameBatch a step takes.
 
 The reference reading of a stream frame is model.layouts.read_bundle_buffers (what a POSTed EXR of the ``denoiser``
 layout goes through in a live session) followed by FrameBatch.from_bundles: NumPy, and shaped for EXR files, so
@@ -30,7 +30,7 @@ from model.io.frames import LOBE_SPLIT_TOLERANCE, NORMAL_LENGTH_TOLERANCE
 from model.layouts.read import read_bundle_buffers
 from model.methods.base import FrameBatch
 from model.io.sanitize import bounds_need_no_repair
-from service.sessions.stream_codec import StreamFrame
+from client.codec import StreamFrame
 
 # Test bounds drawn this much inside the reference's, so float rounding (torch's sums against NumPy's) can never
 # call a frame clean that the reference would repair or refuse; a frame this close to a bound goes the slow way.

@@ -6,6 +6,7 @@ import argparse
 import io
 import json
 import sys
+import shutil
 import zipfile
 
 import pytest
@@ -282,6 +283,40 @@ def test_stream_takes_a_plain_folder_of_a_renderers_frames_with_its_layout(api, 
     assert main(["stream", str(BLENDER_ORBIT), "--layout", "arnold", "--model", "wskpn-xs", "--out",
                  str(tmp_path / "out3")]) == 2
     assert "not a built-in layout" in capsys.readouterr().err
+
+
+def test_stream_reads_a_renderers_folder_beside_its_own_manifest_and_writes_pngs(api, tmp_path, capsys):
+    from tests.model.layouts.exr_builders import BLENDER_ORBIT
+
+    folder = tmp_path / "orbit"
+    shutil.copytree(BLENDER_ORBIT, folder)
+    (folder / "manifest.json").write_text(json.dumps({"format": None, "renderer": "cycles"}))
+    assert main(["stream", str(folder), "--layout", "blender-cycles", "--model", "wskpn-xs", "--out",
+                 str(tmp_path / "out"), "--transport", "http", "--png", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "ignored 2 file(s) that are not frames: cameras.json, manifest.json" in captured.err
+    assert "wrote 4 EXR(s) and 4 PNG(s)" in captured.out
+    names = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert names == [f"frame_000{i}.{suffix}" for i in range(4) for suffix in ("exr", "png")]
+    # A frame bundle sequence (this project's manifest) gets its PNGs too: the display encoding of each output.
+    sequence = write_frame_sequence(tmp_path / "data", "seq_a", 2)
+    assert main(["stream", str(sequence), "--model", "wskpn-xs", "--out", str(tmp_path / "b"), "--transport", "http",
+                 "--png", "--quiet"]) == 0
+    from client.frames import decode_image_exr, display_encode, encode_png
+
+    output = decode_image_exr((tmp_path / "b" / "frame_0001.exr").read_bytes())
+    assert (tmp_path / "b" / "frame_0001.png").read_bytes() == encode_png(output)
+    assert display_encode(output).max() > 0
+
+
+def test_upload_leaves_a_renderers_own_manifest_out(api, tmp_path, capsys):
+    root = tmp_path / "export"
+    write_frame_sequence(root, "seq_a", 2)
+    (root / "manifest.json").write_text(json.dumps({"pipeline": "nuke", "shots": ["seq_a"]}))
+    assert main(["upload", str(root), "--name", "mixed"]) == 0
+    assert sorted(api.uploads[-1][3]) == ["export/seq_a/frame_0000.exr", "export/seq_a/frame_0001.exr",
+                                          "export/seq_a/manifest.json"]
+    assert "left out 1 file(s) no manifest lists: manifest.json" in capsys.readouterr().err
 
 
 def test_upload_with_a_layout_sends_the_render_folder_or_converts_it_with_a_layout_file(api, tmp_path, capsys):

@@ -2,7 +2,8 @@
 
 It speaks the contract's shapes (error shape, 201/202/204 statuses, Location headers, job records, session
 frame headers and frame-index rules) without FastAPI, Redis, Celery or MLflow, so client tests do not depend on
-the server's modules. Jobs move along a script, one step per GET, so following them is deterministic.
+the server's modules; a session in the denoiser layout reads frames with client.frames, so the fake runs where
+torch and the model library cannot be imported (tests/client/test_torch_free.py). Jobs move along a script, one step per GET, so following them is deterministic.
 """
 
 from __future__ import annotations
@@ -17,8 +18,7 @@ from dataclasses import dataclass, field
 import httpx
 import numpy as np
 
-from model.io.exr import encode_image_exr
-from model.layouts import layout_from_value, read_layout_frame_bytes
+from client.frames import FrameFileError, encode_image_exr, read_frame_exr
 from client.rest import DenoiserClient
 from core.names import JOB_KINDS
 
@@ -294,12 +294,19 @@ class FakeApi:
         if session is None:
             return error(404, "not_found", "session does not exist or expired")
         try:  # as the server reads it: in the session's layout
-            read = read_layout_frame_bytes(request.content, layout_from_value(session.layout), "request body",
-                                           mode="live")
-        except ValueError as problem:
+            if session.layout == "denoiser":
+                frame = read_frame_exr(request.content)
+                given, ignored = frame.frame_index is not None, []
+            else:
+                from model.layouts import layout_from_value, read_layout_frame_bytes
+
+                read = read_layout_frame_bytes(request.content, layout_from_value(session.layout), "request body",
+                                               mode="live")
+                frame, given, ignored = read.frame, read.frame_index_given, read.ignored_channels
+        except (ValueError, FrameFileError) as problem:
             return error(400, "invalid_frame", str(problem))
-        frame = read.frame
-        index = frame.frame_index if read.frame_index_given else (session.next_frame_index or 0)
+        color = frame.buffers["color"] if hasattr(frame, "buffers") else frame.color
+        index = frame.frame_index if given else (session.next_frame_index or 0)
         if session.next_frame_index is None:
             history = "started"
         elif frame.camera_cut and index == session.next_frame_index:
@@ -316,10 +323,10 @@ class FakeApi:
         session.frames_processed += 1
         scale = self.output_scale
         # A recognisable "denoised" output: half the noisy color, repeated to the output resolution.
-        rgb = np.repeat(np.repeat(frame.color * 0.5, scale, axis=0), scale, axis=1)
+        rgb = np.repeat(np.repeat(color * 0.5, scale, axis=0), scale, axis=1)
         data = encode_image_exr(rgb)
         headers = {"Content-Type": "image/x-exr", "X-Frame-Index": str(index), "X-Inference-Ms": "1.5",
                    "X-Server-Ms": "2.25", "X-History": history}
-        if read.ignored_channels:
-            headers["X-Ignored-Channels"] = ", ".join(read.ignored_channels)
+        if ignored:
+            headers["X-Ignored-Channels"] = ", ".join(ignored)
         return httpx.Response(200, content=data, headers=headers)

@@ -344,14 +344,26 @@ def test_send_frame_returns_rgb_and_parsed_headers(api, client, tmp_path):
     assert (info.value.status, info.value.code) == (409, "frame_out_of_order")
 
 
-def test_frame_bytes_drops_references_unless_asked(tmp_path):
+def test_frame_bytes_drops_references_unless_a_file_is_sent_as_it_is(tmp_path):
     frame = make_frame(0, scales=(1, 2))
+    path = write_frame(tmp_path / "frame.exr", frame)
     stripped = tmp_path / "stripped.exr"
-    stripped.write_bytes(frame_bytes(frame))
-    kept = tmp_path / "kept.exr"
-    kept.write_bytes(frame_bytes(frame, strip_references=False))
-    assert read_frame(stripped).scales == () and read_frame(kept).scales == (1, 2)
-    assert stripped.stat().st_size < kept.stat().st_size
+    stripped.write_bytes(frame_bytes(path))
+    assert frame_bytes(path, strip_references=False) == path.read_bytes()
+    assert read_frame(stripped).scales == () and read_frame(path).scales == (1, 2)
+    assert stripped.stat().st_size < path.stat().st_size
+    # A model FrameBundle is encoded without its references, with the same render buffers and header.
+    again = read_frame(_written(tmp_path, frame_bytes(frame)))
+    np.testing.assert_array_equal(again.color, frame.color)
+    np.testing.assert_array_equal(again.motion, frame.motion)
+    assert (again.jitter, again.frame_index, again.sequence, again.scales) == (frame.jitter, frame.frame_index,
+                                                                            frame.sequence, ())
+
+
+def _written(tmp_path, data: bytes):
+    path = tmp_path / "written.exr"
+    path.write_bytes(data)
+    return path
 
 
 def test_session_errors(api, client):

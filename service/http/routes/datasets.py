@@ -88,8 +88,10 @@ def _layout(name: str | None) -> Layout | None:
 
 
 def _note_headers(response: Response, notes: UploadNotes) -> None:
-    """X-Ignored-Channels and X-Import-Warnings, when there is something to say (non-ASCII escaped)."""
+    """X-Ignored-Channels, X-Ignored-Files (files of a renderer's folders that are not frames, a renderer's own
+    manifest.json among them) and X-Import-Warnings, when there is something to say (non-ASCII escaped)."""
     headers = {"X-Ignored-Channels": ", ".join(sorted(notes.ignored_channels)),
+               "X-Ignored-Files": ", ".join(notes.ignored_files),
                "X-Import-Warnings": " | ".join(notes.warnings)}
     for key, value in headers.items():
         if value:

@@ -4,7 +4,7 @@ The same session, frame rules and model step as POST /sessions/{id}/frames (serv
 process_frame, the frame read as the ``denoiser`` layout reads it in live mode: service.sessions.stream_batch, which gives
 what model.layouts.read_bundle_buffers does, from the message's planes, as torch tensors), without the per-frame
 HTTP request and the EXR encode and decode on either side. Messages are packed by
-service.sessions.stream_codec (the protocol: docs/service.md, "Streaming over a WebSocket").
+client.codec (the protocol: docs/service.md, "Streaming over a WebSocket").
 
 One connection drives one session; its binary messages are frames, answered in order, one output message each. A
 frame the session refuses (bad input, frame order, a busy server) is answered with a JSON text message in the API's
@@ -39,7 +39,7 @@ from service.http.routes.sessions import SESSION_TOKEN_HEADER, check_owner
 from service.sessions.store import ReadFrame, SessionStore, get_session_store
 from core.settings import Settings, get_settings
 from service.sessions.stream_batch import stream_frame_batch
-from service.sessions.stream_codec import StreamMessageError, decode_frame, encode_output
+from client.codec import StreamMessageError, decode_frame, encode_output
 
 log = logging.getLogger("denoiser.sessions")
 

@@ -137,3 +137,13 @@ def test_the_command_imports_prints_and_refuses(tmp_path, capsys):
     layout.write_text(json.dumps(content))
     assert main(["import", "--layout", str(layout), str(BLENDER_ORBIT), "--out", str(out), "--name", "w"]) == 0
     assert "warning: motion: " in capsys.readouterr().err
+
+
+def test_a_renderers_own_manifest_and_other_files_are_ignored_and_named(tmp_path, capsys):
+    source = tmp_path / "orbit"
+    shutil.copytree(BLENDER_ORBIT, source)
+    (source / "manifest.json").write_text(json.dumps({"renderer": "cycles", "frames": 4}))  # no 'format'
+    report = import_sequence(source, BUILTIN_LAYOUTS["blender-cycles"], tmp_path / "data")
+    assert report.frames == 4 and report.ignored_files == ["cameras.json", "manifest.json"]
+    assert main(["import", "--layout", "blender-cycles", str(source), "--out", str(tmp_path / "cli")]) == 0
+    assert "ignored 2 file(s) that are not frames: cameras.json, manifest.json" in capsys.readouterr().out

@@ -76,7 +76,7 @@ def test_open_stream_gives_what_send_frame_gives(serve):
 
 
 def test_a_stream_sends_only_the_buffers_the_sessions_method_reads(serve, monkeypatch):
-    from service.sessions import stream_codec
+    from client import codec as stream_codec
 
     url = serve()
     frames = stream_frames(3, seed=5)

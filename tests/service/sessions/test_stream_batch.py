@@ -14,7 +14,7 @@ import service.sessions.stream_batch as stream_batch
 from model.io.frames import FrameError, NORMAL_LENGTH_TOLERANCE
 from model.methods.base import FrameBatch
 from service.sessions.stream_batch import stream_frame_batch
-from service.sessions.stream_codec import decode_frame, encode_bundle
+from client.codec import decode_frame, encode_bundle
 from tests.builders import synthetic_frame
 
 FIELDS = [field.name for field in dataclasses.fields(FrameBatch)]

@@ -49,6 +49,20 @@ def test_a_blender_cycles_render_folder_uploads_with_its_layout(api, storage, tm
     assert "blender-cycles" in refused.json()["error"]["message"]
 
 
+def test_a_renderers_own_manifest_in_its_folder_is_left_out_and_named(api, storage, tmp_path, make_archive):
+    folder = tmp_path / "orbit"
+    shutil.copytree(BLENDER_ORBIT, folder)
+    (folder / "manifest.json").write_text('{"format": "cycles-export/2", "frames": 4}')
+    response = upload(api, make_archive(tmp_path, prefix=""), name="own", layout="blender-cycles")
+    assert response.status_code == 201, response.text
+    assert response.headers["X-Ignored-Files"] == "orbit/cameras.json, orbit/manifest.json"
+    assert len(Dataset(storage.datasets / "own").sequence("orbit")) == 4
+    # This project's manifest is still read as one: a frame bundle upload sent with a renderer's layout is refused.
+    (folder / "manifest.json").write_text('{"format": "denoiser-sequence/1"}')
+    refused = upload(api, make_archive(tmp_path, prefix=""), name="ours", layout="blender-cycles")
+    assert refused.status_code == 400 and "upload it without layout=" in refused.json()["error"]["message"]
+
+
 def test_unknown_layouts_are_refused_before_reading_the_body(api):
     response = upload(api, b"PK\x05\x06" + bytes(18), layout="arnold")
     assert response.status_code == 400

@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from model.io.exr import decode_image_exr, encode_frame_exr
-from service.sessions.stream_codec import decode_output, encode_bundle, encode_frame
+from client.codec import decode_output, encode_bundle, encode_frame
 from tests.service.session_fixtures import (  # noqa: F401 (api: a fixture)
     MODEL_NAME,
     api,

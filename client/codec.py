@@ -1,7 +1,8 @@
 """The session stream's binary messages (GET /sessions/{id}/stream, a WebSocket): pack and unpack, NumPy only.
 
-Shared by the server (service.http.routes.session_stream) and the client (client.stream), so it imports neither torch
-nor anything of the server: a client that only streams frames needs NumPy. Every binary message, either way, is
+The wire format belongs to the client side: the client (client.stream) and the server
+(service.http.routes.session_stream) both import it, and it imports neither torch nor the model library, so a
+renderer that streams frames needs NumPy only. Every binary message, either way, is
 
     offset 0   4 bytes  magic b"DNST"
     offset 4   uint8    protocol version, 1
@@ -26,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from model.io.frames import BUFFERS, RENDER_BUFFERS
+from client.frames import BUFFER_COMPONENTS, REQUIRED_BUFFERS, Frame
 
 MAGIC = b"DNST"
 VERSION = 1
@@ -34,9 +35,9 @@ FRAME, OUTPUT = 1, 2  # message kinds
 PRELUDE = struct.Struct("<4sBBHI")  # magic, version, kind, reserved, JSON header length: 12 bytes
 ALIGNMENT = 16  # the arrays start at a multiple of this (the JSON header is padded with spaces)
 DTYPES: dict[str, np.dtype] = {"float16": np.dtype("<f2"), "float32": np.dtype("<f4")}
-# Render-resolution buffers a frame may carry (the frame bundle's, model.io.frames.BUFFERS) and the required ones.
-STREAM_BUFFERS: tuple[str, ...] = RENDER_BUFFERS
-REQUIRED_BUFFERS: tuple[str, ...] = tuple(name for name in STREAM_BUFFERS if BUFFERS[name].required)
+# Render-resolution buffers a frame may carry (the frame bundle's, client.frames.BUFFER_COMPONENTS); the required
+# ones are client.frames.REQUIRED_BUFFERS.
+STREAM_BUFFERS: tuple[str, ...] = tuple(BUFFER_COMPONENTS)
 FRAME_FIELDS = frozenset({"frame_index", "width", "height", "dtype", "buffers", "jitter", "camera_cut",
                           "output_dtype"})
 _KIND_NAMES = {FRAME: "frame", OUTPUT: "output"}
@@ -96,7 +97,7 @@ class StreamOutput:
 
 
 def _components(name: str) -> int:
-    return len(BUFFERS[name].components)
+    return len(BUFFER_COMPONENTS[name])
 
 
 def _prelude(kind: int, header: dict[str, Any]) -> bytes:
@@ -157,14 +158,16 @@ def encode_frame(buffers: Mapping[str, np.ndarray], *, frame_index: int | None, 
 
 def encode_bundle(frame, *, dtype: str = "float32", output_dtype: str = "float32",
                   frame_index: int | None | bool = True, buffers: Iterable[str] | None = None) -> bytes:
-    """A frame message of a model.io.frames.FrameBundle (its render-resolution buffers; references are never sent).
+    """A frame message of a client.frames.Frame or a model.io.frames.FrameBundle (its render-resolution buffers;
+    references are never sent).
     ``frame_index``: True sends the frame's own, None leaves it to the session (its next frame), an int sends it.
     ``buffers``: send only these of the frame's buffers (the session's method's, GET /sessions/{id}: model.buffers;
     required ones are sent anyway), None: all it has."""
     index = frame.frame_index if frame_index is True else frame_index
     wanted = set(STREAM_BUFFERS if buffers is None else buffers) | set(REQUIRED_BUFFERS)
     names = [name for name in STREAM_BUFFERS if name in wanted]
-    return encode_frame({name: getattr(frame, name) for name in names}, frame_index=index,
+    held = frame.buffers if isinstance(frame, Frame) else {name: getattr(frame, name, None) for name in names}
+    return encode_frame({name: held.get(name) for name in names}, frame_index=index,
                         jitter=frame.jitter, camera_cut=frame.camera_cut, dtype=dtype, output_dtype=output_dtype)
 
 

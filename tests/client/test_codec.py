@@ -1,4 +1,4 @@
-"""service.sessions.stream_codec: the session stream's messages round-trip, and malformed ones say what is wrong."""
+"""client.codec: the session stream's messages round-trip, and malformed ones say what is wrong."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from service.sessions.stream_codec import (
+from client.codec import (
     ALIGNMENT,
     PRELUDE,
     STREAM_BUFFERS,
@@ -158,6 +158,6 @@ def test_encoding_refuses_what_it_cannot_send():
 
 
 def test_the_codec_imports_without_torch():
-    code = ("import sys, service.sessions.stream_codec, client.rest, client.stream; "
+    code = ("import sys, client.codec, client.rest, client.stream; "
             "assert 'torch' not in sys.modules, 'torch'")
     subprocess.run([sys.executable, "-c", code], check=True)
