@@ -30,7 +30,7 @@ from typing import Any
 
 import redis
 
-from core.names import FINISHED_STATES, JOB_KINDS
+from core.names import FINISHED_STATES, JOB_KINDS, JOB_STATES
 
 DEFAULT_PREFIX = "denoiser:"
 LEASE_TTL_SECONDS = 30  # a killed worker's job counts as orphaned this long after its last heartbeat
@@ -160,6 +160,20 @@ class JobStore:
         matching = [r for r in records
                     if (kind is None or r["kind"] == kind) and (state is None or r["state"] == state)]
         return matching[offset:offset + limit], len(matching)
+
+    def counts(self) -> dict[tuple[str, str], int]:
+        """(kind, state) -> how many job records there are, for every kind and state (zeros included); two
+        fields per record, not whole records (the API's /metrics asks at every scrape)."""
+        counts = {(kind, state): 0 for kind in JOB_KINDS for state in JOB_STATES}
+        pipe = self.redis.pipeline()
+        for job_id in self.ids():
+            pipe.hmget(self.key(job_id), ["kind", "state"])
+        for kind, state in pipe.execute():
+            if kind is None or state is None:
+                continue  # deleted since the index was read
+            key = (json.loads(kind), json.loads(state))
+            counts[key] = counts.get(key, 0) + 1
+        return counts
 
     # ------------------------------------------------------------------------------------ updates
 

@@ -13,8 +13,9 @@ from fastapi import Depends, FastAPI
 from service.http.api_docs import install_api_docs
 from service.http.auth import UNAUTHORIZED_RESPONSE, require_api_key
 from service.http.errors import install_error_handlers
+from service.http.metrics import AppMetrics, RequestMetrics
 from service.http.request_limits import BodyReadTimeout
-from service.http.routes import datasets, health, jobs, models, session_stream, sessions
+from service.http.routes import datasets, health, jobs, metrics, models, session_stream, sessions
 from core.settings import get_settings
 
 API_VERSION = "1.0"
@@ -31,6 +32,7 @@ Trains and serves real-time neural denoisers (and 2x upscalers) for path-traced 
   that meets a quality or time constraint); the server keeps each session's temporal history. A session's frames
   can also go over one WebSocket, `/sessions/{session_id}/stream`, as raw arrays (README, "Streaming a session
   over a WebSocket"; not in this schema).
+* **/metrics**: Prometheus metrics (requests, session frames and step times, open sessions, jobs, queue depths).
 
 Errors: `{"error": {"code", "message", "details"}}` with a 4xx status for the caller's mistakes.
 Authentication: header `X-API-Key` when the server has `DENOISER_API_KEY` set.
@@ -47,8 +49,11 @@ async def _lifespan(app: FastAPI):
     check_deployment_key(get_settings())  # before anything starts: an exposed API without a real key must not run
     get_storage()
     store = get_session_store()
+    store.add_metrics(app.state.metrics.sessions)
     yield
+    store.remove_metrics(app.state.metrics.sessions)
     store.close()
+    app.state.metrics.close()
 
 
 def create_app() -> FastAPI:
@@ -58,9 +63,12 @@ def create_app() -> FastAPI:
     install_error_handlers(app)
     install_api_docs(app)
     app.add_middleware(BodyReadTimeout, timeout_seconds=get_settings().body_read_timeout_seconds)
+    # Added last, so outermost: it times every answer, the body-timeout's 408 included.
+    app.state.metrics = AppMetrics()
+    app.add_middleware(RequestMetrics, histogram=app.state.metrics.requests)
     app.include_router(health.router)
     protected = [Depends(require_api_key)]
-    for module in (datasets, jobs, models, sessions):
+    for module in (datasets, jobs, metrics, models, sessions):
         app.include_router(module.router, dependencies=protected, responses={401: UNAUTHORIZED_RESPONSE})
     # The session WebSocket checks the API key itself (it answers with a close code, not an HTTP error).
     app.include_router(session_stream.router)

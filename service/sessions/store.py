@@ -40,6 +40,7 @@ from model.io.frames import FrameBundle
 from model.deployment.inference_forms import load_form_table
 from model.methods.base import FrameBatch, Method, State
 from model.io.sanitize import SanitizeReport, sanitize_frame
+from service.sessions.metrics import MIRROR_DELETE, MIRROR_WRITE, SessionMetrics
 from service.sessions.state_codec import CompressionMemo, StateFormatError, decode_state, encode_state
 from core.registry import Registry, UnknownModelError, registry_for
 from service.sessions.models import (
@@ -388,6 +389,7 @@ class SessionStore:
                                                initializer=set_own_torch_threads, initargs=(1,))
         self._methods_lock = threading.Lock()  # one method load at a time, so each version loads once
         self._create_lock = threading.Lock()  # the capacity check and the insert are one step
+        self._metrics: tuple[SessionMetrics, ...] = ()  # replaced whole, so the frame path reads it without a lock
 
     # ------------------------------------------------------------------------------------ public
 
@@ -423,6 +425,20 @@ class SessionStore:
             self._mirror(session, wait=True)
         log.info("session %s created: %s", session.id, session.model.describe())
         return session
+
+    def add_metrics(self, sink: SessionMetrics) -> None:
+        """Report frames, step times and mirror failures to ``sink`` too (service.sessions.metrics)."""
+        with self._lock:
+            self._metrics = (*self._metrics, sink)
+
+    def remove_metrics(self, sink: SessionMetrics) -> None:
+        with self._lock:
+            self._metrics = tuple(known for known in self._metrics if known is not sink)
+
+    def count(self) -> int:
+        """How many sessions are open (as the DENOISER_MAX_SESSIONS check counts them; memory alone while Redis
+        is unreachable)."""
+        return len(self._live_ids())
 
     def get(self, session_id: str) -> Session:
         """The session as it is now (without loading its state when it is not in memory); SessionNotFound."""
@@ -462,6 +478,8 @@ class SessionStore:
                 self._redis(lambda client: client.delete(self._key(session_id)))
             except redis.RedisError as error:
                 log.warning("session %s: could not delete its Redis copy: %s", session_id, error)
+                for sink in self._metrics:
+                    sink.mirror_failed(MIRROR_DELETE)
         log.info("session %s deleted", session_id)
 
     def owner_digest(self, session_id: str) -> str | None:
@@ -526,6 +544,8 @@ class SessionStore:
             session.last_used_at = self.clock()
             session.revision += 1
             self._mirror(session, wait=False, start=start_mirror)
+            for sink in self._metrics:
+                sink.frame_processed(session.model.name, inference_ms / 1000)
             return FrameResult(output=image, frame_index=planned.frame.frame_index, history=planned.history,
                                inference_ms=inference_ms, sanitized=sanitized, session=session)
 
@@ -777,6 +797,8 @@ class SessionStore:
             session.mirrored_revision = max(session.mirrored_revision, snapshot.revision)
         except redis.RedisError as error:
             log.warning("session %s: could not mirror to Redis (a restart would lose it): %s", session.id, error)
+            for sink in self._metrics:
+                sink.mirror_failed(MIRROR_WRITE)
 
     def _purge_expired(self) -> None:
         """Drop idle sessions from memory (Redis drops them by their TTL); called on every store operation that

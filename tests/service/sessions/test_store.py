@@ -411,15 +411,39 @@ def test_concurrent_frames_of_one_session_are_serialized(make_store):
     assert session.frames_processed == 2
 
 
+class RecordedMetrics:
+    """A session metrics sink (service.sessions.metrics) that keeps what it is told."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[str, float]] = []
+        self.mirror_failures: list[str] = []
+
+    def frame_processed(self, model: str, step_seconds: float) -> None:
+        self.frames.append((model, step_seconds))
+
+    def mirror_failed(self, operation: str) -> None:
+        self.mirror_failures.append(operation)
+
+
 def test_sessions_keep_working_in_memory_when_redis_is_down(make_store, caplog):
     store = make_store()
+    metrics, removed = RecordedMetrics(), RecordedMetrics()
+    store.add_metrics(metrics)
+    store.add_metrics(removed)
+    store.remove_metrics(removed)
     session = store.create(MODEL_NAME)
     store.redis = redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2, socket_timeout=0.2,
                               retry=Retry(NoBackoff(), 0))  # Redis goes away
-    results = [store.process_frame(session.id, frame).history for frame in stream_frames(2)]
-    assert results == [STARTED, CONTINUED]
+    results = [store.process_frame(session.id, frame) for frame in stream_frames(2)]
+    assert [result.history for result in results] == [STARTED, CONTINUED]
     assert [s.id for s in store.list()] == [session.id]
+    assert store.count() == 1  # from memory
     assert "could not mirror to Redis" in caplog.text
+    assert store.flush(timeout=30)
+    store.delete(session.id)
+    assert metrics.frames == [(MODEL_NAME, result.inference_ms / 1000) for result in results]
+    assert metrics.mirror_failures == ["write", "write", "delete"]
+    assert removed.frames == [] and removed.mirror_failures == []
 
 
 def test_no_session_is_created_while_redis_is_down(registry_settings):
