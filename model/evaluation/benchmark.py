@@ -1,7 +1,9 @@
 """Speed against accuracy: evaluation reports (``model.evaluation.evaluate.evaluate``, one per scale) as one table and charts.
 
 Rows (one per method, preset and scale), a Markdown table, a JSON document, and two charts: quality against time
-per frame with each scale's Pareto front, and quality against cost. Details: docs/benchmark.md.
+per frame with each scale's Pareto front, and quality against cost. Point labels are placed so that none overlaps
+another or leaves the plot (``model.evaluation.chart_labels``). A benchmark that timed fewer than
+``MIN_TIMED_FRAMES`` frames per method says so in its table and chart. Details: docs/benchmark.md.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 
+from model.evaluation.chart_labels import PointLabel, freeze_layout, place_labels
 from model.evaluation.evaluate import COLUMNS, UNCOUNTED_COST, run_summary
 from model.evaluation.tables import cell, compact, table_row, table_rule, usable
 
@@ -23,7 +26,8 @@ ROW_METRICS = ("psnr", "flip", "ssim", "smape", "temporal_error", "fvvdp_jod")
 MARKERS = {1: "o", 2: "^", 4: "s"}
 SCALE_NAMES = {1: "x1 (output = render resolution)", 2: "x2 (output 2x render resolution)", 4: "x4"}
 FRONT_STYLES = {1: "--", 2: ":", 4: "-."}
-LABEL_OFFSETS = {1: (4, 3), 2: (4, -9)}  # points' labels: above right at x1, below right at x2
+# Fewer timed frames than this per method (after warm-up): the medians are noisy, and the table and chart say so.
+MIN_TIMED_FRAMES = 5
 
 BENCHMARK_JSON = "benchmark.json"
 BENCHMARK_MARKDOWN = "benchmark.md"
@@ -82,6 +86,7 @@ def rows_from_report(report: dict) -> list[dict]:
             "flops_per_pixel": entry.get("flops_per_pixel") if counted else None,
             **{key: metrics.get(key) for key in ROW_METRICS},
             "ms_per_frame": entry.get("ms_per_frame"), "time_ratio_to_oidn": entry.get("time_ratio_to_oidn"),
+            "frames_timed": (entry.get("timing") or {}).get("frames_timed"),
             "input_resolution": ", ".join(inputs), "output_resolution": ", ".join(outputs),
             "threads": report.get("threads"), "device": report.get("device"),
         })
@@ -142,6 +147,21 @@ def scale_caption(report: dict) -> str:
             f"{report['threads']} threads, {report['device']}; {reference_text}; {vdp_text}")
 
 
+def few_frames_note(rows: list[dict]) -> str | None:
+    """A warning when some timed row's median comes from fewer than ``MIN_TIMED_FRAMES`` frames; else None."""
+    counts: dict[int, int] = {}
+    for row in rows:
+        frames = row.get("frames_timed")
+        if usable(row.get("ms_per_frame")) and isinstance(frames, int):
+            counts[row["scale"]] = min(frames, counts.get(row["scale"], frames))
+    few = {scale: frames for scale, frames in sorted(counts.items()) if frames < MIN_TIMED_FRAMES}
+    if not few:
+        return None
+    where = ", ".join(f"{frames} at x{scale}" for scale, frames in few.items())
+    return (f"timed on fewer than {MIN_TIMED_FRAMES} frames per method ({where}): the ms per frame and time ratios "
+            f"are noise-prone; time more frames before relying on them")
+
+
 def format_benchmark_table(rows: list[dict], reports: Iterable[dict] = (), skipped: Iterable[dict] = ()) -> str:
     """Markdown: one caption line per scale, then one row per method/preset/scale; ``front`` names the quality
     measures for which the row is on its scale's Pareto front against time."""
@@ -152,6 +172,9 @@ def format_benchmark_table(rows: list[dict], reports: Iterable[dict] = (), skipp
         lines += [f"Benchmark on the {first['split']} split of {first['dataset']}.", ""]
         lines += [f"- {scale_caption(report)}" for report in reports]
         lines.append("")
+    note = few_frames_note(rows)
+    if note:
+        lines += [f"Note: {note}.", ""]
     header = (["method", "scale", "params", "FLOPs/px"]
               + [REFERENCE_HEADERS.get(key, COLUMNS[key][0]) for key in TABLE_COLUMNS] + ["front"])
     lines += [table_row(header), table_rule("l" + "r" * (len(header) - 2) + "l")]
@@ -199,8 +222,9 @@ def _colors(rows: list[dict]) -> dict[str, str]:
 
 
 def _panel(axis, rows: list[dict], x_key: str, y_key: str, y_higher: bool, colors: dict[str, str],
-           log_x: str) -> int:
-    """Scatter ``rows`` on one axis (marker by scale), label every point, draw each scale's Pareto front.
+           log_x: str, labels: list[PointLabel]) -> int:
+    """Scatter ``rows`` on one axis (marker by scale), draw each scale's Pareto front, and add every point's label
+    to ``labels`` (placed once the figure's layout is final: ``_label_points``).
 
     ``log_x``: "log" (positive values only) or "symlog" (zero allowed: parameter counts of filters).
     Returns the number of points drawn.
@@ -215,8 +239,7 @@ def _panel(axis, rows: list[dict], x_key: str, y_key: str, y_higher: bool, color
         for row in group:
             axis.scatter([row[x_key]], [row[y_key]], marker=marker, s=36, zorder=3,
                          color=colors[row.get("method") or row["label"]], edgecolors="black", linewidths=0.4)
-            axis.annotate(row["label"], (row[x_key], row[y_key]), textcoords="offset points",
-                          xytext=LABEL_OFFSETS.get(scale, (4, 3)), fontsize=7, zorder=4)
+            labels.append(PointLabel(row[x_key], row[y_key], row["label"]))
         drawn += len(group)
         points = [(row[x_key], row[y_key]) for row in group]
         front = pareto_front(points, y_higher_is_better=y_higher)
@@ -229,7 +252,7 @@ def _panel(axis, rows: list[dict], x_key: str, y_key: str, y_higher: bool, color
         axis.set_xscale("symlog", linthresh=1.0)
     else:
         axis.set_xscale("log")
-    axis.margins(x=0.12, y=0.06)  # room for the labels right of the last points
+    axis.margins(x=0.12, y=0.08)  # room for labels beside the outermost points
     axis.grid(True, which="both", alpha=0.3)
     if drawn:
         axis.legend(fontsize=7, loc="best")
@@ -243,6 +266,13 @@ def _title(rows: list[dict], title: str | None) -> str:
     return f"speed against accuracy ({scales})"
 
 
+def _label_points(figure: Figure, labels: dict) -> None:
+    """Place each axis's point labels (axis -> [PointLabel]) after the layout is fixed, where they fit."""
+    renderer = freeze_layout(figure)
+    for axis, points in labels.items():
+        place_labels(axis, points, renderer)
+
+
 def quality_speed_figure(rows: list[dict], title: str | None = None) -> Figure | None:
     """PSNR and FLIP (one panel each) against ms per frame (log scale); None when no row is timed and scored."""
     figure = Figure(figsize=(13, 5.5), layout="constrained")
@@ -252,13 +282,16 @@ def quality_speed_figure(rows: list[dict], title: str | None = None) -> Figure |
     devices = sorted({str(row["device"]) for row in rows if row.get("device")})
     conditions = ", ".join(filter(None, [f"{'/'.join(threads)} threads" if threads else "", "/".join(devices)]))
     drawn = 0
+    labels: dict = {}
     for axis, (key, label, higher) in zip(axes, QUALITY):
-        drawn += _panel(axis, rows, "ms_per_frame", key, higher, colors, "log")
+        drawn += _panel(axis, rows, "ms_per_frame", key, higher, colors, "log", labels.setdefault(axis, []))
         axis.set_xlabel(f"ms per frame (median{', ' + conditions if conditions else ''}; log scale)")
         axis.set_ylabel(label)
     if not drawn:
         return None
-    figure.suptitle(_title(rows, title), fontsize=11)
+    note = few_frames_note(rows)
+    figure.suptitle(_title(rows, title) + (f"\n{note}" if note else ""), fontsize=11)
+    _label_points(figure, labels)
     return figure
 
 
@@ -269,10 +302,11 @@ def quality_cost_figure(rows: list[dict], title: str | None = None) -> Figure | 
     axes = figure.subplots(len(QUALITY), 2)
     colors = _colors(rows)
     drawn = 0
+    labels: dict = {}
     for line, (key, label, higher) in zip(axes, QUALITY):
         for axis, (x_key, x_label) in zip(line, (("params", "parameters (symlog)"),
                                                  ("flops_per_pixel", "FLOPs per output pixel (symlog)"))):
-            drawn += _panel(axis, rows, x_key, key, higher, colors, "symlog")
+            drawn += _panel(axis, rows, x_key, key, higher, colors, "symlog", labels.setdefault(axis, []))
             axis.set_xlabel(x_label)
             axis.set_ylabel(label)
     if not drawn:
@@ -282,6 +316,7 @@ def quality_cost_figure(rows: list[dict], title: str | None = None) -> Figure | 
     if uncounted:
         figure.supxlabel(f"not shown: {', '.join(uncounted)} (network outside torch: parameters and FLOPs not "
                          f"counted)", fontsize=8, color="dimgray")
+    _label_points(figure, labels)
     return figure
 
 

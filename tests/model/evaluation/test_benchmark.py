@@ -10,6 +10,9 @@ import pytest
 from model.evaluation.benchmark import (QUALITY_COST_CHART, QUALITY_SPEED_CHART, benchmark_document, benchmark_rows,
                              format_benchmark_table, pareto_front, quality_cost_figure, quality_speed_figure,
                              rows_from_report, write_benchmark)
+from matplotlib.text import Text
+
+from model.evaluation.chart_labels import freeze_layout
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -221,3 +224,49 @@ def test_write_benchmark_writes_tables_and_both_charts(reports, tmp_path):
         assert files[name].read_bytes()[:8] == PNG_SIGNATURE and files[name].stat().st_size > 10_000
     assert json.loads(files["benchmark.json"].read_text())["rows"][0]["label"] == "identity"
     assert "| munet:s | x2 |" in files["benchmark.md"].read_text()
+
+
+def _dense_cluster(frames_timed: int | None = None) -> list[dict]:
+    """Two spread points and eighteen crowded together: three presets of fused, OIDN + TAA and OIDN at two scales
+    (in the cost chart OIDN + TAA and fused all sit at 0 parameters, on one vertical line)."""
+    entries = {1: [], 2: []}
+    entries[1].append(entry("identity", "identity", "default", 1, 0, 0.0, 16.0, 0.20, 0.01, 0.0002))
+    entries[2].append(entry("accumulation", "accumulation", "default", 2, 0, 0.0, 22.0, 0.17, 1.5, 0.03))
+    for number, (method, preset) in enumerate([(m, p) for m in ("fused", "oidn-taa", "oidn")
+                                               for p in ("fast", "balanced", "high")]):
+        for scale in (1, 2):
+            ms, psnr = 20.0 + 4 * number + scale, 31.0 + 0.15 * number - 0.4 * scale
+            entries[scale].append(entry(f"{method}:{preset}", method, preset, scale, 0, 0.0, psnr,
+                                        0.10 - 0.002 * number, ms, ms / 55.0))
+    reports = [report(scale, items) for scale, items in entries.items()]
+    for item in (e for r in reports for e in r["methods"]):
+        item["timing"] = {"frames_timed": frames_timed}
+    return benchmark_rows(reports)
+
+
+@pytest.mark.parametrize("figure_of", [quality_speed_figure, quality_cost_figure])
+def test_labels_of_a_dense_cluster_neither_overlap_nor_leave_the_plot(figure_of):
+    rows = _dense_cluster()
+    figure = figure_of(rows, title="dense")
+    renderer = freeze_layout(figure)  # drawn again, as saving draws it
+    for axis in figure.axes:
+        # The text's own box (an Annotation's includes its leader line, which may cross other labels' space).
+        boxes = [Text.get_window_extent(text, renderer) for text in axis.texts]
+        assert len(boxes) >= 10
+        frame = axis.get_window_extent(renderer)
+        for index, box in enumerate(boxes):
+            assert frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 and box.y1 <= frame.y1, \
+                axis.texts[index].get_text()
+            for other in boxes[index + 1:]:
+                assert not box.overlaps(other), (axis.texts[index].get_text(), box, other)
+        legend = axis.get_legend()
+        assert not any(box.overlaps(legend.get_window_extent(renderer)) for box in boxes)
+
+
+def test_a_benchmark_timed_on_fewer_than_5_frames_says_so_in_table_and_chart():
+    rows = _dense_cluster(frames_timed=2)
+    note = "timed on fewer than 5 frames per method (2 at x1, 2 at x2)"
+    assert note in format_benchmark_table(rows)
+    assert note in quality_speed_figure(rows).get_suptitle()
+    rows = _dense_cluster(frames_timed=5)
+    assert "fewer than" not in format_benchmark_table(rows) + quality_speed_figure(rows).get_suptitle()
