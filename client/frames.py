@@ -138,7 +138,8 @@ def encode_frame_exr(frame, *, compression: str = "none") -> bytes:
 
 def read_frame_exr(source: str | os.PathLike | bytes) -> Frame:
     """The render buffers and header of a frame bundle EXR (a path or bytes); references are left out. Values are
-    not checked (the server does, and repairs NaN / Inf); FrameFileError for a file that is not a frame bundle."""
+    not checked (the server does, and repairs NaN / Inf); a missing jitter reads as 0, as a session reads it.
+    FrameFileError for a file that is not a frame bundle."""
     name = "<bytes>" if isinstance(source, (bytes, bytearray, memoryview)) else str(source)
     data = bytes(source) if name == "<bytes>" else Path(source).read_bytes()
     if data[:4] != EXR_MAGIC:
@@ -168,9 +169,11 @@ def read_frame_exr(source: str | os.PathLike | bytes) -> Frame:
         raise FrameFileError(f"{name}: not a frame bundle: required buffer(s) {', '.join(missing)} missing "
                              f"(channels named <buffer>.<component>, docs/frame-format.md)")
     header = part.header
-    if "jitter" not in header:
-        raise FrameFileError(f"{name}: missing header attribute 'jitter' (sub-pixel sample offset, 2 floats)")
-    jitter = np.asarray(header["jitter"], dtype=np.float64)
+    # A live renderer's file may lack the jitter: a session reads it as 0 (docs/frame-format.md), so the client
+    # sends 0 rather than refusing what the server would take.
+    jitter = np.asarray(header.get("jitter", (0.0, 0.0)), dtype=np.float64).reshape(-1)
+    if jitter.shape != (2,):
+        raise FrameFileError(f"{name}: header attribute 'jitter' {header['jitter']!r} is not a pair of numbers")
     index = header.get("frame_index")
     frame = make_frame(**buffers, jitter=(float(jitter[0]), float(jitter[1])),
                        frame_index=index if isinstance(index, int) else None,

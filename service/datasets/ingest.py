@@ -50,27 +50,33 @@ class _Staged:
     scene: str | None
 
 
-def find_sequences(root: Path, default_split: str) -> list[_Staged]:
+def find_sequences(root: Path, default_split: str, ignored: list[str] | None = None) -> list[_Staged]:
     """Validate an unpacked upload and return its sequences; InvalidUpload naming the path on any problem.
 
     Accepted layouts: sequence folders (each with manifest.json) at the top or under one wrapping folder,
     a whole dataset folder (manifest.json with splits, possibly wrapped), or one sequence folder's contents.
-    Sequences without a split in the upload get ``default_split``.
+    Sequences without a split in the upload get ``default_split``. A manifest.json is this project's only when its
+    ``format`` says so: another (a renderer's or a pipeline's own) and any file that is not an EXR and lies outside
+    the sequences' frames is left out, its path appended to ``ignored``; an unlisted EXR or folder is still refused.
     """
+    ignored = [] if ignored is None else ignored
     top = _unwrap(root)
     try:
         if not (top / MANIFEST).is_file():
-            return _folder_sequences(top, root, default_split)
+            return _folder_sequences(top, root, default_split, ignored)
         manifest_format = _manifest_format(top / MANIFEST, root)
         if manifest_format == DATASET_FORMAT:
-            return _dataset_sequences(top, root)
+            return _dataset_sequences(top, root, ignored)
         if manifest_format == SEQUENCE_FORMAT:
-            return [_validated_sequence(top, root, default_split, check_folder_name=False)]
-        relative = _relative(top / MANIFEST, root)
-        raise InvalidUpload("invalid_dataset", f"{relative}: field 'format' is {manifest_format!r}, expected "
-                                               f"{SEQUENCE_FORMAT!r} or {DATASET_FORMAT!r}", {"path": relative})
+            return [_validated_sequence(top, root, default_split, ignored, check_folder_name=False)]
+        return _folder_sequences(top, root, default_split, ignored)  # a foreign manifest: one more file left out
     except (DatasetError, FrameError) as error:
         raise _invalid(error, root) from None
+
+
+def _foreign(entry: Path) -> bool:
+    """A file that is not a frame (nor this project's manifest, which the caller has read): left out of uploads."""
+    return entry.is_file() and entry.suffix.lower() != ".exr"
 
 
 def _unwrap(root: Path) -> Path:
@@ -96,22 +102,28 @@ def _manifest_format(path: Path, root: Path) -> Any:
     return content.get("format") if isinstance(content, dict) else None
 
 
-def _dataset_sequences(top: Path, root: Path) -> list[_Staged]:
+def _dataset_sequences(top: Path, root: Path, ignored: list[str]) -> list[_Staged]:
     dataset = Dataset(top)
     listed = {checked_sequence_name(name) for name in dataset.names()}
     for entry in sorted(top.iterdir()):
-        if entry.name != MANIFEST and entry.name not in listed:
+        if entry.name != MANIFEST and entry.name not in listed and _foreign(entry):
+            ignored.append(_relative(entry, root))
+        elif entry.name != MANIFEST and entry.name not in listed:
             relative = _relative(entry, root)
             raise InvalidUpload("invalid_dataset", f"{relative} is not listed in "
                                                    f"{_relative(top / MANIFEST, root)}", {"path": relative})
     if not listed:
         raise InvalidUpload("invalid_dataset", f"{_relative(top / MANIFEST, root)} lists no sequences",
                             {"path": _relative(top / MANIFEST, root)})
-    return [_validated_sequence(top / name, root, dataset.split_of(name)) for name in sorted(listed)]
+    return [_validated_sequence(top / name, root, dataset.split_of(name), ignored) for name in sorted(listed)]
 
 
-def _folder_sequences(top: Path, root: Path, split: str) -> list[_Staged]:
-    entries = sorted(top.iterdir())
+def _folder_sequences(top: Path, root: Path, split: str, ignored: list[str]) -> list[_Staged]:
+    ignored.extend(_relative(entry, root) for entry in sorted(top.iterdir()) if _foreign(entry))
+    entries = sorted(entry for entry in top.iterdir() if not _foreign(entry))
+    if not entries:
+        raise InvalidUpload("invalid_dataset", "the upload holds no sequence folder (folders holding manifest.json "
+                                               "and frame EXRs)", {"path": "."})
     for entry in entries:
         relative = _relative(entry, root)
         if not entry.is_dir():
@@ -121,10 +133,11 @@ def _folder_sequences(top: Path, root: Path, split: str) -> list[_Staged]:
         if not (entry / MANIFEST).is_file():
             raise InvalidUpload("missing_manifest", f"sequence folder {relative} has no {MANIFEST}",
                                 {"path": relative})
-    return [_validated_sequence(entry, root, split) for entry in entries]
+    return [_validated_sequence(entry, root, split, ignored) for entry in entries]
 
 
-def _validated_sequence(folder: Path, root: Path, split: str, check_folder_name: bool = True) -> _Staged:
+def _validated_sequence(folder: Path, root: Path, split: str, ignored: list[str],
+                        check_folder_name: bool = True) -> _Staged:
     """Open the sequence, read every frame (validated and checked against the manifest), and check the folder
     holds nothing else. The folder name must be the sequence's name: frames carry it in their headers."""
     sequence = Sequence(folder)
@@ -136,7 +149,9 @@ def _validated_sequence(folder: Path, root: Path, split: str, check_folder_name:
                             {"path": relative})
     listed = {sequence.frame_path(index).name for index in range(len(sequence))} | {MANIFEST}
     for entry in sorted(folder.iterdir()):
-        if entry.name not in listed:
+        if entry.name not in listed and _foreign(entry):
+            ignored.append(_relative(entry, root))
+        elif entry.name not in listed:
             path = _relative(entry, root)
             raise InvalidUpload("invalid_dataset", f"{path} is not a frame listed in {relative}/{MANIFEST}",
                                 {"path": path})
@@ -273,7 +288,7 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
             strip_unused_channels(unpacked, notes)
     except (DatasetError, FrameError) as error:
         raise _invalid(error, unpacked) from None
-    sequences = find_sequences(unpacked, split)
+    sequences = find_sequences(unpacked, split, notes.ignored_files)
     with dataset_lock(storage, dataset_id):
         if create:
             _create_dataset(storage, dataset_id, sequences, work)

@@ -8,6 +8,7 @@ import struct
 import zlib
 
 import numpy as np
+import OpenEXR
 import pytest
 
 from client.answers import Job, Model, Session
@@ -60,6 +61,20 @@ def test_make_frame_names_a_wrong_buffer():
         make_frame(**good, alpha=np.zeros((h, w)))
     with pytest.raises(FrameFileError, match="not an OpenEXR file"):
         read_frame_exr(b"not an exr")
+
+
+def test_a_frame_without_jitter_reads_as_zero_and_one_without_a_buffer_is_named(tmp_path):
+    h, w = 2, 3
+    planes = {f"{name}.{c}": np.full((h, w), 0.5, np.float32) for name, components in BUFFER_COMPONENTS.items()
+              if name in REQUIRED_BUFFERS for c in components}
+    path = str(tmp_path / "live.exr")
+    OpenEXR.File({"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage}, dict(planes)).write(path)
+    frame = read_frame_exr(path)
+    assert (frame.jitter, frame.frame_index, frame.width, frame.height) == ((0.0, 0.0), None, w, h)
+    del planes["motion.Y"]
+    OpenEXR.File({"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage}, planes).write(path)
+    with pytest.raises(FrameFileError, match="buffer 'motion' lacks channel\\(s\\) motion.Y"):
+        read_frame_exr(path)
 
 
 def test_output_images_and_their_display_png():

@@ -136,15 +136,23 @@ def test_unlisted_files_and_folders_are_refused(tmp_path, tiny_sequence):
         ingest.find_sequences(tmp_path / "data", "train")
 
 
-@pytest.mark.parametrize("content, message", [
-    ("{not json", "manifest.json: not valid JSON"),
-    ('{"format": "other/1"}', "field 'format' is 'other/1', expected"),
-])
-def test_unreadable_top_manifest_is_refused(tmp_path, content, message):
+def test_unreadable_top_manifest_is_refused(tmp_path):
     (tmp_path / "up").mkdir()
-    (tmp_path / "up" / "manifest.json").write_text(content)
-    with pytest.raises(errors.InvalidUpload, match=message):
+    (tmp_path / "up" / "manifest.json").write_text("{not json")
+    with pytest.raises(errors.InvalidUpload, match="manifest.json: not valid JSON"):
         ingest.find_sequences(tmp_path / "up", "train")
+
+
+def test_a_manifest_of_another_format_is_left_out(tmp_path, tiny_sequence):
+    tiny_sequence(tmp_path / "up" / "cam_7", 1)
+    (tmp_path / "up" / "manifest.json").write_text('{"format": "other/1"}')
+    ignored = []
+    assert [s.name for s in ingest.find_sequences(tmp_path / "up", "train", ignored)] == ["cam_7"]
+    assert ignored == ["manifest.json"]
+    (tmp_path / "alone").mkdir()
+    (tmp_path / "alone" / "manifest.json").write_text('{"format": "other/1"}')
+    with pytest.raises(errors.InvalidUpload, match="holds no sequence folder"):
+        ingest.find_sequences(tmp_path / "alone", "train")
 
 
 def test_frames_of_one_sequence_must_have_the_same_buffers(tmp_path, tiny_frames):

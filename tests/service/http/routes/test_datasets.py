@@ -269,10 +269,17 @@ def test_frame_not_matching_its_manifest_is_400(api, storage, tmp_path, two_sequ
     assert_nothing_stored(storage)
 
 
-def test_file_outside_sequence_folders_is_400(api, two_sequences, make_archive):
+def test_files_that_are_not_frames_are_left_out_and_named_but_a_stray_exr_is_400(api, two_sequences, make_archive):
     (two_sequences / "notes.txt").write_text("hi")
-    assert_error(post_archive(api, make_archive(two_sequences)), 400, "invalid_dataset",
-                 "notes.txt is not inside a sequence folder")
+    (two_sequences / "manifest.json").write_text('{"pipeline": "nuke", "shots": ["seq_a", "seq_b"]}')  # not ours
+    (two_sequences / "seq_a" / "preview.jpg").write_bytes(b"jpeg")
+    response = post_archive(api, make_archive(two_sequences), name="mixed")
+    assert response.status_code == 201, response.text
+    assert response.headers["X-Ignored-Files"] == "manifest.json, notes.txt, seq_a/preview.jpg"
+    assert sorted(s["name"] for s in response.json()["sequences"]) == ["seq_a", "seq_b"]
+    (two_sequences / "loose.exr").write_bytes(b"x")
+    assert_error(post_archive(api, make_archive(two_sequences), name="stray"), 400, "invalid_dataset",
+                 "loose.exr is not inside a sequence folder")
 
 
 # --- adding to an existing dataset -------------------------------------------------------------------------
