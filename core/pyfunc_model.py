@@ -1,7 +1,8 @@
 """The MLflow ``pyfunc`` flavour of a trained method: a sequence of frame bundles in, the denoised RGB frames out.
 
 Training logs every model this way (``core.tracking.MLflowTracker.log_model``), with the checkpoint inside, so a
-registered version loads in a notebook::
+registered version loads in a notebook, in any Python with the model's requirements (torch, numpy, MLflow), the
+project installed or not::
 
     import mlflow
     model = mlflow.pyfunc.load_model("models:/fused-balanced-x1@pretrained")
@@ -16,12 +17,16 @@ do not declare, so the optional buffers (``diffuse``, ``specular``, ``specular_a
 methods run as for a renderer that does not write them. The method steps through the frames in order with its
 history carried from frame to frame (``method.step``), exactly as a session does; every call starts a new history.
 Input values are repaired as in sessions (``model.io.sanitize``: NaN / Inf, out-of-range guides).
+
+Self-contained: this file is logged as the model's code (MLflow's models-from-code: run at load, it names its
+model with ``set_model``) and the library ``model/`` rides along as a code path; so it imports nothing else of ours.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+import mlflow.models
 import mlflow.pyfunc
 from mlflow.models.signature import ModelSignature
 from mlflow.types.schema import Schema, TensorSpec
@@ -101,3 +106,7 @@ class DenoiserModel(mlflow.pyfunc.PythonModel):
     # No type hints here: MLflow would read them as a second, conflicting signature.
     def predict(self, context, model_input, params=None):
         return denoise_sequence(self.method, model_input)
+
+
+# Run as the logged model's code, this names the model MLflow loads (also harmless on a plain import).
+mlflow.models.set_model(DenoiserModel())

@@ -11,10 +11,11 @@ experiment); a server or PostgreSQL URI keeps the server's artifact store.
 
 Models. The final checkpoint (``model.training.checkpoint``, loadable with ``load_method``) is stored as an MLflow 3
 *logged model* of the run in the ``pyfunc`` flavour (``core.pyfunc_model``: an MLmodel file with a signature,
-the checkpoint inside as its artifact, so ``mlflow.pyfunc.load_model("models:/NAME@ALIAS")`` denoises a
-sequence), with a copy of the checkpoint at the model's root (``checkpoint.pt``, what the service downloads: it
-drives methods through ``step``), and registered as a new version of the registered model, tagged with method,
-preset, scale, params, flops_per_pixel and validation PSNR. ``download_registered_checkpoint`` brings a version's
+the checkpoint inside as its artifact, its code and ``model/`` too, so ``mlflow.pyfunc.load_model`` denoises a
+sequence without the project), with a copy of the checkpoint at the model's root (``checkpoint.pt``, what the service
+downloads: it drives methods through ``step``), and registered as a new version from its run, tagged with method,
+preset, scale, params, flops_per_pixel and validation PSNR (the measurements also as the run's metrics) and
+described. ``download_registered_checkpoint`` brings a version's
 checkpoint back. Aliases (not stages) mark versions for serving; choosing them is the service's business.
 
 Lineage. Every run is tagged with the code version (``mlflow.source.git.commit`` and ``code_version``: the git
@@ -42,10 +43,24 @@ os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
 
 import mlflow  # noqa: E402  (after the telemetry switch)
 from mlflow import MlflowClient  # noqa: E402
-from mlflow.entities import Dataset, DatasetInput, InputTag, LoggedModelStatus, Metric, Param, RunStatus  # noqa: E402
+from mlflow.entities import (  # noqa: E402
+    Dataset,
+    DatasetInput,
+    InputTag,
+    LoggedModelOutput,
+    LoggedModelStatus,
+    Metric,
+    Param,
+    RunStatus,
+)
 from mlflow.exceptions import MlflowException  # noqa: E402
 
 CHECKPOINT_ARTIFACT = "checkpoint.pt"
+# Version tags that are measurements: each is also logged as a metric of the version's logged model.
+MEASUREMENT_TAGS = ("validation_psnr", "validation_ssim", "ms_per_frame")
+MEASUREMENT_TAG_PREFIX = "metric."
+# How the pyfunc model is packed (tag ``pyfunc_layout``): "2" carries its code (core/pyfunc_model.py and model/).
+PYFUNC_LAYOUT = "2"
 PARAM_VALUE_LIMIT = 6000  # MLflow refuses longer parameter values
 BATCH_LIMIT = 100  # params per log_batch call (MLflow's limit); metrics are flushed in batches of this size too
 
@@ -188,17 +203,28 @@ class MLflowTracker:
         self.client.log_inputs(self._run_id, datasets=[DatasetInput(dataset, [InputTag("mlflow.data.context",
                                                                                        context)])])
 
-    def log_model(self, checkpoint: Path, registered_name: str, tags: dict[str, str]) -> dict[str, Any]:
+    def log_model(self, checkpoint: Path, registered_name: str, tags: dict[str, str],
+                  description: str | None = None) -> dict[str, Any]:
         """Store ``checkpoint`` as the run's logged model (pyfunc flavour, see the module notes) and register it as a
-        new version of ``registered_name``."""
+        new version of ``registered_name`` with ``description`` (else one written from the tags). The tags that are
+        measurements (``validation_psnr``, ``metric.NAME``, ...) are also logged as metrics of the run linked to the
+        model, so MLflow shows them as the version's metrics."""
         self._flush()
+        tags = {**tags, "pyfunc_layout": PYFUNC_LAYOUT}
         for key, value in tags.items():
             self.client.set_tag(self._run_id, key, value)
         model = self.client.create_logged_model(self._experiment_id, name=_slug(registered_name),
                                                 source_run_id=self._run_id, tags=tags)
+        # What mlflow.pyfunc.log_model does inside a run: the run lists the model among its outputs.
+        self.client.log_outputs(self._run_id, [LoggedModelOutput(model.model_id, step=0)])
         with tempfile.TemporaryDirectory() as folder:
-            save_pyfunc_model(checkpoint, Path(folder) / "model")
+            save_pyfunc_model(checkpoint, Path(folder) / "model", run_id=self._run_id, model_id=model.model_id)
             self.client.log_model_artifacts(model.model_id, str(Path(folder) / "model"))
+        measured = measurement_metrics(tags)
+        if measured:
+            timestamp = int(time.time() * 1000)
+            self.client.log_batch(self._run_id, metrics=[Metric(key, value, timestamp, 0, model_id=model.model_id)
+                                                         for key, value in measured.items()])
         self.client.finalize_logged_model(model.model_id, LoggedModelStatus.READY)
         try:
             self.client.create_registered_model(registered_name)
@@ -208,9 +234,37 @@ class MLflowTracker:
         # The source is the logged model's artifact folder rather than "models:/<id>": MLflow's SQL registry
         # resolves "models:/" through the process-wide tracking URI, not this client's.
         version = self.client.create_model_version(registered_name, source=model.artifact_location,
-                                                   run_id=self._run_id, tags=tags, model_id=model.model_id)
+                                                   run_id=self._run_id, tags=tags, model_id=model.model_id,
+                                                   description=description or version_description(tags))
         return {"name": registered_name, "version": str(version.version), "model_id": model.model_id,
                 "uri": f"models:/{registered_name}/{version.version}"}
+
+
+def measurement_metrics(tags: dict[str, str]) -> dict[str, float]:
+    """The numbers among version tags, named as metrics: ``validation_psnr`` as is, ``metric.held_out_psnr`` as
+    ``held_out_psnr``."""
+    metrics = {}
+    for key, value in tags.items():
+        if key in MEASUREMENT_TAGS or key.startswith(MEASUREMENT_TAG_PREFIX):
+            try:
+                metrics[key.removeprefix(MEASUREMENT_TAG_PREFIX)] = float(value)
+            except ValueError:
+                continue
+    return metrics
+
+
+def version_description(tags: dict[str, str]) -> str:
+    """A version's description from its tags: method, preset, scale, size and how to load it."""
+    label = f"{tags.get('method', 'a denoiser')}" + (f":{tags['preset']}" if tags.get("preset") else "")
+    size = ", ".join(part for part in (f"{tags['params']} parameters" if tags.get("params") else "",
+                                       f"{tags['flops_per_pixel']} FLOPs per pixel" if tags.get("flops_per_pixel")
+                                       else "") if part)
+    lines = [f"{label} at scale {tags.get('scale', '?')}" + (f" ({size})" if size else "") + "."]
+    if tags.get("validation_psnr"):
+        lines.append(f"Validation PSNR {float(tags['validation_psnr']):.2f} dB.")
+    lines.append("A pyfunc model (`mlflow.pyfunc.load_model`): one sequence of frame buffers in, RGB frames out; "
+                 "`checkpoint.pt` at the model's root is the checkpoint the service runs.")
+    return "\n\n".join(lines)
 
 
 def download_registered_checkpoint(name: str, version: str | int, destination: str | os.PathLike,
@@ -279,10 +333,45 @@ def pretrained_tags(model) -> dict[str, str]:
     return {key: value for key, value in tags.items() if value != ""}
 
 
+def pretrained_description(model) -> str:
+    """A shipped model's version description: method, scale, size, what it was trained on, its held-out table."""
+    from model.deployment.pretrained import held_out_markdown
+
+    manifest, training = model.manifest, model.manifest.get("training") or {}
+    dataset = training.get("dataset") or {}
+    size = ", ".join(part for part in (f"{manifest['params']} parameters" if manifest.get("params") else "",
+                                       f"{manifest['flops_per_pixel']:.4g} FLOPs per pixel"
+                                       if manifest.get("flops_per_pixel") else "") if part)
+    lines = [f"Pretrained `{model.name}`, shipped with the project: {model.method}:{model.preset} at scale "
+             f"{model.scale}" + (f" ({size})" if size else "") + f"; weights sha256 `{model.sha256[:16]}…`."]
+    trained = f"Trained {training.get('step', '?')} steps"
+    if dataset.get("path"):
+        trained += f" on `{dataset['path']}`" + (f" (made by `{dataset['script']}`)" if dataset.get("script") else "")
+        scenes = ((dataset.get("splits") or {}).get("train") or {}).get("scenes") or []
+        if scenes:
+            trained += f", scenes {', '.join(scenes)}"
+    best = training.get("best_metric") or {}
+    if best.get("value") is not None:
+        trained += f"; best {best.get('name', 'validation')} {best['value']:.2f}"
+    lines.append(trained + ".")
+    held_out = model.held_out
+    if held_out.get("status") == "measured":
+        where = ", ".join(part for part in (f"{held_out.get('split')} split" if held_out.get("split") else "",
+                                            f"{len(held_out.get('sequences') or [])} sequences",
+                                            f"{held_out.get('device')}" if held_out.get("device") else "",
+                                            f"report `{held_out['report']}`" if held_out.get("report") else "")
+                          if part)
+        lines.append(f"Held-out evaluation ({where}), next to OIDN of the same run:\n\n{held_out_markdown([model])}")
+    else:
+        lines.append("Held-out evaluation pending.")
+    return "\n\n".join(lines)
+
+
 def register_pretrained(model, tracking_uri: str | None = None, alias: str = PRETRAINED_ALIAS) -> dict[str, Any]:
     """Register a shipped model once and point ``alias`` at it: a version of ``model.name`` tagged with the same
-    sha256 is reused (so running this again changes nothing), else the file is checked and logged as a new version
-    from a run of the ``pretrained`` experiment. Returns name, version, uri and whether it was created."""
+    sha256 and pyfunc layout is reused (so running this again changes nothing), else the file is checked and logged
+    as a new version from a run of the ``pretrained`` experiment, with its held-out scores as metrics and a
+    description. Returns name, version, uri and whether it was created."""
     from model.deployment.pretrained import verify
 
     tracker = MLflowTracker(tracking_uri, experiment=PRETRAINED_EXPERIMENT, run_name=model.name)
@@ -290,7 +379,8 @@ def register_pretrained(model, tracking_uri: str | None = None, alias: str = PRE
     if "'" in model.name:
         raise ValueError(f"model name {model.name!r} contains a quote")
     same = [version for version in client.search_model_versions(f"name = '{model.name}'")
-            if (version.tags or {}).get("sha256") == model.sha256]
+            if (version.tags or {}).get("sha256") == model.sha256
+            and (version.tags or {}).get("pyfunc_layout") == PYFUNC_LAYOUT]
     created = not same
     if same:
         version = str(min(int(v.version) for v in same))
@@ -303,28 +393,42 @@ def register_pretrained(model, tracking_uri: str | None = None, alias: str = PRE
                        "seed": training.get("seed"), "training_script": training.get("script"),
                        "dataset_script": dataset.get("script"), "dataset_digest": dataset.get("digest")})
         try:
-            version = tracker.log_model(path, model.name, pretrained_tags(model))["version"]
+            version = tracker.log_model(path, model.name, pretrained_tags(model),
+                                        description=pretrained_description(model))["version"]
         except BaseException:
             tracker.finish("FAILED")
             raise
         tracker.finish("FINISHED")
     client.set_registered_model_alias(model.name, alias, version)
+    if not client.get_registered_model(model.name).description:
+        client.update_registered_model(model.name, description=(
+            f"{model.method}:{model.preset} at scale {model.scale}, shipped with the project (pretrained/{model.name}); "
+            f"alias `{alias}` marks the registered copy of the shipped weights."))
     return {"name": model.name, "version": version, "uri": f"models:/{model.name}@{alias}", "created": created}
 
 
-def save_pyfunc_model(checkpoint: str | os.PathLike, folder: Path) -> Path:
+def save_pyfunc_model(checkpoint: str | os.PathLike, folder: Path, run_id: str | None = None,
+                      model_id: str | None = None) -> Path:
     """Write ``checkpoint`` as a pyfunc model into ``folder`` (MLmodel, signature, the checkpoint as its artifact) plus
-    a copy at ``folder/checkpoint.pt``; the requirements are pinned to this environment's torch, numpy and MLflow
-    (the project itself must be installed where it loads: ``mlflow models serve --env-manager local``)."""
+    a copy at ``folder/checkpoint.pt``. Self-contained: the wrapper (``core/pyfunc_model.py``, as the model's code)
+    and the library ``model/`` (a code path, without bytecode) go inside, so it loads wherever its requirements,
+    pinned to this environment's torch, numpy and MLflow, are installed, the project not needed."""
     import numpy
     import torch
 
-    from core.pyfunc_model import CHECKPOINT_KEY, DenoiserModel, signature
+    import core.pyfunc_model as wrapper
+    import model as library
+    from mlflow.models import Model
 
-    mlflow.pyfunc.save_model(str(folder), python_model=DenoiserModel(), artifacts={CHECKPOINT_KEY: str(checkpoint)},
-                             signature=signature(),
-                             pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
-                                               f"numpy=={numpy.__version__}", f"mlflow=={mlflow.__version__}"])
+    with tempfile.TemporaryDirectory() as staging:
+        code = Path(staging) / "model"
+        shutil.copytree(Path(library.__file__).parent, code,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.pt", "*.onnx"))
+        mlflow.pyfunc.save_model(str(folder), python_model=wrapper.__file__,
+                                 artifacts={wrapper.CHECKPOINT_KEY: str(checkpoint)}, code_paths=[str(code)],
+                                 signature=wrapper.signature(), mlflow_model=Model(run_id=run_id, model_id=model_id),
+                                 pip_requirements=[f"torch=={torch.__version__.split('+')[0]}",
+                                                   f"numpy=={numpy.__version__}", f"mlflow=={mlflow.__version__}"])
     shutil.copy2(checkpoint, folder / CHECKPOINT_ARTIFACT)
     return folder
 

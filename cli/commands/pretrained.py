@@ -23,50 +23,33 @@ def add_commands(commands) -> None:
     parser.set_defaults(run=_run_pretrained)
 
 
-def _score(row: dict | None, key: str, fmt: str) -> str:
-    return "-" if not row or row.get(key) is None else format(row[key], fmt)
-
-
-def _peer(model, label: str) -> dict | None:
-    return next((peer for peer in model.held_out.get("peers") or [] if peer.get("label") == label), None)
-
-
 def _same_quality_taa(model) -> str:
     """OIDN + TAA's held-out PSNR at the model's OIDN quality (a fused preset is one), else at high, with the
     quality: the bar each shipped model is held to."""
+    from model.deployment.pretrained import peer_row, score_text
     from model.methods.oidn import QUALITIES
 
     quality = model.preset if model.preset in QUALITIES else "high"
-    score = _score(_peer(model, f"oidn-taa:{quality}"), "psnr", ".2f")
+    score = score_text(peer_row(model, f"oidn-taa:{quality}"), "psnr", ".2f")
     return score if score == "-" else f"{score} ({quality})"
-
-
-def markdown_table(models) -> str:
-    """Each model's held-out row next to the OIDN and OIDN + TAA rows of the same evaluation run, as Markdown."""
-    lines = ["| model | row | PSNR dB ↑ | SSIM ↑ | FLIP ↓ | temporal ↓ | JOD ↑ | ms/frame | time / OIDN-high |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for model in models:
-        held_out = model.held_out
-        if held_out.get("status") != "measured":
-            lines.append(f"| {model.name} | held-out evaluation pending | - | - | - | - | - | - | - |")
-            continue
-        for row in [held_out["model"], *(held_out.get("peers") or [])]:
-            label = f"**{row['label']}** (shipped)" if row is held_out["model"] else row["label"]
-            lines.append(f"| {model.name} | {label} | {_score(row, 'psnr', '.2f')} | {_score(row, 'ssim', '.4f')} | "
-                         f"{_score(row, 'flip', '.4f')} | {_score(row, 'temporal_error', '.5f')} | "
-                         f"{_score(row, 'fvvdp_jod', '.2f')} | "
-                         f"{_score(row, 'ms_per_frame', '.1f')} | {_score(row, 'time_ratio_to_oidn', '.3g')} |")
-    return "\n".join(lines)
 
 
 def _run_pretrained(args) -> int:
     from core.registry import pretrained_dir
-    from model.deployment.pretrained import PretrainedError, get_pretrained, pretrained_names, verify
+    from model.deployment.pretrained import (
+        PretrainedError,
+        get_pretrained,
+        held_out_markdown,
+        peer_row,
+        pretrained_names,
+        score_text,
+        verify,
+    )
     from cli.commands.client import _print_table
 
     root = pretrained_dir()
     if args.markdown:
-        print(markdown_table([get_pretrained(name, root) for name in pretrained_names(root)]))
+        print(held_out_markdown([get_pretrained(name, root) for name in pretrained_names(root)]))
         return 0
 
     rows, broken, models = [], [], []
@@ -83,8 +66,8 @@ def _run_pretrained(args) -> int:
         training = model.manifest.get("training") or {}
         own = model.held_out_row()
         rows.append((name, f"{model.method}:{model.preset}", model.scale, model.manifest.get("params", "-"),
-                     training.get("step", "-"), _score(own, "psnr", ".2f"), _score(own, "flip", ".4f"),
-                     _score(_peer(model, "oidn:high"), "psnr", ".2f"), _same_quality_taa(model),
+                     training.get("step", "-"), score_text(own, "psnr", ".2f"), score_text(own, "flip", ".4f"),
+                     score_text(peer_row(model, "oidn:high"), "psnr", ".2f"), _same_quality_taa(model),
                      check if own else f"{check}, held-out pending"))
     _print_table(("name", "method", "scale", "params", "steps", "held-out PSNR", "FLIP", "OIDN-high PSNR",
                   "OIDN+TAA PSNR (quality)", "weights"), rows, empty="no pretrained models in pretrained/")

@@ -94,6 +94,34 @@ class PretrainedModel:
         return self.held_out.get("model") if self.held_out.get("status") == "measured" else None
 
 
+def score_text(row: dict[str, Any] | None, key: str, fmt: str) -> str:
+    """One score of a held-out row formatted, "-" when absent."""
+    return "-" if not row or row.get(key) is None else format(row[key], fmt)
+
+
+def peer_row(model: PretrainedModel, label: str) -> dict[str, Any] | None:
+    """The held-out row of the peer ``label`` (e.g. ``oidn:high``) from the model's evaluation run, if measured."""
+    return next((peer for peer in model.held_out.get("peers") or [] if peer.get("label") == label), None)
+
+
+def held_out_markdown(models: list[PretrainedModel]) -> str:
+    """Each model's held-out row next to the OIDN and OIDN + TAA rows of the same evaluation run, as Markdown."""
+    lines = ["| model | row | PSNR dB ↑ | SSIM ↑ | FLIP ↓ | temporal ↓ | JOD ↑ | ms/frame | time / OIDN-high |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for model in models:
+        held_out = model.held_out
+        if held_out.get("status") != "measured":
+            lines.append(f"| {model.name} | held-out evaluation pending | - | - | - | - | - | - | - |")
+            continue
+        for row in [held_out["model"], *(held_out.get("peers") or [])]:
+            label = f"**{row['label']}** (shipped)" if row is held_out["model"] else row["label"]
+            lines.append(f"| {model.name} | {label} | {score_text(row, 'psnr', '.2f')} | "
+                         f"{score_text(row, 'ssim', '.4f')} | {score_text(row, 'flip', '.4f')} | "
+                         f"{score_text(row, 'temporal_error', '.5f')} | {score_text(row, 'fvvdp_jod', '.2f')} | "
+                         f"{score_text(row, 'ms_per_frame', '.1f')} | {score_text(row, 'time_ratio_to_oidn', '.3g')} |")
+    return "\n".join(lines)
+
+
 def _root(root: str | os.PathLike | None) -> Path:
     return Path(root) if root is not None else PRETRAINED_DIR
 

@@ -60,6 +60,20 @@ def test_registration_is_idempotent_and_sets_the_alias(shipped, tmp_path, capsys
     assert tags["sha256"] == shipped.sha256 and tags["method"] == "wskpn" and tags["pretrained"] == "true"
     assert float(tags["metric.held_out_psnr"]) == 30.5 and float(tags["metric.held_out_oidn_high_psnr"]) == 31.0
     assert str(client.get_model_version_by_alias("wskpn-xs-x1", "pretrained").version) == "1"
+    # The held-out scores are metrics of the version's run, linked to its logged model, and the description tells
+    # what it is, what it was trained on and its held-out table.
+    version = client.get_model_version("wskpn-xs-x1", "1")
+    run = client.get_run(version.run_id)
+    assert {key: run.data.metrics[key] for key in ("held_out_psnr", "held_out_flip", "held_out_oidn_high_psnr")} \
+        == {"held_out_psnr": 30.5, "held_out_flip": 0.1, "held_out_oidn_high_psnr": 31.0}
+    [output] = run.outputs.model_outputs
+    logged = client.get_logged_model(output.model_id)
+    assert logged.source_run_id == version.run_id
+    assert {metric.key: metric.value for metric in logged.metrics}["held_out_psnr"] == 30.5
+    assert "wskpn:xs at scale 1" in version.description and "Trained 120 steps on `data/demo`" in version.description
+    assert "| wskpn-xs-x1 | **wskpn:xs** (shipped) | 30.50 |" in version.description
+    assert "| wskpn-xs-x1 | oidn:high | 31.00 |" in version.description
+    assert "shipped with the project" in client.get_registered_model("wskpn-xs-x1").description
     # The registered checkpoint is the shipped file.
     from core.tracking import download_registered_checkpoint
 
@@ -73,6 +87,21 @@ def test_registration_is_idempotent_and_sets_the_alias(shipped, tmp_path, capsys
         patch.setenv("MLFLOW_REGISTRY_URI", uri)
         model = mlflow.pyfunc.load_model("models:/wskpn-xs-x1@pretrained")
     assert "jitter" in model.metadata.get_input_schema().input_names()
+
+
+def test_a_version_registered_without_its_code_is_registered_again_once(shipped, tmp_path, capsys):
+    from mlflow import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    assert main(["pretrained", "--register", "--tracking-uri", uri]) == 0
+    client = MlflowClient(uri, registry_uri=uri)
+    client.delete_model_version_tag("wskpn-xs-x1", "1", "pyfunc_layout")  # as registered before models had code
+    assert main(["pretrained", "--register", "--tracking-uri", uri]) == 0
+    assert main(["pretrained", "--register", "--tracking-uri", uri]) == 0
+    out = capsys.readouterr().out
+    assert "wskpn-xs-x1: registered as version 2;" in out and "already registered as version 2" in out
+    assert str(client.get_model_version_by_alias("wskpn-xs-x1", "pretrained").version) == "2"
+    assert len(client.search_model_versions("name = 'wskpn-xs-x1'")) == 2
 
 
 def test_a_damaged_model_is_reported_and_exits_2(shipped, capsys):

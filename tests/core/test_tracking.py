@@ -77,6 +77,11 @@ def test_a_training_run_is_tracked_and_its_model_registered(tmp_path, monkeypatc
     assert version.tags["scale"] == "1" and version.tags["params"] == str(result["parameters"])
     assert float(version.tags["flops_per_pixel"]) == pytest.approx(result["flops_per_pixel"], rel=1e-5)
     assert float(version.tags["validation_psnr"]) == pytest.approx(result["validation"]["psnr"], abs=1e-4)
+    # The model was logged inside the run (one of its outputs) and its measurements are the run's metrics too.
+    [output] = run.outputs.model_outputs
+    assert client.get_logged_model(output.model_id).source_run_id == run.info.run_id
+    assert run.data.metrics["validation_psnr"] == pytest.approx(result["validation"]["psnr"], abs=1e-4)
+    assert version.description.startswith(f"{TINY_METHOD}:default at scale 1 ({result['parameters']} parameters")
 
     # Lineage: the code version and the dataset, by its manifests' digest.
     from model.io.dataset import dataset_digest
@@ -144,6 +149,21 @@ def _start_a_run(arguments):
     return tracker.run_id
 
 
+def registered_wskpn(tmp_path, uri: str, name: str, seed: int):
+    """A seeded wskpn:xs checkpoint logged from a run and registered as version 1 of ``name``, alias champion."""
+    from model.methods.registry import build_method
+    from model.training.checkpoint import save_checkpoint
+
+    torch.manual_seed(seed)
+    checkpoint = save_checkpoint(tmp_path / "wskpn.pt", method=build_method("wskpn:xs", 1))
+    tracker = MLflowTracker(uri, "tests")
+    tracker.start({"method": "wskpn:xs"})
+    tracker.log_model(checkpoint, name, {"method": "wskpn"})
+    tracker.finish("FINISHED")
+    tracker.client.set_registered_model_alias(name, "champion", "1")
+    return checkpoint
+
+
 def sequence_arrays(frames):
     """FrameBundles as the pyfunc model's input: named (T, H, W, C) arrays and the jitter."""
     names = ("color", "albedo", "normal", "depth", "motion", "diffuse", "specular", "specular_albedo", "roughness")
@@ -159,19 +179,11 @@ def test_a_registered_model_loads_through_mlflow_pyfunc_and_denoises_a_sequence(
 
     import mlflow
 
-    from model.training.checkpoint import save_checkpoint
     from model.methods.base import FrameBatch
-    from model.methods.registry import build_method
     from tests.builders import synthetic_frame
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    torch.manual_seed(5)
-    checkpoint = save_checkpoint(tmp_path / "wskpn.pt", method=build_method("wskpn:xs", 1))
-    tracker = MLflowTracker(uri, "tests")
-    tracker.start({"method": "wskpn:xs"})
-    tracker.log_model(checkpoint, "wskpn-pyfunc", {"method": "wskpn"})
-    tracker.finish("FINISHED")
-    tracker.client.set_registered_model_alias("wskpn-pyfunc", "champion", "1")
+    checkpoint = registered_wskpn(tmp_path, uri, "wskpn-pyfunc", seed=5)
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     monkeypatch.setenv("MLFLOW_REGISTRY_URI", uri)
@@ -204,6 +216,71 @@ def test_a_registered_model_loads_through_mlflow_pyfunc_and_denoises_a_sequence(
         for index, frame in enumerate(full):
             expected, state = method.step(FrameBatch.from_bundles([frame], scale=None), state)
             np.testing.assert_allclose(direct[index], expected[0].permute(1, 2, 0).numpy(), rtol=1e-5, atol=1e-6)
+
+
+# Run with -I in a bare folder: our packages may come only from the downloaded model's code folder, never from
+# the checkout or the venv's editable install (a finder on sys.meta_path that this blocker runs before).
+ISOLATED_PROBE = """
+import importlib.machinery, json, sys
+folder, checkout = sys.argv[1], sys.argv[2]
+OURS = {"core", "service", "workers", "cli", "client", "model", "tests"}
+
+class OnlyTheModelsCode:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] not in OURS:
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        if spec is None or not str(spec.origin).startswith(folder):
+            raise ImportError(f"blocked: {name} from {spec.origin if spec else 'nowhere'}")
+        return spec
+
+sys.meta_path.insert(0, OnlyTheModelsCode())
+assert checkout not in [entry.rstrip("/") for entry in sys.path], sys.path
+import mlflow
+import numpy as np
+
+model = mlflow.pyfunc.load_model("models:/isolated@champion", dst_path=folder)
+np.save("output.npy", model.predict(dict(np.load("inputs.npz"))))
+print(json.dumps(sorted(name for name in sys.modules if name.split(".")[0] in OURS)))
+print(json.dumps(sorted({getattr(module, "__file__", None) or "" for name, module in sys.modules.items()
+                         if name.split(".")[0] in OURS})))
+"""
+
+
+def test_a_logged_model_loads_and_predicts_in_a_python_without_the_project(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from tests.builders import synthetic_frame
+    from core.pyfunc_model import REQUIRED, denoise_sequence
+
+    checkout = str(Path(__file__).resolve().parents[2])
+    uri = f"sqlite:///{tmp_path / 'registry' / 'mlflow.db'}"
+    checkpoint = registered_wskpn(tmp_path, uri, "isolated", seed=11)
+
+    rng = np.random.default_rng(2)
+    frames = [synthetic_frame(rng, index, 16, 16) for index in range(2)]
+    inputs = {name: array for name, array in sequence_arrays(frames).items() if name in (*REQUIRED, "jitter")}
+    work = tmp_path / "elsewhere"
+    (work / "download").mkdir(parents=True)
+    np.savez(work / "inputs.npz", **inputs)
+    env = {"PATH": os.environ.get("PATH", ""), "HOME": str(work), "MLFLOW_TRACKING_URI": uri,
+           "MLFLOW_REGISTRY_URI": uri, "MLFLOW_DISABLE_TELEMETRY": "true"}
+    result = subprocess.run([sys.executable, "-I", "-c", ISOLATED_PROBE, str(work / "download"), checkout],
+                            cwd=work, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    modules, files = (json.loads(line) for line in result.stdout.strip().splitlines()[-2:])
+    assert "model.training.checkpoint" in modules and not any(name.split(".")[0] == "core" for name in modules)
+    assert files and all(path.startswith(str(work / "download")) for path in files), files
+
+    # The same frames stepped in this process give the same RGB.
+    expected = denoise_sequence(load_method(checkpoint).for_inference(), inputs)
+    output = np.load(work / "output.npy")
+    assert output.shape == (2, 16, 16, 3)
+    np.testing.assert_allclose(output, expected, rtol=1e-5, atol=1e-6)
 
 
 def test_a_fused_run_logs_the_run_time_settings_its_model_runs(tmp_path):
