@@ -16,6 +16,7 @@ from service.http.routes import session_stream
 from service.http.routes import sessions as sessions_routes
 from service.sessions.store import get_session_store
 from cli.main import main
+from client.frames import BUFFER_COMPONENTS
 from client.rest import ApiClientError, DenoiserClient, ServerUnreachable
 from client.stream import websocket_url
 from model.io.dataset import SequenceWriter
@@ -73,6 +74,18 @@ def test_open_stream_gives_what_send_frame_gives(serve):
                 assert 0 < info.inference_ms <= info.server_ms < info.round_trip_ms
                 assert info.headers["X-History"] == post_info.headers["X-History"]
         assert client.get_session(session["id"])["frames_processed"] == 5
+        # A renderer's arrays, no file: over HTTP (an in-memory EXR) and over the WebSocket, the same outputs.
+        arrays = [{name: getattr(frame, name) for name in BUFFER_COMPONENTS if getattr(frame, name) is not None}
+                  | {"jitter": frame.jitter, "camera_cut": frame.camera_cut} for frame in frames]
+        by_post = client.create_session(MODEL_NAME, version="2")
+        by_socket = client.create_session(MODEL_NAME, version="2")
+        with client.open_stream(by_socket.id) as stream:
+            for given, (image, _) in zip(arrays, expected):
+                posted_image, info = client.send_arrays(by_post.id, **given)
+                streamed_image, _ = stream.send_arrays(**given)
+                np.testing.assert_array_equal(posted_image, image)
+                np.testing.assert_array_equal(streamed_image, image)
+        assert by_socket.model.name == MODEL_NAME and client.get_session(by_post.id).frames_processed == 5
 
 
 def test_a_stream_sends_only_the_buffers_the_sessions_method_reads(serve, monkeypatch):
