@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 from cli.main import UsageError, size_option
@@ -18,12 +19,13 @@ def add_commands(commands) -> None:
                     "input spatial_estimate (the engine runs OIDN). The file is then run with onnxruntime over a "
                     "short random sequence against PyTorch and the worst difference printed (tolerance: 1e-4 "
                     "absolute + 1e-4 relative). OIDN-only methods, filters without weights and int8 JNDS are "
-                    "refused, saying why.")
+                    "refused, saying why. Each stage is named on stderr as it starts, and the seconds of every "
+                    "stage are printed at the end (docs/export.md, \"Export time\").")
     parser.add_argument("model", metavar="MODEL",
                         help="a checkpoint file, a pretrained model's name (denoiser pretrained), or a registered "
                              "model (models:/NAME@ALIAS, models:/NAME/VERSION) in the service's registry")
-    parser.add_argument("--format", choices=("onnx", "torchscript"), default="onnx",
-                        help="onnx (torchscript is refused: see model/deployment/export.py)")
+    parser.add_argument("--format", choices=("onnx",), default="onnx",
+                        help="onnx, the one format (TorchScript cannot save the methods' kernel ops: docs/export.md)")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE", help="the file to write, e.g. model.onnx")
     parser.add_argument("--size", type=size_option, default=(128, 128), metavar="N|WxH",
                         help="render resolution the graph is exported for (default 128x128)")
@@ -56,15 +58,17 @@ def load_model(text: str):
 
 
 def _run_export(args) -> int:
-    from model.deployment.export import ExportError, TOLERANCE, check_export, export_step
+    from model.deployment.export import ExportError, TOLERANCE, Stages, check_export, export_step
 
     if args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give a file name such as model.onnx")
-    method = load_model(args.model)
+    stages = Stages(lambda line: print(f"export: {line}", file=sys.stderr, flush=True))
+    with stages.stage("load", args.model):
+        method = load_model(args.model)
     width, height = args.size
     try:
         info = export_step(method, args.out, args.format, height=height, width=width,
-                           with_optional=args.with_optional_buffers)
+                           with_optional=args.with_optional_buffers, stages=stages)
     except ExportError as error:
         raise UsageError(str(error)) from None
     print(f"wrote {args.out} ({args.out.stat().st_size} bytes): {method.label} at scale {method.scale}, "
@@ -72,7 +76,9 @@ def _run_export(args) -> int:
     print(json.dumps({key: info[key] for key in ("inputs", "state", "outputs", "first_frame", "spatial_estimate",
                                                  "sample_mean")}, indent=2))
     if not args.no_check:
-        worst = check_export(method, args.out, info)
+        worst = check_export(method, args.out, info, stages=stages)
+    print(f"export: seconds per stage: {stages.summary()}", file=sys.stderr, flush=True)
+    if not args.no_check:
         verdict = "within" if worst <= 1 else "OUTSIDE"
         print(f"onnxruntime against PyTorch over 4 frames (history carried): worst difference {worst:.3g} of the "
               f"tolerance ({TOLERANCE['atol']:g} absolute + {TOLERANCE['rtol']:g} relative): {verdict}")

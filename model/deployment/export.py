@@ -12,16 +12,22 @@ resolution is fixed at export. Methods with a spatial prior (the fused family) a
 library: the engine runs OIDN itself and passes its output as ``spatial_estimate``. OIDN alone, OIDN + TAA and int8
 JNDS have nothing the exporter takes and are refused with ``ExportError``. ``check_export`` runs the file
 (onnxruntime) beside the method with the history carried and passes within ``TOLERANCE``. TorchScript is not
-offered (``UNSUPPORTED_FORMATS`` says why): the shared kernel ops are custom autograd functions that
-``torch.jit.trace`` cannot record, and ONNX goes through ``torch.export``, which traces into them.
+offered (``UNSUPPORTED_FORMATS`` says why): the shared kernel ops are custom autograd functions that a traced
+TorchScript module cannot save, and ONNX goes through ``torch.export``, which traces into them. ``Stages`` names
+each stage as it starts and keeps its seconds (the command prints both); the ONNX graph gets a light clean-up
+(constant folding, dead and duplicate nodes) instead of onnxscript's full optimizer, whose pattern rewriter took
+most of an export's time for little gain in the graph (docs/export.md, "Export time").
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import os
+import time
 import warnings
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +38,9 @@ from model.methods.base import FrameBatch, Method
 
 FORMATS = ("onnx",)
 UNSUPPORTED_FORMATS = {
-    "torchscript": "TorchScript export is not supported: the methods' kernel ops are custom autograd functions that "
-                   "torch.jit.trace cannot record (and torch.jit.script cannot compile the methods); use --format "
-                   "onnx (torch.export traces into them)"}
+    "torchscript": "TorchScript export is not supported: the methods' kernel ops are custom autograd functions, "
+                   "which a torch.jit.trace'd module cannot save ('Could not export Python function call') and "
+                   "torch.jit.script cannot compile; use onnx (torch.export traces into them)"}
 REQUIRED_INPUTS = ("color", "albedo", "normal", "depth", "motion", "jitter")
 OPTIONAL_INPUTS = ("diffuse", "specular", "specular_albedo", "roughness")
 SPATIAL_INPUT = "spatial_estimate"
@@ -44,6 +50,28 @@ CHECK_JITTERS = ((0.3, -0.2), (-0.35, 0.15), (0.1, 0.4), (-0.15, -0.4))  # off t
 
 class ExportError(ValueError):
     """The method cannot be exported (OIDN inside, int8 eager modules, an exporter failure), or a bad request."""
+
+
+class Stages:
+    """The stages of an export and its check: ``say`` gets a line as each starts (the command prints them on
+    stderr, so a long stage does not look like a hang); ``seconds`` keeps each one's wall time."""
+
+    def __init__(self, say: Callable[[str], None] | None = None) -> None:
+        self.say = say or (lambda line: None)
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def stage(self, name: str, doing: str) -> Iterator[None]:
+        self.say(f"{name}: {doing} ...")
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - started
+
+    def summary(self) -> str:
+        parts = ", ".join(f"{name} {seconds:.1f}" for name, seconds in self.seconds.items())
+        return f"{sum(self.seconds.values()):.1f} s in all ({parts})"
 
 
 class _Step(nn.Module):
@@ -91,6 +119,15 @@ def exported_form(method: Method) -> Method:
 def example_inputs(method: Method, height: int, width: int, with_optional: bool = False,
                    seed: int = 0) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """(frame inputs by name, the state after one step on them): shapes for the export and a first frame."""
+    inputs = _example_frame(method, height, width, with_optional, seed)
+    with torch.no_grad():
+        _, state = method.step(_frame(inputs), None)
+    # Copies: a state entry may be an input tensor itself (depth, normal, jitter), and an exporter given the same
+    # tensor twice merges the two inputs into one.
+    return inputs, {name: tensor.clone() for name, tensor in state.items()}
+
+
+def _example_frame(method: Method, height: int, width: int, with_optional: bool, seed: int) -> dict[str, torch.Tensor]:
     from model.methods.registry import example_batch
 
     frame = example_batch(height, width, seed=seed)
@@ -99,11 +136,7 @@ def example_inputs(method: Method, height: int, width: int, with_optional: bool 
         inputs.update({name: getattr(frame, name) for name in OPTIONAL_INPUTS})
     if getattr(method, "spatial_prior", None):
         inputs[SPATIAL_INPUT] = frame.color * 0.5  # any plausible radiance: only shapes matter for the trace
-    with torch.no_grad():
-        _, state = method.step(_frame(inputs), None)
-    # Copies: a state entry may be an input tensor itself (depth, normal, jitter), and an exporter given the same
-    # tensor twice merges the two inputs into one.
-    return inputs, {name: tensor.clone() for name, tensor in state.items()}
+    return inputs
 
 
 def _frame(inputs: dict[str, torch.Tensor]) -> FrameBatch:
@@ -132,19 +165,21 @@ def interface(method: Method, inputs: dict[str, torch.Tensor], state: dict[str, 
 
 
 def export_step(method: Method, path: str | os.PathLike, fmt: str = "onnx", height: int = 128, width: int = 128,
-                with_optional: bool = False) -> dict[str, Any]:
+                with_optional: bool = False, stages: Stages | None = None) -> dict[str, Any]:
     """Write ``method``'s per-frame step to ``path``; returns its interface (also stored in the file's metadata,
-    ONNX ``metadata_props['denoiser']``)."""
+    ONNX ``metadata_props['denoiser']``). ``stages`` hears of and times each stage."""
     if fmt in UNSUPPORTED_FORMATS:
         raise ExportError(UNSUPPORTED_FORMATS[fmt])
     if fmt not in FORMATS:
         raise ExportError(f"format {fmt!r} is not one of {', '.join(FORMATS)}")
     check_exportable(method)
+    stages = stages or Stages()
     sample_mean_frames = getattr(method, "sample_mean_frames", 0)
-    method = exported_form(method).cpu().for_inference().eval()
-    for parameter in method.parameters():
-        parameter.requires_grad_(False)
-    inputs, state = example_inputs(method, height, width, with_optional)
+    with stages.stage("prepare", f"the step of {method.label} on an example {width}x{height} frame"):
+        method = exported_form(method).cpu().for_inference().eval()
+        for parameter in method.parameters():
+            parameter.requires_grad_(False)
+        inputs, state = example_inputs(method, height, width, with_optional)
     state_names = tuple(sorted(state))
     module = _Step(method, tuple(inputs), state_names).eval()
     arguments = (*inputs.values(), *[state[name] for name in state_names])
@@ -154,7 +189,7 @@ def export_step(method: Method, path: str | os.PathLike, fmt: str = "onnx", heig
     try:
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # tracer and exporter chatter about constants and deprecations
-            _export_onnx(module, arguments, inputs, state_names, path, info)
+            _export_onnx(module, arguments, inputs, state_names, path, info, stages)
     except ExportError:
         raise
     except Exception as error:  # the exporters raise many types; the first line says what failed
@@ -164,20 +199,51 @@ def export_step(method: Method, path: str | os.PathLike, fmt: str = "onnx", heig
 
 
 def _export_onnx(module: nn.Module, arguments: tuple, inputs: dict, state_names: tuple, path: Path,
-                 info: dict) -> None:
-    import contextlib
+                 info: dict, stages: Stages) -> None:
     import io
 
-    import onnx
+    with stages.stage("torch.export", "tracing the step into an ExportedProgram"):
+        try:
+            program = torch.export.export(module, arguments, strict=False)
+        except Exception:  # torch.onnx.export tries its other capture strategies on the module itself
+            program = module
+    with stages.stage("onnx", "translating the graph to ONNX"), contextlib.redirect_stdout(io.StringIO()):
+        import onnx  # in the stage: importing the ONNX packages takes seconds
 
-    with contextlib.redirect_stdout(io.StringIO()):  # the exporter prints its progress
-        program = torch.onnx.export(module, arguments, dynamo=True, external_data=False,
-                                    input_names=[*inputs, *[f"state.{name}" for name in state_names]],
-                                    output_names=["output", *[f"state_out.{name}" for name in state_names]])
-    proto = program.model_proto
-    entry = proto.metadata_props.add()
-    entry.key, entry.value = "denoiser", json.dumps(info)
-    onnx.save(proto, str(path))
+        # optimize=False: onnxscript's full optimizer spent most of its time in pattern rewrites (see _tidy_graph).
+        onnx_program = torch.onnx.export(program, arguments, dynamo=True, external_data=False, optimize=False,
+                                         input_names=[*inputs, *[f"state.{name}" for name in state_names]],
+                                         output_names=["output", *[f"state_out.{name}" for name in state_names]])
+    with stages.stage("optimize", "folding constants, removing dead and duplicate nodes"):
+        _tidy_graph(onnx_program)
+    with stages.stage("write", str(path)):
+        proto = onnx_program.model_proto
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = "denoiser", json.dumps(info)
+        onnx.save(proto, str(path))
+
+
+def _tidy_graph(onnx_program) -> None:
+    """The graph-shrinking part of onnxscript's optimizer (constant folding, dead nodes, common subexpressions,
+    duplicate initializers) without its pattern rewriter: the rewriter took about nine tenths of the optimizer's
+    time and left onnxruntime's speed unchanged (it rewrites what runtimes fuse themselves)."""
+    try:
+        import onnx_ir.passes.common as passes
+        from onnxscript.optimizer import fold_constants
+    except ImportError:  # an onnxscript without these passes: its full optimizer, slower but the same graph
+        onnx_program.optimize()
+        return
+    model = onnx_program.model
+    passes.InlinePass()(model)
+    for _ in range(2):  # folding exposes more to fold once dead nodes are gone, as the full optimizer iterates
+        fold_constants(model)
+        passes.RemoveUnusedNodesPass()(model)
+    for tidy in (passes.IdentityEliminationPass(), passes.RemoveUnusedNodesPass(), passes.RemoveUnusedFunctionsPass(),
+                 passes.RemoveUnusedOpsetsPass(),
+                 passes.LiftConstantsToInitializersPass(lift_all_constants=True, size_limit=0),
+                 passes.DeduplicateInitializersPass(), passes.CommonSubexpressionEliminationPass(),
+                 passes.RemoveUnusedNodesPass(), passes.OutputFixPass(), passes.NameFixPass()):
+        tidy(model)
 
 
 def run_exported(path: str | os.PathLike, frames: list[dict[str, torch.Tensor]],
@@ -200,23 +266,24 @@ def run_exported(path: str | os.PathLike, frames: list[dict[str, torch.Tensor]],
 
 
 def check_export(method: Method, path: str | os.PathLike, info: dict[str, Any], frames: int = 4,
-                 seed: int = 1) -> float:
+                 seed: int = 1, stages: Stages | None = None) -> float:
     """The largest |exported - PyTorch| over a sequence of ``frames`` random frames (history carried; PyTorch's first
     step without a state, the export's with zeros), in units of the tolerance: <= 1 passes."""
+    stages = stages or Stages()
     height, width = info["inputs"]["color"][2:]
-    method = exported_form(method).cpu().for_inference().eval()
-    sequence = []
-    for index in range(frames):
-        inputs, _ = example_inputs(method, height, width, "diffuse" in info["inputs"], seed=seed + index)
-        # jittered as an engine renders them: at zero jitter every path that reads the jitter would go unchecked
-        inputs["jitter"] = torch.tensor([CHECK_JITTERS[index % len(CHECK_JITTERS)]])
-        sequence.append(inputs)
-    expected, state = [], None
-    with torch.no_grad():
+    expected, state, sequence = [], None, []
+    with stages.stage("check pytorch", f"running the method over {frames} frames"), torch.no_grad():
+        method = exported_form(method).cpu().for_inference().eval()
+        for index in range(frames):
+            inputs = _example_frame(method, height, width, "diffuse" in info["inputs"], seed + index)
+            # jittered as an engine renders them: at zero jitter every path that reads the jitter would go unchecked
+            inputs["jitter"] = torch.tensor([CHECK_JITTERS[index % len(CHECK_JITTERS)]])
+            sequence.append(inputs)
         for inputs in sequence:
             output, state = method.step(_frame(inputs), state)
             expected.append(output)
-    actual = run_exported(path, sequence, info["state"])
+    with stages.stage("check onnxruntime", f"running the file over {frames} frames"):
+        actual = run_exported(path, sequence, info["state"])
     worst = 0.0
     for got, want in zip(actual, expected):
         allowed = TOLERANCE["atol"] + TOLERANCE["rtol"] * want.abs()

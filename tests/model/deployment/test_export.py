@@ -13,6 +13,7 @@ pytest.importorskip("onnxruntime")
 from model.deployment.export import (  # noqa: E402
     SPATIAL_INPUT,
     ExportError,
+    Stages,
     check_export,
     example_inputs,
     export_step,
@@ -30,7 +31,11 @@ def seeded(name: str, scale: int):
 @pytest.mark.parametrize("name, scale", [("wskpn:xs", 1), pytest.param("jnds:xs", 2, marks=pytest.mark.slow)])
 def test_an_exported_method_matches_pytorch_over_a_sequence(tmp_path, name, scale):
     method = seeded(name, scale)
-    info = export_step(method, tmp_path / "step.onnx", height=16, width=24)
+    said = []
+    stages = Stages(said.append)
+    info = export_step(method, tmp_path / "step.onnx", height=16, width=24, stages=stages)
+    assert list(stages.seconds) == ["prepare", "torch.export", "onnx", "optimize", "write"]
+    assert [line.split(":")[0] for line in said] == list(stages.seconds)
     assert info["outputs"]["output"] == [1, 3, 16 * scale, 24 * scale]
     assert set(info["inputs"]) == {"color", "albedo", "normal", "depth", "motion", "jitter"}
     assert check_export(method, tmp_path / "step.onnx", info, frames=4) <= 1  # within 1e-4 abs + 1e-4 rel
