@@ -225,8 +225,8 @@ def _export_onnx(module: nn.Module, arguments: tuple, inputs: dict, state_names:
 
 def _tidy_graph(onnx_program) -> None:
     """The graph-shrinking part of onnxscript's optimizer (constant folding, dead nodes, common subexpressions,
-    duplicate initializers) without its pattern rewriter: the rewriter took about nine tenths of the optimizer's
-    time and left onnxruntime's speed unchanged (it rewrites what runtimes fuse themselves)."""
+    duplicate initializers) without its pattern rewriter, which took most of the optimizer's time and left
+    onnxruntime's speed unchanged (it rewrites what runtimes fuse themselves; docs/export.md, "Export time")."""
     try:
         import onnx_ir.passes.common as passes
         from onnxscript.optimizer import fold_constants
