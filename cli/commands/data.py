@@ -194,28 +194,49 @@ def _print_summary(root: Path, as_json: bool = False) -> None:
 # ------------------------------------------------------------------------------------------- preview
 
 def _add_preview(commands) -> None:
-    parser = commands.add_parser("preview", help="save a PNG of one frame's buffers side by side")
-    parser.add_argument("frame", type=Path, help="frame EXR file, or a sequence folder (then --index picks)")
-    parser.add_argument("--index", type=int, default=0, help="frame index within a sequence folder")
+    parser = commands.add_parser(
+        "preview", help="save a PNG of one frame's buffers side by side, or of one output EXR",
+        description="FRAME is a frame bundle EXR (a contact sheet of its buffers), a sequence folder, an output EXR "
+                    "(the plain R/G/B images the service, denoiser stream and denoiser infer write: the image "
+                    "itself, display-encoded as clip(x, 0, 1) ** (1/2.2), at its own size) or a folder of them.")
+    parser.add_argument("frame", type=Path,
+                        help="frame or output EXR file, or a sequence or output folder (then --index picks)")
+    parser.add_argument("--index", type=int, default=0, help="frame index within a folder (default 0; -1: the last)")
     parser.add_argument("--out", type=Path, required=True, help="PNG file to write")
     parser.set_defaults(run=_run_preview)
 
 
 def _run_preview(args) -> int:
-    from model.io.exr import read_frame
-    from model.io.preview import save_buffer_sheet
+    from model.io.exr import is_image_exr, read_frame, read_image
+    from model.io.preview import save_buffer_sheet, save_image_png
 
-    if args.frame.is_dir():
+    if args.frame.is_dir() and (args.frame / "manifest.json").is_file():
         from model.io.dataset import Sequence
 
         sequence = Sequence(args.frame)
-        if not 0 <= args.index < len(sequence):
-            raise UsageError(f"{args.frame}: --index {args.index} is out of range (0..{len(sequence) - 1})")
-        frame = sequence[args.index]
-        title = f"{sequence.name}, frame {args.index}"
-    else:
-        frame = read_frame(args.frame)
-        title = f"{args.frame.name}"
+        index = _folder_index(args, len(sequence))
+        out = save_buffer_sheet(sequence[index], args.out, f"{sequence.name}, frame {index}")
+        print(f"wrote {out}")
+        return 0
+    path = args.frame
+    if path.is_dir():  # an output folder (OUT/frame_NNNN.exr): no manifest, the files in name order
+        files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() == ".exr")
+        if not files:
+            raise UsageError(f"{path}: neither a sequence folder (manifest.json) nor a folder of EXR files")
+        path = files[_folder_index(args, len(files))]
+    if is_image_exr(path):
+        out = save_image_png(read_image(path), args.out)
+        print(f"wrote {out} (output image {path.name}, display-encoded)")
+        return 0
+    frame = read_frame(path)
+    title = f"{path.name}"
     out = save_buffer_sheet(frame, args.out, title)
     print(f"wrote {out}")
     return 0
+
+
+def _folder_index(args, count: int) -> int:
+    index = count + args.index if args.index < 0 else args.index
+    if not 0 <= index < count:
+        raise UsageError(f"{args.frame}: --index {args.index} is out of range (0..{count - 1}, or -1 for the last)")
+    return index

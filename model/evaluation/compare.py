@@ -4,6 +4,8 @@ Each method is stepped through the sequence from its first frame up to the chose
 evaluation), so the picture shows what the method gives at that point of the stream, not a cold start. Every
 panel is titled with its PSNR and FLIP against the reference (display-encoded, as in the benchmark protocol).
 An optional zoom row repeats a square region of every panel, enlarged with nearest-neighbour sampling.
+``last_frame_panels`` builds the same picture from outputs an evaluation already computed (the evaluate job draws
+one per sequence of its last frame this way, without running the methods again).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import numpy as np
 import torch
 
 from model.io.dataset import Sequence
-from model.evaluation.evaluate import _prepare
+from model.evaluation.evaluate import EvaluationSequence, _prepare
 from model.methods.base import FrameBatch, Method
 from model.methods.baselines import bicubic_upscale
 from model.evaluation.metrics import frame_metrics
@@ -54,10 +56,8 @@ def comparison_panels(sequence: Sequence, methods: list[Method | str], frame_ind
         present = ", ".join(str(s) for s in sequence.scales) or "none"
         raise ValueError(f"sequence '{sequence.name}' has no references at scale {scale} (scales present: {present})")
     frames = [FrameBatch.from_bundles([sequence[i]], scale) for i in range(frame_index + 1)]
-    reference = frames[-1].reference
-    panels = [_scored(f"input (1spp, bicubic x{scale})" if scale > 1 else "input (1spp)",
-                      bicubic_upscale(frames[-1].color, scale), reference)]
     labels = labels or [None] * len(methods)
+    outputs = []
     with torch.inference_mode():
         for method, label in zip(methods, labels, strict=True):
             method, _ = _prepare(method, scale)
@@ -65,7 +65,20 @@ def comparison_panels(sequence: Sequence, methods: list[Method | str], frame_ind
             state = None
             for frame in frames:
                 output, state = method.step(frame.without_reference().to(device), state)
-            panels.append(_scored(label or method.label, output, reference))
+            outputs.append((label or method.label, output))
+    return _panels(frames[-1], scale, outputs)
+
+
+def last_frame_panels(sequence: EvaluationSequence, outputs: list[tuple[str, torch.Tensor]]) -> list[Panel]:
+    """Input, each (label, output) given for the sequence's last evaluated frame, then the reference."""
+    return _panels(sequence.frames[-1], sequence.scale, outputs)
+
+
+def _panels(frame: FrameBatch, scale: int, outputs: list[tuple[str, torch.Tensor]]) -> list[Panel]:
+    reference = frame.reference
+    panels = [_scored(f"input (1spp, bicubic x{scale})" if scale > 1 else "input (1spp)",
+                      bicubic_upscale(frame.color, scale), reference)]
+    panels += [_scored(label, output, reference) for label, output in outputs]
     panels.append(Panel(f"reference x{scale}", _image(reference)))
     return panels
 

@@ -36,6 +36,7 @@ WARMUP_FRAMES = 2
 CHECKPOINT_SUFFIXES = (".pt", ".pth", ".ckpt")
 
 Progress = Callable[[str], None]
+LastOutputs = Callable[["EvaluationSequence", list[tuple[str, torch.Tensor]]], None]
 
 
 @dataclass
@@ -122,7 +123,7 @@ def method_description(method: Method, source: str) -> dict:
 
 def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoVdp | None = None,
                  with_metrics: bool = True, warmup_frames: int = WARMUP_FRAMES,
-                 device: torch.device | str = "cpu", keep_outputs: bool = False) -> dict:
+                 device: torch.device | str = "cpu", keep_outputs: bool = False, keep_last: bool = False) -> dict:
     """Step ``method`` through ``sequence``: step times of the frames after warm-up, and (``with_metrics``)
     per-sequence means of the frame metrics, the temporal error and, when ``vdp`` is given, the JOD.
 
@@ -130,7 +131,8 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
     "sanitized": the repaired-pixel counts (``SanitizeReport.to_dict``), "keeps_history": whether any step
     returned a non-empty state (a temporal method; per-frame methods return ``{}``), with metrics "metrics":
     {name: value or None} and "per_frame": {frame metric: [value per frame]}, and with ``keep_outputs`` (which
-    needs the metrics) "outputs": the linear outputs as one (T, C, H, W) CPU tensor}.
+    needs the metrics) "outputs": the linear outputs as one (T, C, H, W) CPU tensor, with ``keep_last`` (also with
+    the metrics) "last_output": the last frame's linear (1, C, H, W) CPU output}.
     """
     if keep_outputs and not with_metrics:
         raise ValueError("keep_outputs needs with_metrics: outputs are checked and copied with the metrics")
@@ -161,11 +163,15 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
             references_ldr.append(display_encode(frame.reference[0]))
             if keep_outputs:
                 kept.append(output[0])
+            if keep_last:
+                last = output
 
     result: dict = {"frames": len(sequence.frames), "step_seconds": step_seconds, "sanitized": sanitized.to_dict(),
                     "keeps_history": keeps_history}
     if keep_outputs:
         result["outputs"] = torch.stack(kept)
+    if keep_last and with_metrics:
+        result["last_output"] = last
     if with_metrics:
         result["per_frame"] = frame_values
         metrics: dict[str, float | None] = {name: statistics.fmean(v) for name, v in frame_values.items()}
@@ -265,7 +271,7 @@ def evaluate(dataset_dir: str | os.PathLike, methods: list[Method | str], split:
              frame_limit: int | None = None, threads: int | None = None, vdp: bool = True,
              timing_reference: Method | str | None = TIMING_REFERENCE, warmup_frames: int = WARMUP_FRAMES,
              device: torch.device | str = "cpu", progress: Progress | None = None,
-             inference_forms: FormTable | str | None = "measured") -> dict:
+             inference_forms: FormTable | str | None = "measured", last_outputs: LastOutputs | None = None) -> dict:
     """Run the benchmark protocol for ``methods`` on one split of a dataset; returns a JSON-serializable report.
 
     ``methods`` are ``NAME[:PRESET]`` texts, checkpoint paths, or Method objects. ``timing_reference`` (OIDN-high
@@ -274,6 +280,8 @@ def evaluate(dataset_dir: str | os.PathLike, methods: list[Method | str], split:
     sequence; ``threads`` sets torch's thread count for the run (restored afterwards); ``vdp=False`` skips
     FovVideoVDP, the slowest metric. Learned methods' networks run in the form ``inference_forms`` measured for
     the frames' resolution, as sessions run them (``model.deployment.inference_forms``; "off": fp32 eager).
+    ``last_outputs`` is called once per sequence, after every method ran on it, with the sequence and each
+    method's (label, output) of its last frame (``model.evaluation.compare.last_frame_panels`` draws them).
     """
     if not methods:
         raise ValueError("no methods to evaluate")
@@ -308,7 +316,9 @@ def evaluate(dataset_dir: str | os.PathLike, methods: list[Method | str], split:
                 say(f"{entrant.method.label}{what}: sequence {sequence.name} ({len(sequence.frames)} frames)")
                 entrant.runs[sequence.name] = run_sequence(
                     entrant.method, sequence, vdp=usable_metric, with_metrics=not entrant.timing_only,
-                    warmup_frames=warmup_frames, device=device)
+                    warmup_frames=warmup_frames, device=device, keep_last=last_outputs is not None)
+            if last_outputs is not None:
+                last_outputs(sequence, [(e.method.label, e.runs[sequence.name].pop("last_output")) for e in entrants])
         reference_seconds = reference.step_seconds if reference is not None else []
         reference_ms = median_ms(reference_seconds)
         return {

@@ -206,13 +206,7 @@ def _frame_parts(frame: FrameBundle, half: bool, compression=OpenEXR.ZIP_COMPRES
 
 
 def _open_exr(path: Path, source: str, max_pixels: int | None = None, reference_render: bool = False) -> OpenEXR.File:
-    if not path.is_file():
-        problem = "is a directory, not a file" if path.is_dir() else "file not found"
-        raise FrameFormatError(source, None, problem)
-    with path.open("rb") as file:
-        magic = file.read(len(EXR_MAGIC))
-    if magic != EXR_MAGIC:
-        raise FrameFormatError(source, None, "not an OpenEXR file (wrong magic number)")
+    _check_exr_file(path, source)
     return _read_exr(lambda: str(path), source, max_pixels, reference_render)
 
 
@@ -604,3 +598,30 @@ def decode_image_exr(data: bytes, source: str = "<bytes>") -> np.ndarray:
     if missing:
         raise FrameFormatError(source, None, f"not an RGB image: lacks channels {', '.join(missing)}")
     return np.stack([channels[name].pixels for name in IMAGE_CHANNELS], axis=-1, dtype=np.float32)
+
+
+def is_image_exr(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a plain one-part R/G/B image (``write_image``'s output, or any renderer's beauty pass)
+    rather than a frame bundle; reads the header only."""
+    path = Path(path)
+    _check_exr_file(path, str(path))
+    parts = _read_headers(str(path), str(path))
+    if len(parts) != 1:
+        return False
+    declared = {channel.name for channel in parts[0].header.get("channels", ())}
+    return set(IMAGE_CHANNELS) <= declared and declared <= {*IMAGE_CHANNELS, "A"}
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """The (H, W, 3) float32 image of a one-part R/G/B EXR file (``decode_image_exr`` of its bytes)."""
+    path = Path(path)
+    _check_exr_file(path, str(path))
+    return decode_image_exr(path.read_bytes(), source=str(path))
+
+
+def _check_exr_file(path: Path, source: str) -> None:
+    if not path.is_file():
+        raise FrameFormatError(source, None, "is a directory, not a file" if path.is_dir() else "file not found")
+    with path.open("rb") as file:
+        if file.read(len(EXR_MAGIC)) != EXR_MAGIC:
+            raise FrameFormatError(source, None, "not an OpenEXR file (wrong magic number)")

@@ -1,4 +1,5 @@
-"""A PNG contact sheet of one frame bundle's buffers side by side, for people to look at."""
+"""PNGs for people to look at: a contact sheet of one frame bundle's buffers side by side, or one output image
+(the plain R/G/B EXRs the service, ``denoiser stream`` and ``denoiser infer`` write), display-encoded."""
 
 from __future__ import annotations
 
@@ -65,4 +66,16 @@ def save_buffer_sheet(frame: FrameBundle, out: str | Path, title: str | None = N
     out.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(out, dpi=100)
     plt.close(figure)
+    return out
+
+
+def save_image_png(image: np.ndarray, out: str | Path) -> Path:
+    """Write a linear (H, W, 3) image as an 8-bit PNG of the same size, display-encoded (``display_encode``)."""
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"an RGB image must have shape (H, W, 3), got {image.shape}")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # NaN would turn into an arbitrary byte; an output that has one shows it black.
+    plt.imsave(out, np.nan_to_num(display_encode(image), nan=0.0), format="png")
     return out

@@ -91,3 +91,31 @@ def test_preview_writes_a_png(tmp_path):
     assert main(["preview", str(out / "metals_s0"), "--out", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main(["preview", str(out / "metals_s0"), "--index", "5", "--out", str(png)]) == 2
+
+
+def test_preview_of_output_exrs_writes_the_image_display_encoded(tmp_path, capsys):
+    """The plain R/G/B EXRs the service, stream and infer write: the PNG is the image, clip(x, 0, 1) ** (1/2.2)."""
+    import matplotlib.image
+
+    from model.io.exr import write_image
+
+    folder = tmp_path / "out" / "seq"
+    folder.mkdir(parents=True)
+    for index, value in enumerate((0.0, 0.25)):
+        image = np.full((6, 10, 3), value, dtype=np.float32)
+        image[0, 0] = (4.0, -1.0, 1.0)  # HDR and negative values clip
+        write_image(folder / f"frame_{index:04d}.exr", image, {"frame_index": index, "sequence": "seq"})
+    png = tmp_path / "last.png"
+    assert main(["preview", str(folder), "--index", "-1", "--out", str(png)]) == 0
+    assert "frame_0001.exr" in capsys.readouterr().out
+    pixels = matplotlib.image.imread(png)[..., :3]
+    assert pixels.shape == (6, 10, 3)
+    np.testing.assert_allclose(pixels[3, 5], 0.25 ** (1 / 2.2), atol=1 / 255)  # 136/255, not 64/255 (linear)
+    np.testing.assert_allclose(pixels[0, 0], (1.0, 0.0, 1.0), atol=1 / 255)
+    assert main(["preview", str(folder / "frame_0000.exr"), "--out", str(png)]) == 0
+    assert matplotlib.image.imread(png)[3, 5, 0] == 0.0
+    assert main(["preview", str(folder), "--index", "2", "--out", str(png)]) == 2
+    assert "out of range (0..1" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["preview", str(tmp_path / "empty"), "--out", str(png)]) == 2
+    assert "neither a sequence folder" in capsys.readouterr().err

@@ -6,7 +6,9 @@ what ``denoiser benchmark`` writes (``model.evaluation.benchmark.write_benchmark
 ``benchmark.md``, ``quality_speed.png`` (served at GET /jobs/{id}/chart.png) and ``quality_cost.png``. With
 ``track`` the run goes to MLflow (experiment ``denoiser-evaluation``): parameters, one metric per method and
 measure, the files as artifacts; and a registered model version that was evaluated gets its measurements as
-version tags (``ms_per_frame``, ``metric.<name>``), which GET /models shows.
+version tags (``ms_per_frame``, ``metric.<name>``), which GET /models shows. An evaluate job also draws one
+side-by-side picture per sequence of its last evaluated frame (input, each method, reference:
+``comparison_<sequence>.png``, ``model.evaluation.compare``), served and logged with the other files.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from typing import Any
 
 from core.jobs.checks import open_dataset, split_sequences
 from core.jobs.evaluate import benchmark_scales, planned_methods, runs_at
-from core.jobs.files import BENCHMARK_FILES, CHART, REPORT_JSON, REPORT_MARKDOWN
+from core.jobs.files import BENCHMARK_FILES, CHART, COMPARISON, REPORT_JSON, REPORT_MARKDOWN, comparison_name
 from core.jobs.methods import is_model_ref, runnable
 from core.jobs.specs import BenchmarkParams, EvaluateParams
 from workers.tasks.context import JobContext
@@ -57,20 +59,23 @@ def run(context: JobContext) -> dict[str, Any]:
     tracker = _start_tracking(context, params, methods) if params.track else None
     with context.ending(tracker):
         reports = []
+        pictures: dict[str, Path] = {}
         for scale in scales:
             if not plan[scale]:
                 continue
+            draw = None if benchmark else _comparison_drawer(context.folder, pictures,
+                                                             scale if len(scales) > 1 else None)
             report = evaluate(dataset_dir, [runnable(m, context.storage) for m in plan[scale]], split=params.split,
                               scale=scale, frame_limit=params.frames, threads=params.threads, vdp=params.vdp,
                               timing_reference=TIMING_REFERENCE if params.oidn_timing else None,
                               device=context.torch_device, progress=say,
-                              inference_forms=context.settings.inference_forms)
+                              inference_forms=context.settings.inference_forms, last_outputs=draw)
             for entry, text in zip(report["methods"], plan[scale]):
                 entry["source"] = text  # the reference as given, not the cached checkpoint's path
             report["dataset"] = params.dataset
             reports.append(report)
         context.progress(total, total, "writing the report")
-        files = _write_files(context.folder, reports, format_table, skipped, benchmark)
+        files = {**_write_files(context.folder, reports, format_table, skipped, benchmark), **pictures}
         if tracker is not None:
             _log_results(tracker, reports, files)
     if params.track:
@@ -100,7 +105,25 @@ def summary(job_id: str, report: dict, files: dict[str, Any]) -> dict[str, Any]:
 
 
 def _artifact_urls(job_id: str, files: dict[str, Any]) -> dict[str, str]:
-    return {name: f"/jobs/{job_id}/artifacts/{name}" for name in files if name in ARTIFACTS}
+    return {name: f"/jobs/{job_id}/artifacts/{name}" for name in files if _is_artifact(name)}
+
+
+def _is_artifact(name: str) -> bool:
+    return name in ARTIFACTS or bool(COMPARISON.match(name))
+
+
+def _comparison_drawer(folder: Path, pictures: dict[str, Path], scale: int | None):
+    """The evaluation's ``last_outputs`` callback: each sequence's picture into the job folder, noted in
+    ``pictures`` (name: path)."""
+    from model.evaluation.compare import last_frame_panels, save_comparison
+
+    def draw(sequence, outputs) -> None:
+        name = comparison_name(sequence.name, scale)
+        frame = len(sequence.frames) - 1
+        pictures[name] = save_comparison(last_frame_panels(sequence, outputs), folder / name,
+                                         title=f"{sequence.name}, frame {frame} (x{sequence.scale})")
+
+    return draw
 
 
 def _write_files(folder: Path, reports: list[dict], format_table, skipped: list[dict],
@@ -153,7 +176,7 @@ def _log_results(tracker, reports: list[dict], files: dict[str, Any]) -> None:
             metrics.update({f"{name}/{key}": value for key, value in values.items() if value is not None})
     tracker.log_metrics(metrics, step=0)
     for name, path in files.items():
-        if name in ARTIFACTS:
+        if _is_artifact(name):
             tracker.client.log_artifact(tracker.run_id, str(path))
 
 

@@ -29,7 +29,8 @@ from core.job_store import JobStore, store_for
 from core.jobs.checks import invalid
 from core.jobs.dispatch import CeleryDispatcher
 from core.jobs.files import CHART as QUALITY_SPEED_CHART
-from core.jobs.files import BENCHMARK_FILES, CHECKPOINT_FOLDER, DDP_LOG_FILE, LOG_FILE, STABILITY_FILES, tail_lines
+from core.jobs.files import (BENCHMARK_FILES, CHECKPOINT_FOLDER, COMPARISON, DDP_LOG_FILE, LOG_FILE, STABILITY_FILES,
+                             tail_lines)
 from core.jobs.kinds import KINDS, check
 from core.jobs.specs import JobKind, JobState
 from core.settings import Settings, get_settings
@@ -180,19 +181,23 @@ def job_logs(job_id: JobId, store: StoreDep, storage: StorageDep,
             responses={200: {"content": {kind: {} for kind in ARTIFACT_TYPES.values()}}, 404: _NOT_FOUND})
 def job_artifact(job_id: JobId, store: StoreDep, storage: StorageDep,
                  name: Annotated[str, Path(description="report.json, report.md (evaluate, benchmark at one "
-                                                       "scale); quality_speed.png, benchmark.json, benchmark.md, "
+                                                       "scale); comparison_<sequence>.png (evaluate: the last "
+                                                       "frame side by side); quality_speed.png, benchmark.json, "
+                                                       "benchmark.md, "
                                                        "quality_cost.png (benchmark); ladder.json, ladder.md (fit); "
                                                        "stability.json, stability.md, psnr_curves.png, "
                                                        "psnr_drop.png, ghost_curves.png (stability)")]
                  ) -> FileResponse:
     _require(store, job_id)
     path = storage.job(job_id) / name
-    if name not in ARTIFACT_TYPES or not path.is_file():
+    media_type = "image/png" if COMPARISON.match(name) else ARTIFACT_TYPES.get(name)
+    if media_type is None or not path.is_file():
         raise ApiError(404, "not_found", f"job {job_id!r} has no artifact {name!r} (artifacts: "
                        f"report.json and report.md written by evaluate and benchmark jobs when they succeed, "
+                       f"comparison_<sequence>.png by evaluate jobs, "
                        f"{QUALITY_SPEED_CHART} and {', '.join(BENCHMARK_FILES)} by benchmark jobs, {LADDER_JSON} "
                        f"and {LADDER_MARKDOWN} by fit jobs, {', '.join(STABILITY_FILES)} by stability jobs)")
-    return FileResponse(path, media_type=ARTIFACT_TYPES[name], filename=name)
+    return FileResponse(path, media_type=media_type, filename=name)
 
 
 @router.get("/{job_id}/chart.png", summary="The quality-vs-speed chart of a benchmark job (PNG)",

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from model.evaluation.compare import comparison_panels, save_comparison
+from model.evaluation.compare import comparison_panels, last_frame_panels, save_comparison
+from model.evaluation.evaluate import evaluate
 from model.io.dataset import Dataset
 from model.methods.base import FrameBatch
 from model.evaluation.metrics import frame_metrics
@@ -47,3 +48,21 @@ def test_bad_frame_scale_and_zoom_are_named(sequence, tmp_path):
         save_comparison(panels, tmp_path / "x.png", zoom=(10, 10, 8))
     out = save_comparison(panels, tmp_path / "sub" / "x.png", title="t", zoom=(2, 2, 8))
     assert Path(out).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_an_evaluations_last_outputs_give_the_picture_a_rerun_gives(tmp_path):
+    """The evaluation hands each sequence's last-frame outputs over; drawn, they equal a separate run to that frame."""
+    root = write_gradient_dataset(tmp_path / "data")
+    drawn = {}
+
+    def draw(evaluated, outputs):
+        drawn[evaluated.name] = last_frame_panels(evaluated, outputs)
+
+    evaluate(root, ["identity", "accumulation"], scale=2, frame_limit=3, vdp=False, timing_reference=None,
+             inference_forms="off", last_outputs=draw)
+    assert sorted(drawn) == ["a", "b"]
+    rerun = comparison_panels(Dataset(root).sequence("a"), ["identity", "accumulation"], frame_index=2, scale=2)
+    assert [p.title for p in drawn["a"]] == [p.title for p in rerun]
+    for got, want in zip(drawn["a"], rerun):
+        assert np.allclose(got.image, want.image, atol=1e-6) and got.psnr == pytest.approx(want.psnr, abs=1e-6)
+    assert drawn["a"][2].psnr > drawn["a"][1].psnr  # accumulation over 3 frames beats one noisy frame

@@ -71,6 +71,23 @@ def test_evaluate_writes_reports_and_mirrors_progress(store, storage, settings, 
     assert "attempt 1 of evaluate job" in log and "succeeded" in log
 
 
+def test_a_tracked_evaluation_draws_and_logs_each_sequences_last_frame_side_by_side(store, storage, settings,
+                                                                                     dataset):
+    from mlflow.tracking import MlflowClient
+
+    job_id = submit(store, storage, settings, "evaluate", dataset="tiny", methods=["identity", "accumulation"],
+                    vdp=False, oidn_timing=False, track=True, frames=3)
+    record = run(store, storage, settings, job_id)
+    assert record["state"] == "succeeded", record["error"]
+    pictures = {"comparison_delta.png", "comparison_epsilon.png"}  # the test split's two sequences
+    assert pictures <= set(record["result"]["artifacts"])
+    assert record["result"]["artifacts"]["comparison_delta.png"] == f"/jobs/{job_id}/artifacts/comparison_delta.png"
+    for name in pictures:
+        assert (storage.job(job_id) / name).read_bytes()[:4] == b"\x89PNG"
+    client = MlflowClient(settings.resolved_tracking_uri())
+    assert pictures <= {item.path for item in client.list_artifacts(record["mlflow_run_id"])}
+
+
 def test_benchmark_defaults_to_baselines_and_oidn_and_draws_a_chart(store, storage, settings, dataset):
     job_id = submit(store, storage, settings, "benchmark", dataset="tiny", vdp=False, track=False, frames=3)
     # The defaults of `denoiser benchmark` too: every non-learned method, OIDN and OIDN + TAA at all three presets.

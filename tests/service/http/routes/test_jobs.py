@@ -280,6 +280,18 @@ def test_artifacts_of_an_evaluation(client, storage):
     assert error_of(client.get(f"/jobs/{job_id}/artifacts/job.log"), 404)["code"] == "not_found"
 
 
+def test_an_evaluations_side_by_side_pictures_are_artifacts(client, storage):
+    job_id = client.post("/jobs", json=evaluate_body()).json()["id"]
+    missing = error_of(client.get(f"/jobs/{job_id}/artifacts/comparison_s010.png"), 404)
+    assert "comparison_<sequence>.png by evaluate jobs" in missing["message"]
+    storage.job(job_id).mkdir(parents=True)
+    (storage.job(job_id) / "comparison_s010.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    (storage.job(job_id) / "comparison_s010.txt").write_text("not a picture")
+    response = client.get(f"/jobs/{job_id}/artifacts/comparison_s010.png")
+    assert response.content.startswith(b"\x89PNG") and response.headers["content-type"] == "image/png"
+    assert error_of(client.get(f"/jobs/{job_id}/artifacts/comparison_s010.txt"), 404)["code"] == "not_found"
+
+
 def test_a_fit_ladder_is_an_artifact(client, storage):
     job_id = client.post("/jobs", json=evaluate_body()).json()["id"]  # any job: artifacts are files by name
     missing = error_of(client.get(f"/jobs/{job_id}/artifacts/ladder.md"), 404)
