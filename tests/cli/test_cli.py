@@ -119,3 +119,18 @@ def test_preview_of_output_exrs_writes_the_image_display_encoded(tmp_path, capsy
     (tmp_path / "empty").mkdir()
     assert main(["preview", str(tmp_path / "empty"), "--out", str(png)]) == 2
     assert "neither a sequence folder" in capsys.readouterr().err
+
+
+def test_preview_of_a_frame_bundle_file_draws_its_buffers_not_an_image(tmp_path, capsys):
+    import matplotlib.image
+
+    from model.io.exr import is_image_exr, write_frame
+    from tests.builders import gradient_frame
+
+    path = tmp_path / "frame_0000.exr"
+    write_frame(path, gradient_frame(0, 0, (1,)))
+    assert not is_image_exr(path)
+    png = tmp_path / "sheet.png"
+    assert main(["preview", str(path), "--out", str(png)]) == 0
+    assert "output image" not in capsys.readouterr().out
+    assert matplotlib.image.imread(png).shape[1] > 16 * 4  # a sheet of panels, not the 16x16 frame
