@@ -244,3 +244,11 @@ def test_the_api_key_has_no_default_and_is_required(compose):
 
 def test_the_image_requires_a_real_api_key():
     assert "ENV DENOISER_REQUIRE_API_KEY=true" in DOCKERFILE.read_text()
+
+
+def test_the_database_password_has_no_default_and_is_required():
+    # Every use (postgres' own setting and MLflow's backend URI) must fail without it, none may fall back to a value.
+    text = COMPOSE.read_text()
+    uses = re.findall(r"\$\{POSTGRES_PASSWORD([^}]*)\}", text)
+    assert len(uses) == 2, uses
+    assert all(use.startswith(":?") for use in uses), f"compose must refuse to start without a password: {uses}"
