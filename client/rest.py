@@ -424,7 +424,11 @@ class DenoiserClient:
         return {SESSION_TOKEN_HEADER: token} if token else {}
 
     def list_sessions(self) -> list[Session]:
-        return [Session.from_dict(item) for item in _items(self._json("GET", "/sessions"))]
+        """The live sessions; where the server has owner tokens on, those this client created (it sends their
+        tokens)."""
+        tokens = ",".join(self._session_tokens.values())
+        headers = {SESSION_TOKEN_HEADER: tokens} if tokens else {}
+        return [Session.from_dict(item) for item in _items(self._json("GET", "/sessions", headers=headers))]
 
     def get_session(self, session_id: str) -> Session:
         return Session.from_dict(self._json("GET", f"/sessions/{_segment(session_id)}", headers=self._owner(session_id)))

@@ -160,10 +160,29 @@ def _choose(store: SessionStore, body: SessionIn):
                            scale=body.scale, registry=store.registry)
 
 
+# Listing with owner tokens on: the caller's tokens, as a repeated header or comma-separated in one (the same to
+# HTTP; tokens are URL-safe base64, so they never hold a comma).
+OwnerTokens = Annotated[list[str] | None, Header(
+    alias=SESSION_TOKEN_HEADER, description="where the server has owner tokens on: the caller's session tokens "
+                                            "(repeat the header, or separate them with commas); only those "
+                                            "sessions are listed")]
+
+
+def owned_digests(tokens: list[str] | None) -> set[str]:
+    return {token_digest(token.strip()) for value in tokens or () for token in value.split(",") if token.strip()}
+
+
 @router.get("", response_model=list[SessionOut], summary="List live sessions", responses={503: _UNAVAILABLE})
-def list_sessions(store: StoreDep) -> list[SessionOut]:
+def list_sessions(store: StoreDep, settings: SettingsDep, tokens: OwnerTokens = None) -> list[SessionOut]:
+    """Every live session; with owner tokens on (DENOISER_SESSION_OWNER_TOKENS), only those whose token the
+    caller sends in X-Session-Token (repeated, or comma-separated): none without one."""
     with domain_errors():
-        return [session_out(session) for session in store.list()]
+        sessions = store.list()
+    if settings.session_owner_tokens:
+        # A session without an owner (created before owner tokens were on) belongs to no caller: not listed.
+        mine = owned_digests(tokens)
+        sessions = [session for session in sessions if session.owner_digest in mine]
+    return [session_out(session) for session in sessions]
 
 
 @router.get("/{session_id}", response_model=SessionOut, summary="A session's model and stream position",

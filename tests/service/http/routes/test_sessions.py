@@ -277,6 +277,29 @@ def test_a_restarted_api_keeps_the_owner_token(api):
                          headers={"X-Session-Token": session["token"]}).status_code == 200
 
 
+def test_with_owner_tokens_a_caller_lists_only_the_sessions_whose_tokens_it_sends(api):
+    client, _ = api(session_owner_tokens=True)
+    first, second, other = create(client), create(client), create(client)
+    assert client.get("/sessions").json() == []  # no token: nothing, not every owner's sessions
+    assert client.get("/sessions", headers={"X-Session-Token": "x" * 32}).json() == []
+    listed = client.get("/sessions", headers={"X-Session-Token": first["token"]}).json()
+    assert [item["id"] for item in listed] == [first["id"]]
+    assert all(item["token"] is None for item in listed)
+    both = {first["id"], second["id"]}
+    joined = client.get("/sessions", headers={"X-Session-Token": f"{first['token']}, {second['token']}"})
+    assert {item["id"] for item in joined.json()} == both
+    repeated = client.get("/sessions", headers=[("X-Session-Token", first["token"]),
+                                                ("X-Session-Token", second["token"])])
+    assert {item["id"] for item in repeated.json()} == both
+    assert other["id"] not in {item["id"] for item in repeated.json()}
+
+
+def test_without_owner_tokens_every_session_is_listed(api):
+    client, _ = api()
+    ids = {create(client)["id"], create(client)["id"]}
+    assert {item["id"] for item in client.get("/sessions").json()} == ids
+
+
 def test_without_owner_tokens_sessions_have_none(api):
     client, _ = api()
     session = create(client)
