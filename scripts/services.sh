@@ -6,6 +6,7 @@
 # folder). Logs: var/logs/<name>.log; process ids: var/run/<name>.pid.
 #   bash scripts/services.sh start|stop|restart|status [api|worker|mlflow]
 #   bash scripts/services.sh redis-command      prints Redis's host and port, then the command that would start it
+#   bash scripts/services.sh redis-check        says whether that Redis persists (start says it too)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA_DIR=${DENOISER_DATA_DIR:-$PWD/var}  # absolute: the processes and the CLI resolve it alike wherever they run
@@ -49,6 +50,17 @@ ensure_redis() {
   echo "[services] Redis did not start" >&2; exit 1
 }
 
+# A Redis that was already there (the machine's own) may keep nothing across its restart: the job queue, job
+# records and sessions would go with it. Said on every start; /ready says it too (redis_persistence).
+redis_check() {
+  local said
+  said=$(.venv/bin/python -m core.redis_persistence "$REDIS_URL")
+  case "$said" in
+    WARNING*) echo "[services] $said" >&2 ;;
+    *) echo "[services] $said" ;;
+  esac
+}
+
 start_one() {  # name command...
   local name=$1; shift
   if running "$name"; then echo "[services] $name already running (pid $(cat "$RUN/$name.pid"))"; return; fi
@@ -80,6 +92,7 @@ wait_http() {  # url what
 start() {
   local which=${1:-all}
   ensure_redis
+  redis_check
   if [ "$which" = all ] || [ "$which" = mlflow ]; then
     start_one mlflow "$DENOISER" mlflow-ui --port "$MLFLOW_PORT"
   fi
@@ -112,5 +125,6 @@ case "${1:-}" in
   restart) stop "${2:-all}"; start "${2:-all}" ;;
   status) status ;;
   redis-command) mkdir -p "$REDIS_DIR"; echo "$REDIS_HOST $REDIS_PORT"; redis_command ;;
+  redis-check) redis_check ;;
   *) echo "usage: scripts/services.sh start|stop|restart|status [api|worker|mlflow]" >&2; exit 2 ;;
 esac

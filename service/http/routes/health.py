@@ -24,6 +24,7 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 
 from core.heartbeats import TTL_INTERVALS, WorkerBeat, read_beats
+from core.redis_persistence import Persistence, persistence_of_url, persistence_warning
 from service.http.schemas.health import DependencyCheck, Health, Readiness
 from core.settings import Settings, get_settings
 
@@ -99,6 +100,11 @@ def _writable_folder(folder: Path, what: str) -> DependencyCheck:
     return DependencyCheck(status="ok", detail=f"{what} is writable")
 
 
+def redis_persistence(settings: Settings) -> Persistence:
+    """aof, rdb, none or unknown (core.redis_persistence)."""
+    return persistence_of_url(settings.redis_url)
+
+
 def worker_beats(settings: Settings) -> list[WorkerBeat]:
     """The workers whose heartbeat (core.heartbeats) is alive in Redis."""
     client = redis.Redis.from_url(settings.redis_url, socket_connect_timeout=REDIS_TIMEOUT_SECONDS,
@@ -117,6 +123,7 @@ class Probes:
     mlflow: Callable[[Settings], DependencyCheck] = check_mlflow
     storage: Callable[[Settings], DependencyCheck] = check_storage
     workers: Callable[[Settings], list[WorkerBeat]] = worker_beats
+    persistence: Callable[[Settings], Persistence] = redis_persistence
 
 
 def get_probes() -> Probes:
@@ -139,10 +146,14 @@ def ready(settings: Annotated[Settings, Depends(get_settings)],
           probes: Annotated[Probes, Depends(get_probes)]) -> JSONResponse:
     """200 when Redis, the data folder and MLflow answer. Workers do not decide it (a worker busy training is
     not an API that cannot serve, and jobs wait in the queue for one): their heartbeats are listed, and
-    `workers_detail` says how many are alive and what they run."""
+    `workers_detail` says how many are alive and what they run. `redis_persistence` says whether Redis keeps
+    its data across its own restart; `none` adds a line to `warnings` but the API stays ready."""
     checks = {"redis": probes.redis(settings), "storage": probes.storage(settings),
               "mlflow": probes.mlflow(settings)}
     workers: list[str] = []
+    # Without persistence a Redis restart loses the queue and the sessions: said, yet still ready (it serves).
+    persistence: Persistence = probes.persistence(settings) if checks["redis"].status == "ok" else "unknown"
+    warning = persistence_warning(persistence) if checks["redis"].status == "ok" else None
     if checks["redis"].status != "ok":
         workers_detail = "not checked: Redis (where workers write their heartbeats) is down"
     else:
@@ -155,7 +166,8 @@ def ready(settings: Annotated[Settings, Depends(get_settings)],
             workers_detail = f"worker heartbeats could not be read ({type(error).__name__})"
     down = [name for name, check in checks.items() if check.status == "down"]
     body = Readiness(status="unavailable" if down else "ready", redis=checks["redis"], storage=checks["storage"],
-                     mlflow=checks["mlflow"], workers=workers, workers_detail=workers_detail, down=down)
+                     mlflow=checks["mlflow"], workers=workers, workers_detail=workers_detail, down=down,
+                     redis_persistence=persistence, warnings=[warning] if warning else [])
     return JSONResponse(body.model_dump(), status_code=503 if down else 200)
 
 

@@ -6,6 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from core.redis_persistence import Persistence
+
 
 CheckStatus = Literal["ok", "down", "skipped"]
 
@@ -43,6 +45,8 @@ class Readiness(BaseModel):
                 "workers": ["celery@gpu-box", "celery@cpu-box"],
                 "workers_detail": "2 workers alive (heartbeat within 30 s); celery@gpu-box runs job 7f3c...",
                 "down": [],
+                "redis_persistence": "aof",
+                "warnings": [],
             },
             {
                 "status": "unavailable",
@@ -52,6 +56,8 @@ class Readiness(BaseModel):
                 "workers": [],
                 "workers_detail": "not checked: Redis (where workers write their heartbeats) is down",
                 "down": ["redis"],
+                "redis_persistence": "unknown",
+                "warnings": [],
             },
         ]
     })
@@ -63,3 +69,9 @@ class Readiness(BaseModel):
     workers: list[str] = Field(description="host names of the workers whose heartbeat is alive")
     workers_detail: str = Field(description="how many workers are alive and which jobs they run, or why unknown")
     down: list[str] = Field(description="the dependencies that are down: any of redis, storage, mlflow")
+    redis_persistence: Persistence = Field(
+        description="how Redis keeps its data across its own restart: aof (append-only file), rdb (snapshots "
+                    "only), none (a Redis restart empties the job queue and the sessions), unknown (Redis down, "
+                    "or CONFIG refused)")
+    warnings: list[str] = Field(default_factory=list, description="what does not make the API unready but an "
+                                                                  "operator should know (Redis without persistence)")

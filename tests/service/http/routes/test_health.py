@@ -7,9 +7,11 @@ import threading
 import time
 
 import pytest
+import redis
 from fastapi.testclient import TestClient
 
 from core.heartbeats import Heartbeat, WorkerBeat, read_beats
+from core.redis_persistence import redis_persistence
 from service.http.routes import health
 from service.http.schemas.health import DependencyCheck
 from tests.builders import closed_port
@@ -25,7 +27,7 @@ def ready_client(make_app):
     """``ready_client(redis=..., storage=..., mlflow=..., workers=...)``: a client whose /ready uses these probe
     answers (``workers``: heartbeats, or an exception reading them raises)."""
 
-    def build(redis=OK, storage=OK, mlflow=OK, workers=(BEAT,)):
+    def build(redis=OK, storage=OK, mlflow=OK, workers=(BEAT,), persistence="aof"):
         app = make_app(public=(health.router,), api_key="secret")
 
         def beats(settings):
@@ -35,7 +37,7 @@ def ready_client(make_app):
 
         app.dependency_overrides[health.get_probes] = lambda: health.Probes(
             redis=lambda settings: redis, storage=lambda settings: storage, mlflow=lambda settings: mlflow,
-            workers=beats)
+            workers=beats, persistence=lambda settings: persistence)
         return TestClient(app)
 
     return build
@@ -52,7 +54,24 @@ def test_ready_when_everything_answers(ready_client):
     assert response.status_code == 200
     assert response.json() == {"status": "ready", "redis": OK.model_dump(), "storage": OK.model_dump(),
                                "mlflow": OK.model_dump(), "workers": ["celery@box"],
-                               "workers_detail": "1 worker alive (heartbeat within 30 s); all idle", "down": []}
+                               "workers_detail": "1 worker alive (heartbeat within 30 s); all idle", "down": [],
+                               "redis_persistence": "aof", "warnings": []}
+
+
+@pytest.mark.parametrize(("persistence", "warned"), [("aof", False), ("rdb", False), ("none", True),
+                                                     ("unknown", True)])
+def test_a_redis_without_persistence_is_a_warning_not_unready(ready_client, persistence, warned):
+    response = ready_client(persistence=persistence).get("/ready")
+    assert response.status_code == 200 and response.json()["status"] == "ready"
+    body = response.json()
+    assert body["redis_persistence"] == persistence and bool(body["warnings"]) is warned
+    if persistence == "none":
+        assert "a Redis restart empties the job queue" in body["warnings"][0]
+
+
+def test_redis_down_leaves_its_persistence_unknown_and_unasked(ready_client):
+    body = ready_client(redis=DOWN, workers=(), persistence=AssertionError("must not ask")).get("/ready").json()
+    assert body["redis_persistence"] == "unknown" and body["warnings"] == []
 
 
 def test_redis_down_is_503_and_heartbeats_are_not_read(ready_client):
@@ -87,6 +106,32 @@ def test_mlflow_or_storage_down_is_503(ready_client, name):
 def test_redis_probe_against_the_test_database(settings, redis_db):
     check = health.check_redis(settings)
     assert check.status == "ok" and check.detail.startswith("PING answered in")
+
+
+class ConfigRefused:
+    """A Redis client whose server refuses CONFIG (as managed services often do) and answers INFO."""
+
+    def __init__(self, aof_enabled: int) -> None:
+        self.aof_enabled = aof_enabled
+
+    def config_get(self, name):
+        raise redis.ResponseError("unknown command 'CONFIG'")
+
+    def info(self, section):
+        return {"aof_enabled": self.aof_enabled}
+
+
+def test_persistence_falls_back_to_info_when_config_is_refused():
+    assert redis_persistence(ConfigRefused(1)) == "aof"
+    assert redis_persistence(ConfigRefused(0)) == "unknown"  # INFO does not say whether save points are set
+
+
+def test_persistence_probe_against_the_test_database(settings, redis_db):
+    client = redis.Redis.from_url(settings.redis_url)
+    expected = "aof" if client.config_get("appendonly")["appendonly"] == "yes" else (
+        "rdb" if client.config_get("save")["save"] else "none")
+    assert health.redis_persistence(settings) == expected
+    client.close()
 
 
 def test_redis_probe_down_is_quick_and_names_no_address(settings, caplog):
