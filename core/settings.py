@@ -55,6 +55,9 @@ class Settings(BaseSettings):
     require_api_key: bool = Field(
         False, description="refuse to start without a real api_key (set where the API is reachable from other "
                            "machines; `denoiser serve --host` beyond localhost implies it)")
+    public_api_docs: bool = Field(
+        False, description="/openapi.json, /docs and /redoc answer without the API key (they need it by default "
+                           "when api_key is set)")
     max_upload_bytes: int = Field(2 * 1024**3, gt=0, description="largest accepted dataset upload")
     max_frame_bytes: int = Field(256 * 1024**2, gt=0, description="largest accepted single-frame EXR")
     max_frame_pixels: int = Field(

@@ -1,7 +1,7 @@
 """The FastAPI application: `uvicorn service.http.app:app` (or `denoiser serve`).
 
 Routers live in service/http/routes/, one module per resource; every one but /health and /ready needs the API key
-when one is configured. Errors share one JSON shape (service/http/errors.py).
+when one is configured (the schema and the docs pages too, unless DENOISER_PUBLIC_API_DOCS: service/http/api_docs.py). Errors share one JSON shape (service/http/errors.py).
 """
 
 from __future__ import annotations
@@ -57,9 +57,10 @@ async def _lifespan(app: FastAPI):
 
 
 def create_app() -> FastAPI:
-    # FastAPI's own /docs and /redoc load their scripts from a CDN; install_api_docs serves them from the app.
+    # FastAPI's own /docs and /redoc load their scripts from a CDN, and its /openapi.json is public:
+    # install_api_docs serves all three from the app, behind the API key.
     app = FastAPI(title="denoiser-service", version=API_VERSION, description=DESCRIPTION, lifespan=_lifespan,
-                  docs_url=None, redoc_url=None)
+                  openapi_url=None, docs_url=None, redoc_url=None)
     install_error_handlers(app)
     install_api_docs(app)
     app.add_middleware(BodyReadTimeout, timeout_seconds=get_settings().body_read_timeout_seconds)

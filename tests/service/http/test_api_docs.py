@@ -18,6 +18,7 @@ from fastapi.testclient import TestClient
 
 from core.settings import get_settings
 from service.http.api_docs import ASSETS_URL
+from tests.builders import error_message
 
 PAGE_ASSETS = {
     "/docs": {f"{ASSETS_URL}/swagger-ui-bundle.js", f"{ASSETS_URL}/swagger-ui.css", f"{ASSETS_URL}/favicon.png"},
@@ -53,12 +54,62 @@ def test_behind_a_proxy_prefix_the_pages_name_the_prefixed_files(app):
         assert "/api/openapi.json" in html
 
 
-def test_the_docs_stay_public_like_the_openapi_document_when_a_key_is_required(app, settings):
-    keyed = settings.model_copy(update={"api_key": "0123456789abcdef0123456789abcdef"})
+KEY = "0123456789abcdef0123456789abcdef"
+DOCS_URLS = ["/openapi.json", "/docs", "/redoc", "/docs/oauth2-redirect", *sorted(PAGE_ASSETS["/docs"]),
+             *sorted(PAGE_ASSETS["/redoc"])]
+
+
+def keyed_client(app, settings, **changes) -> TestClient:
+    keyed = settings.model_copy(update={"api_key": KEY, **changes})
     app.dependency_overrides[get_settings] = lambda: keyed
+    return TestClient(app)
+
+
+def test_with_a_key_the_schema_the_pages_and_their_files_need_it(app, settings):
+    client = keyed_client(app, settings)
+    for url in DOCS_URLS:
+        assert client.get(url).status_code == 401, url
+        assert client.get(url, headers={"X-API-Key": "not" + KEY}).status_code == 401, url
+        assert client.get(url, headers={"X-API-Key": KEY}).status_code == 200, url
+    assert "X-API-Key" in error_message(client.get("/openapi.json"), 401, "unauthorized")
+
+
+@pytest.mark.parametrize("page", sorted(PAGE_ASSETS))
+def test_a_browser_enters_the_key_once_and_reads_the_docs_by_a_cookie_that_opens_nothing_else(app, settings, page):
+    client = keyed_client(app, settings)
+    asked = client.get(page)
+    assert asked.status_code == 401 and asked.headers["content-type"].startswith("text/html")
+    assert '<form method="post" action="/docs/key">' in asked.text and "://" not in asked.text
+    wrong = client.post("/docs/key", data={"api_key": "not" + KEY, "next": page}, follow_redirects=False)
+    assert wrong.status_code == 401 and "does not match" in wrong.text and not client.cookies
+    entered = client.post("/docs/key", data={"api_key": KEY, "next": page}, follow_redirects=False)
+    assert (entered.status_code, entered.headers["location"]) == (303, page)
+    cookie = entered.headers["set-cookie"]
+    assert KEY not in cookie and "HttpOnly" in cookie and "SameSite=strict" in cookie
+    for url in [page, "/openapi.json", *PAGE_ASSETS[page]]:
+        assert client.get(url).status_code == 200, url
+    assert client.get("/datasets").status_code == 401  # the cookie is no API key
+
+
+def test_the_key_form_sends_the_browser_only_to_a_docs_page(app, settings):
+    client = keyed_client(app, settings)
+    answer = client.post("/docs/key", data={"api_key": KEY, "next": "https://elsewhere.example/"},
+                         follow_redirects=False)
+    assert answer.headers["location"] == "/docs"
+    error_message(client.post("/docs/key", content=b"api_key=" + b"x" * 5000,
+                              headers={"Content-Type": "application/x-www-form-urlencoded"}), 413, "payload_too_large")
+
+
+def test_public_api_docs_opens_the_docs_but_not_the_api(app, settings):
+    client = keyed_client(app, settings, public_api_docs=True)
+    assert client.get("/datasets").status_code == 401
+    for url in DOCS_URLS:
+        assert client.get(url).status_code == 200, url
+
+
+def test_without_a_key_the_docs_are_open(app):
     client = TestClient(app)
-    assert client.get("/datasets").status_code == 401  # the key is required
-    for url in ["/openapi.json", "/docs", "/redoc", "/docs/oauth2-redirect", *PAGE_ASSETS["/docs"]]:
+    for url in DOCS_URLS:
         assert client.get(url).status_code == 200, url
 
 

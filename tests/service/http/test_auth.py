@@ -64,3 +64,20 @@ def test_the_app_refuses_to_start_with_a_placeholder_key_when_required(settings,
     settings_cache_clear()
     with pytest.raises(RuntimeError, match="placeholder 'change-me'"), TestClient(create_app()):
         pass
+
+
+def test_with_a_key_the_schema_and_the_docs_are_not_public_unless_asked(settings, monkeypatch):
+    from service.http.app import create_app
+
+    monkeypatch.setenv("DENOISER_API_KEY", REAL_KEY)
+    settings_cache_clear()
+    client = TestClient(create_app())  # no lifespan: these routes need no session store
+    for url in ("/openapi.json", "/docs", "/redoc"):
+        assert client.get(url).status_code == 401, url
+        assert client.get(url, headers={"X-API-Key": REAL_KEY}).status_code == 200, url
+    assert client.get("/health").status_code == 200
+    monkeypatch.setenv("DENOISER_PUBLIC_API_DOCS", "true")
+    settings_cache_clear()
+    for url in ("/openapi.json", "/docs", "/redoc"):
+        assert client.get(url).status_code == 200, url
+    assert client.get("/models").status_code == 401
