@@ -153,6 +153,17 @@ def test_stream_errors_that_end_the_stream(serve):
     assert websocket_url("https://gpu-box:8443/api", "/x") == "wss://gpu-box:8443/api/x"
 
 
+def test_with_owner_tokens_a_client_lists_the_sessions_it_created(serve):
+    url = serve(api_key=API_KEY, session_owner_tokens=True)
+    with DenoiserClient(url, api_key=API_KEY) as client, DenoiserClient(url, api_key=API_KEY) as other:
+        mine = {client.create_session(MODEL_NAME, version="2")["id"] for _ in range(2)}
+        theirs = other.create_session(MODEL_NAME, version="2")["id"]
+        assert {session["id"] for session in client.list_sessions()} == mine
+        assert [session["id"] for session in other.list_sessions()] == [theirs]
+        with DenoiserClient(url, api_key=API_KEY) as stranger:
+            assert stranger.list_sessions() == []
+
+
 def test_denoiser_stream_uses_the_websocket_by_default(serve, tmp_path, capsys):
     url = serve()
     sequence = tmp_path / "seq"
