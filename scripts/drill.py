@@ -12,7 +12,10 @@ Prints, for the README:
   API during streams (the sessions continue exactly from Redis), and of Redis (the queued job, the job records and
   the session mirrors are there after its restart from the append-only file);
 - bombs: decompression and archive bombs and deeply nested JSON, each with the API's answer and the API's peak
-  memory (VmHWM, reset before each) against its memory before.
+  memory (VmHWM, reset before each) against its memory before;
+- decoding: frames whose decode would be large (127 unused channels at the pixel limit, an 8192x8192 reference part a
+  session never reads), one at a time and several at once, with the answers, the API's peak memory and its memory
+  after each against the phase's start.
 
 Nothing here touches the shared Redis or the default data folder: Redis runs on --redis-port with its files under
 --work, which is deleted first. Thread budgets of the stack: DENOISER_SESSION_WORKERS / _THREADS and
@@ -67,7 +70,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--size", type=int, default=32, help="render resolution of the frames (output 2x)")
     parser.add_argument("--big-size", type=int, default=256,
                         help="also stream the sessions beside one session of frames this large (0: no)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["sessions", "training", "kills", "bombs"])
+    parser.add_argument("--skip", nargs="*", default=[], choices=["sessions", "training", "kills", "bombs",
+                                                                         "decoding"])
     return parser.parse_args()
 
 
@@ -375,6 +379,70 @@ def bombs_phase(stack: Stack, results: dict) -> None:
     client.delete_session(session)
 
 
+def decoding_phase(stack: Stack, results: dict) -> None:
+    # The builders the tests use, so the drill sends the same files the tests refuse.
+    from tests.builders import aov_bomb, with_reference_part
+
+    client = DenoiserClient(stack.url, timeout=300)
+    sessions = [client.create_session(MODEL, version="1")["id"] for _ in range(2)]
+    bomb = aov_bomb(2048, 1024)  # 127 float channels no layout reads: about 1 MB, 1.07 GB decoded
+    valid = encode_frame_exr(frames_of(7, 1, 1024)[0])
+    with_x8 = with_reference_part(valid, 8)  # an 8192x8192 reference_x8 part beside a valid 1024x1024 frame
+
+    def frame(index: int, body: bytes):
+        return ("POST", f"/sessions/{sessions[index]}/frames", body)
+
+    def upload(index: int, body: bytes):
+        return ("POST", f"/datasets/decoding/sequences/s{index}/frames", body)
+
+    cases = [
+        ("session frame, 127 unused channels at 2048x1024", [frame(0, bomb)]),
+        ("frame upload, 127 unused channels at 2048x1024", [upload(0, bomb)]),
+        ("2 session frames at once, 127 unused channels", [frame(0, bomb), frame(1, bomb)]),
+        ("2 session frames and 2 uploads at once, 127 unused channels",
+         [frame(0, bomb), frame(1, bomb), upload(0, bomb), upload(1, bomb)]),
+        ("session frame 1024x1024 with an 8192x8192 reference_x8 part", [frame(0, with_x8)]),
+        ("session frame 1024x1024, valid", [frame(1, valid)]),
+    ]
+    pid = stack.pid("api")
+    start = memory_kb(pid, "VmRSS")
+    results["decoding"] = {"rss_start_mb": start / 1024, "cases": []}
+    for label, requests in cases:
+        Path(f"/proc/{pid}/clear_refs").write_text("5")  # resets VmHWM to the current resident size
+        before = memory_kb(pid, "VmRSS")
+        answers: list = [None] * len(requests)
+
+        def send(index: int, method: str, path: str, body: bytes) -> None:
+            response = httpx.request(method, stack.url + path, content=body, timeout=300,
+                                     headers={"Content-Type": "image/x-exr"})
+            code = response.json().get("error", {}).get("code") if response.status_code >= 400 else None
+            answers[index] = f"{response.status_code}{' ' + code if code else ''}"
+
+        started = time.perf_counter()
+        threads = [threading.Thread(target=send, args=(index, *request)) for index, request in enumerate(requests)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        seconds = time.perf_counter() - started
+        peak = memory_kb(pid, "VmHWM")
+        time.sleep(1)
+        after = memory_kb(pid, "VmRSS")
+        row = {"case": label, "bytes": sum(len(r[2]) for r in requests), "answers": answers, "seconds": seconds,
+               "rss_before_mb": before / 1024, "peak_mb": peak / 1024, "rss_after_mb": after / 1024}
+        results["decoding"]["cases"].append(row)
+        print(f"[drill] decoding: {label}: {', '.join(answers)} in {seconds:.2f} s; API memory {before / 1024:.0f} MB "
+              f"before, peak {peak / 1024:.0f} MB, {after / 1024:.0f} MB after", flush=True)
+    end = memory_kb(pid, "VmRSS")
+    for session in sessions:
+        client.delete_session(session)
+    time.sleep(1)
+    closed = memory_kb(pid, "VmRSS")
+    results["decoding"].update(rss_end_mb=end / 1024, rss_after_close_mb=closed / 1024)
+    print(f"[drill] decoding: API memory {start / 1024:.0f} MB at the start, {end / 1024:.0f} MB at the end, "
+          f"{closed / 1024:.0f} MB once the 2 sessions are closed", flush=True)
+
+
 # --- kills ---------------------------------------------------------------------------------------------------
 
 
@@ -492,6 +560,8 @@ def main() -> None:
             wait_for(lambda: client.get_job(job_id)["state"] == "cancelled", "the cancel", 120)
         if "bombs" not in args.skip:
             bombs_phase(stack, results)
+        if "decoding" not in args.skip:
+            decoding_phase(stack, results)
         if "kills" not in args.skip:
             kill_worker_phase(stack, client, results)
             kill_api_phase(stack, args, streams, expected, results)

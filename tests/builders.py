@@ -309,6 +309,34 @@ def zero_bomb(width: int, height: int) -> bytes:
     return stream.getvalue()
 
 
+def aov_bomb(width: int, height: int, channels: int = 127) -> bytes:
+    """An all-zero ZIP-compressed EXR of ``channels`` float channels aov000.Y, ... that no layout reads: at
+    2048x1024 and 127 channels, about 1 MB that decodes to 1.07 GB, within 128 values per pixel."""
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    planes = {f"aov{index:03d}.Y": np.zeros((height, width), np.float32) for index in range(channels)}
+    stream = io.BytesIO()
+    OpenEXR.File(header, planes).write(stream)
+    return stream.getvalue()
+
+
+def with_reference_part(body: bytes, scale: int) -> bytes:
+    """A frame bundle EXR ``body`` with one more, all-zero reference part ``reference_x<scale>`` (R, G, B)."""
+    parts = OpenEXR.File(io.BytesIO(body), separate_channels=True).parts
+    low, high = parts[0].header["dataWindow"]
+    width, height = (int(high[0]) - int(low[0]) + 1) * scale, (int(high[1]) - int(low[1]) + 1) * scale
+    rebuilt = [OpenEXR.Part({key: value for key, value in part.header.items() if key != "channels"},
+                            {name: channel.pixels for name, channel in part.channels.items()}, part.name())
+               for part in parts]
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, "scale": scale,
+              "displayWindow": parts[0].header["displayWindow"],
+              "dataWindow": (np.array([0, 0], np.int32), np.array([width - 1, height - 1], np.int32))}
+    zeros = {f"reference.{c}": np.zeros((height, width), np.float32) for c in "RGB"}
+    rebuilt.append(OpenEXR.Part(header, zeros, f"reference_x{scale}"))
+    stream = io.BytesIO()
+    OpenEXR.File(rebuilt).write(stream)
+    return stream.getvalue()
+
+
 def ship_tiny(root, name="wskpn-xs-x1", report=None, **options):
     """A seeded wskpn:xs checkpoint (with optimizer state, as training writes it) shipped under ``root``."""
     torch.manual_seed(3)

@@ -50,6 +50,16 @@ def keep_large_blocks_in_the_heap(trim_threshold: int = TRIM_THRESHOLD_BYTES) ->
     return mallopt is not None and bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, trim_threshold))
 
 
+def release_freed_memory() -> bool:
+    """Give the heap's freed pages back to the system now (glibc's malloc_trim), e.g. after a decode that was
+    refused or failed: the trim threshold above would otherwise keep them for good."""
+    try:
+        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return False
+    return bool(trim(0))
+
+
 def tune_for_large_frames() -> bool:
     """Both of the above; True where both took effect."""
     return share_one_malloc_arena() and keep_large_blocks_in_the_heap()

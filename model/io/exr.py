@@ -63,6 +63,11 @@ class FrameTooLarge(FrameFormatError):
         return (type(self), (self.source, self.problem, self.pixels, self.limit))
 
 
+class DecodeTooLarge(FrameTooLarge):
+    """The headers declare more decoded bytes than the reader's limit (found before any pixel is decoded);
+    ``pixels`` holds those bytes."""
+
+
 # Besides its render part, a frame's file may hold reference parts at a larger scale (a 2x reference has 4 times
 # the render pixels) and, from another renderer, one part per render pass (Blender writes 6 for the passes
 # blender-cycles reads): the whole file is bounded by the values it declares (pixels x channels over all parts), at
@@ -72,6 +77,10 @@ MAX_VALUES_PER_PIXEL = 128
 # A reference render of a frame in another renderer's layout (a references/ file, a high-sample render at the
 # target resolution) may be at 2x: 4 times the render-pixel limit.
 REFERENCE_RENDER_PIXEL_FACTOR = 4
+# The bindings decode every part and channel of a file, whatever the reader uses, and their headers do not tell a
+# channel's pixel type (it comes with the pixels): a decode is counted at 4 bytes a value (float and uint; half
+# takes 2), an upper bound.
+DECODED_BYTES_PER_VALUE = 4
 
 
 def reference_part_name(scale: int) -> str:
@@ -105,29 +114,39 @@ def write_frame(path: str | os.PathLike, frame: FrameBundle, *, half: bool = Fal
     return path
 
 
-def read_frame(path: str | os.PathLike, *, sanitizable: bool = False, max_pixels: int | None = None) -> FrameBundle:
+def read_frame(path: str | os.PathLike, *, sanitizable: bool = False, max_pixels: int | None = None,
+               max_decoded_bytes: int | None = None) -> FrameBundle:
     """Read and validate one frame bundle; every error is a FrameError naming the file. ``sanitizable``: let NaN,
     Inf and out-of-range values through (``model.io.frames.validate_frame``), for frames a session repairs.
     ``max_pixels``: FrameTooLarge, from the header alone, for a render part above that many pixels (see
-    ``check_declared_pixels``)."""
+    ``check_declared_pixels``). ``max_decoded_bytes``: DecodeTooLarge, from the header alone, for a file whose
+    decode would take more (``check_decoded_bytes``)."""
     source = str(path)
-    return _frame_from_exr(_open_exr(Path(path), source, max_pixels), source, sanitizable)
+    return _frame_from_exr(_open_exr(Path(path), source, max_pixels, max_decoded_bytes=max_decoded_bytes), source,
+                           sanitizable)
 
 
-def open_exr(path: str | os.PathLike, *, max_pixels: int | None = None,
-             reference_render: bool = False) -> OpenEXR.File:
+# Called with the headers and the bytes their decode will take, after the size checks and before the decode: a
+# reader refuses there what the headers already tell (a missing buffer) or reserves the memory.
+BeforeDecode = Callable[[list, int], None]
+
+
+def open_exr(path: str | os.PathLike, *, max_pixels: int | None = None, reference_render: bool = False,
+             max_decoded_bytes: int | None = None, before_decode: BeforeDecode | None = None) -> OpenEXR.File:
     """Every part of an EXR file with its pixels (FrameFormatError naming the file if it cannot be read).
     ``max_pixels``: FrameTooLarge from the headers first, before any pixel is decoded (``check_declared_pixels``,
-    whose ``reference_render`` this passes on)."""
-    return _open_exr(Path(path), str(path), max_pixels, reference_render)
+    whose ``reference_render`` this passes on); ``max_decoded_bytes``: DecodeTooLarge likewise
+    (``check_decoded_bytes``); then ``before_decode(headers, decoded_bytes)``."""
+    return _open_exr(Path(path), str(path), max_pixels, reference_render, max_decoded_bytes, before_decode)
 
 
-def open_exr_bytes(data: bytes, source: str = "<bytes>", *, max_pixels: int | None = None) -> OpenEXR.File:
+def open_exr_bytes(data: bytes, source: str = "<bytes>", *, max_pixels: int | None = None,
+                   max_decoded_bytes: int | None = None, before_decode: BeforeDecode | None = None) -> OpenEXR.File:
     """``open_exr`` for an EXR held in memory."""
     if data[: len(EXR_MAGIC)] != EXR_MAGIC:
         problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
         raise FrameFormatError(source, None, problem)
-    return _read_exr(lambda: io.BytesIO(data), source, max_pixels)
+    return _read_exr(lambda: io.BytesIO(data), source, max_pixels, False, max_decoded_bytes, before_decode)
 
 
 def part_planes(part: OpenEXR.Part) -> dict[str, np.ndarray]:
@@ -205,9 +224,10 @@ def _frame_parts(frame: FrameBundle, half: bool, compression=OpenEXR.ZIP_COMPRES
 # --- reading ---------------------------------------------------------------------------------------------
 
 
-def _open_exr(path: Path, source: str, max_pixels: int | None = None, reference_render: bool = False) -> OpenEXR.File:
+def _open_exr(path: Path, source: str, max_pixels: int | None = None, reference_render: bool = False,
+              max_decoded_bytes: int | None = None, before_decode: BeforeDecode | None = None) -> OpenEXR.File:
     _check_exr_file(path, source)
-    return _read_exr(lambda: str(path), source, max_pixels, reference_render)
+    return _read_exr(lambda: str(path), source, max_pixels, reference_render, max_decoded_bytes, before_decode)
 
 
 def _read_headers(target: str | io.BytesIO, source: str) -> list:
@@ -264,6 +284,34 @@ def check_declared_pixels(parts: list, source: str, max_pixels: int, *, referenc
                             values, MAX_VALUES_PER_PIXEL * max_pixels)
 
 
+def decoded_part_bytes(parts: list) -> list[tuple[str, int]]:
+    """(part name, bytes its decode takes: pixels x channels x DECODED_BYTES_PER_VALUE) of each part, from the
+    headers."""
+    sizes = []
+    for part in parts:
+        width, height = _part_pixels(part)
+        try:
+            channels = len(part.header.get("channels", ()))
+        except (AttributeError, TypeError):
+            channels = 0
+        sizes.append((_part_name(part), width * height * max(1, channels) * DECODED_BYTES_PER_VALUE))
+    return sizes
+
+
+def check_decoded_bytes(parts: list, source: str, max_bytes: int) -> int:
+    """The bytes decoding every part takes (``decoded_part_bytes``); DecodeTooLarge naming them, the largest part
+    and the limit when they pass ``max_bytes``."""
+    sizes = decoded_part_bytes(parts)
+    total = sum(size for _, size in sizes)
+    if total > max_bytes:
+        name, largest = max(sizes, key=lambda item: item[1])
+        where = f"; its largest part, '{name or 'unnamed'}', {largest} bytes" if len(sizes) > 1 else ""
+        raise DecodeTooLarge(source, f"decodes to {total} bytes (pixels x channels x {DECODED_BYTES_PER_VALUE} bytes "
+                                     f"per value, all {len(sizes)} parts{where}); the limit is {max_bytes} bytes "
+                                     f"per frame", total, max_bytes)
+    return total
+
+
 def check_frame_file_pixels(path: str | os.PathLike, max_pixels: int, source: str | None = None, *,
                             reference_render: bool = False) -> None:
     """``check_declared_pixels`` for an EXR file, reading its headers only."""
@@ -272,13 +320,19 @@ def check_frame_file_pixels(path: str | os.PathLike, max_pixels: int, source: st
 
 
 def _read_exr(target: Callable[[], str | io.BytesIO], source: str, max_pixels: int | None = None,
-              reference_render: bool = False) -> OpenEXR.File:
+              reference_render: bool = False, max_decoded_bytes: int | None = None,
+              before_decode: BeforeDecode | None = None) -> OpenEXR.File:
     """Every part of the EXR at ``target()`` (a path, or a fresh stream per call) with its pixels; with
-    ``max_pixels``, the headers are checked against it first (``check_declared_pixels``)."""
+    ``max_pixels`` and ``max_decoded_bytes``, the headers are checked against them first (``check_declared_pixels``,
+    ``check_decoded_bytes``), then ``before_decode`` runs."""
     parts = _read_headers(target(), source)
     part_count = len(parts)
     if max_pixels is not None:
         check_declared_pixels(parts, source, max_pixels, reference_render=reference_render)
+    if max_decoded_bytes is not None:
+        check_decoded_bytes(parts, source, max_decoded_bytes)
+    if before_decode is not None:
+        before_decode(parts, sum(size for _, size in decoded_part_bytes(parts)))
     exr = _read_coalesced(target, part_count)
     if exr is None:  # an unusual channel layout, or a damaged file: the plain read reports what is wrong
         try:
@@ -525,15 +579,16 @@ def encode_frame_exr(frame: FrameBundle, *, half: bool = False, compression=Open
 
 
 def read_frame_bytes(data: bytes, source: str = "<bytes>", *, sanitizable: bool = False,
-                     max_pixels: int | None = None) -> FrameBundle:
+                     max_pixels: int | None = None, max_decoded_bytes: int | None = None) -> FrameBundle:
     """``read_frame`` for a frame bundle held in memory; errors are FrameErrors naming ``source``.
 
     ``sanitizable``: let NaN, Inf and out-of-range values through (``model.io.frames.validate_frame``), for input that
-    ``model.io.sanitize.sanitize_frame`` repairs next. ``max_pixels``: as ``read_frame``."""
+    ``model.io.sanitize.sanitize_frame`` repairs next. ``max_pixels``, ``max_decoded_bytes``: as ``read_frame``."""
     if data[: len(EXR_MAGIC)] != EXR_MAGIC:
         problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
         raise FrameFormatError(source, None, problem)
-    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source, max_pixels), source, sanitizable)
+    return _frame_from_exr(_read_exr(lambda: io.BytesIO(data), source, max_pixels, False, max_decoded_bytes), source,
+                           sanitizable)
 
 
 def _image_file(rgb: np.ndarray, attributes: dict | None, compression) -> OpenEXR.File:

@@ -19,7 +19,7 @@ import math
 import os
 import re
 from dataclasses import dataclass
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 import OpenEXR
@@ -57,19 +57,51 @@ class _Channels:
 
 
 def read_layout_frame(path: str | os.PathLike, layout: Layout, *, mode: Mode = "strict",
-                      fov_y_degrees: float | None = None, max_pixels: int | None = None) -> LayoutFrame:
+                      fov_y_degrees: float | None = None, max_pixels: int | None = None,
+                      max_decoded_bytes: int | None = None, reserve: Callable[[int], None] | None = None
+                      ) -> LayoutFrame:
     """Read the EXR at ``path`` in ``layout``; FrameError naming the file on any problem.
 
-    ``fov_y_degrees`` (planar depth only) overrides the layout's field of view and the header's. ``max_pixels``:
-    FrameTooLarge (a FrameError) when the headers declare more (``model.io.exr.check_declared_pixels``), before any
-    pixel is decoded."""
-    return _read(open_exr(path, max_pixels=max_pixels), str(path), layout, mode, fov_y_degrees)
+    ``fov_y_degrees`` (planar depth only) overrides the layout's field of view and the header's. Before any pixel is
+    decoded: ``max_pixels``, FrameTooLarge (a FrameError) when the headers declare more
+    (``model.io.exr.check_declared_pixels``); ``max_decoded_bytes``, DecodeTooLarge when decoding the whole file
+    would take more (``model.io.exr.check_decoded_bytes``); a required buffer none of whose channels the headers
+    declare is refused; then ``reserve(decoded_bytes)`` (a memory budget, which may refuse)."""
+    return _read(open_exr(path, max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes,
+                          before_decode=_header_check(layout, str(path), reserve)),
+                 str(path), layout, mode, fov_y_degrees)
 
 
 def read_layout_frame_bytes(data: bytes, layout: Layout, source: str = "<bytes>", *, mode: Mode = "strict",
-                            fov_y_degrees: float | None = None, max_pixels: int | None = None) -> LayoutFrame:
+                            fov_y_degrees: float | None = None, max_pixels: int | None = None,
+                            max_decoded_bytes: int | None = None, reserve: Callable[[int], None] | None = None
+                            ) -> LayoutFrame:
     """``read_layout_frame`` for an EXR held in memory (a request body)."""
-    return _read(open_exr_bytes(data, source, max_pixels=max_pixels), source, layout, mode, fov_y_degrees)
+    return _read(open_exr_bytes(data, source, max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes,
+                                before_decode=_header_check(layout, source, reserve)),
+                 source, layout, mode, fov_y_degrees)
+
+
+def _header_check(layout: Layout, source: str, reserve: Callable[[int], None] | None):
+    """Refuses, from the headers, a frame that lacks a required buffer (the bindings decode every channel of a file,
+    so a file of nothing but unused channels would otherwise be decoded whole first); then ``reserve``."""
+    def check(headers: list, decoded_bytes: int) -> None:
+        declared: dict[str, None] = {}
+        for index, part in enumerate(headers):
+            match = REFERENCE_PART_PATTERN.fullmatch(part.name() or "") if index else None
+            if match is not None and int(match.group(1)) >= 2:
+                continue
+            declared.update((channel.name, None) for channel in part.header.get("channels", ()))
+        for buffer in RENDER_BUFFERS:
+            alternatives = layout.channels.get(buffer, ())
+            if BUFFERS[buffer].required and not any(all(name in declared for name in names)
+                                                    for names in alternatives):
+                if any(name in declared for names in alternatives for name in names):
+                    continue  # a partial buffer: the read names the channels it lacks
+                raise _missing(buffer, layout, declared, source)
+        if reserve is not None:
+            reserve(decoded_bytes)
+    return check
 
 
 def read_layout_reference(path: str | os.PathLike, layout: Layout, *,

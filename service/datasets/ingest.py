@@ -27,7 +27,7 @@ from model.io.dataset import (
     json_problem,
     write_json_atomically,
 )
-from model.io.exr import FrameTooLarge, check_frame_file_pixels
+from model.io.exr import DecodeTooLarge, FrameTooLarge, check_frame_file_pixels
 from model.io.frames import BUFFERS, FrameBundle, FrameError
 from model.io.importer import REFERENCES_FOLDER
 from model.layouts import Layout
@@ -316,5 +316,8 @@ def check_unpacked_frame_pixels(root: Path, max_pixels: int, *, renderer_frames:
 
 
 def _too_many_pixels(error: FrameTooLarge) -> FrameTooLargeUpload:
+    if isinstance(error, DecodeTooLarge):
+        return FrameTooLargeUpload("frame_too_large", str(error), {"path": error.source, "decoded_bytes": error.pixels,
+                                                                   "limit_bytes": error.limit})
     return FrameTooLargeUpload("frame_too_large", str(error), {"path": error.source, "pixels": error.pixels,
                                                                "limit_pixels": error.limit})

@@ -55,7 +55,7 @@ def _staged_info(dataset_id: str, state: dict) -> StagedSequence:
 def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, *, split: str | None = None,
                 scene: str | None = None, scales: list[int] | None = None,
                 layout: Layout | None = None, notes: UploadNotes | None = None,
-                max_pixels: int | None = None) -> StagedSequence:
+                max_pixels: int | None = None, max_decoded_bytes: int | None = None) -> StagedSequence:
     """Validate one uploaded frame EXR and append it to the staged sequence (the first frame starts it).
 
     The frame's ``frame_index`` must be the next one (0 first); resolution, reference scales and buffers must
@@ -71,9 +71,10 @@ def stage_frame(storage: Storage, dataset_id: str, sequence: str, upload: Path, 
     label = f"frame upload to {dataset_id}/{sequence}"
     layout = BUILTIN_LAYOUTS["denoiser"] if layout is None else layout
     try:
-        read = read_layout_frame(upload, layout, mode="strict", max_pixels=max_pixels)
+        read = read_layout_frame(upload, layout, mode="strict", max_pixels=max_pixels,
+                                 max_decoded_bytes=max_decoded_bytes)
     except FrameTooLarge as error:
-        raise _too_many_pixels(FrameTooLarge(label, error.problem, error.pixels, error.limit)) from None
+        raise _too_many_pixels(type(error)(label, error.problem, error.pixels, error.limit)) from None
     except FrameError as error:
         message = str(error).replace(str(upload), label)
         raise InvalidUpload("invalid_frame", message, {"buffer": error.buffer, "problem": error.problem}) from None

@@ -27,7 +27,7 @@ from core.errors import Conflict, Invalid, NotFound, Unavailable
 from core.job_store import JobFinished, JobNotFound
 from core.registry import ConstraintNotMet, NoAutoCandidates, RegistryUnavailable, UnknownModelError
 from model.io.dataset import DatasetError
-from model.io.exr import FrameTooLarge
+from model.io.exr import DecodeTooLarge, FrameTooLarge
 from model.io.frames import FrameError
 from service.datasets import errors as upload
 from service.sessions import store as sessions
@@ -102,6 +102,8 @@ def api_error(error: Exception, details: Any = None) -> ApiError | None:
 def frame_error_details(error: FrameError) -> dict:
     """The details the frame routes give a refused frame: the pixels and the limit of one too large, else the buffer
     and the problem."""
+    if isinstance(error, DecodeTooLarge):
+        return {"decoded_bytes": error.pixels, "limit_bytes": error.limit}
     if isinstance(error, FrameTooLarge):
         return {"pixels": error.pixels, "limit_pixels": error.limit}
     return {"buffer": error.buffer, "problem": error.problem}

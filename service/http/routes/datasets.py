@@ -251,7 +251,8 @@ async def upload_frame(
                                       request.headers.get("content-length"))
             result = await run_in_threadpool(staged.stage_frame, storage, dataset_id, sequence, upload, split=split,
                                               scene=scene, scales=expected_scales, layout=chosen, notes=notes,
-                                              max_pixels=settings.max_frame_pixels)
+                                              max_pixels=settings.max_frame_pixels,
+                                              max_decoded_bytes=settings.max_decoded_frame_bytes)
     _note_headers(response, notes)
     return result
 

@@ -20,6 +20,7 @@ from fastapi import APIRouter, Depends, Header, Path, Request, Response
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
+from model.deployment.malloc import release_freed_memory
 from model.io.exr import encode_image_exr
 from model.io.frames import FrameError
 from model.layouts import LayoutFrame, layout_from_value, read_layout_frame_bytes
@@ -208,6 +209,7 @@ def delete_session(session_id: SessionId, store: StoreDep, token: SessionToken =
     check_owner(store, session_id, token)
     with domain_errors():
         store.delete(session_id)
+    release_freed_memory()  # the session's history and step buffers, which the tuned heap would otherwise keep
     return Response(status_code=204)
 
 
@@ -250,7 +252,9 @@ _FRAME_HEADERS = {
                               "frame_index 4 repeats the last frame processed (4); this session expects "
                               "frame_index 5 (reset the session to restart the stream)"),
         413: documented_error("the body is larger than the server's frame limit (payload_too_large), or its "
-                              "header declares more pixels than the pixel limit (frame_too_large)",
+                              "headers declare more pixels than the pixel limit, or a decode (all parts and "
+                              "channels) larger than DENOISER_MAX_DECODED_FRAME_BYTES (frame_too_large), refused "
+                              "before decoding",
                               "frame_too_large", "frame body: declares 2048x2048 = 4194304 pixels; the limit is "
                                                  "2097152 pixels per frame"),
         408: documented_error("the client paused longer than the body read timeout while sending the frame",
@@ -266,7 +270,8 @@ _FRAME_HEADERS = {
     },
     openapi_extra={"requestBody": {
         "required": True,
-        "description": "one frame bundle EXR, as model.io.exr.write_frame writes it (references optional, ignored)",
+        "description": "one frame bundle EXR, as model.io.exr.write_frame writes it (references optional and "
+                       "not read, though decoded: they count toward the decoded-size limit)",
         "content": {kind: {"schema": {"type": "string", "format": "binary"}} for kind in FRAME_TYPES}}},
 )
 async def post_frame(session_id: SessionId, request: Request, store: StoreDep, settings: SettingsDep,
@@ -288,7 +293,8 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
         body = await _read_body(request, settings.max_frame_bytes, hold)
         with domain_errors():
             result, data, read = await run_in_threadpool(_run_frame, store, session_id, body,
-                                                         settings.max_frame_pixels)
+                                                         settings.max_frame_pixels, settings.max_decoded_frame_bytes,
+                                                         hold)
     headers = {"X-Frame-Index": str(result.frame_index), "X-History": result.history,
                "X-Inference-Ms": f"{result.inference_ms:.3f}", "X-Sanitized-Pixels": str(result.sanitized.total),
                "X-Server-Ms": f"{(time.perf_counter() - started) * 1000:.3f}"}
@@ -301,8 +307,13 @@ async def post_frame(session_id: SessionId, request: Request, store: StoreDep, s
                     background=BackgroundTask(_start_mirror, store, session_id))
 
 
-def _run_frame(store: SessionStore, session_id: str, body: bytes, max_pixels: int):
-    read = _parse_frame(body, store.layout(session_id), max_pixels)
+def _run_frame(store: SessionStore, session_id: str, body: bytes, max_pixels: int, max_decoded_bytes: int,
+               reserve: Callable[[int], None]):
+    try:
+        read = _parse_frame(body, store.layout(session_id), max_pixels, max_decoded_bytes, reserve)
+    except BaseException:
+        release_freed_memory()  # what a refused or failed decode allocated, which the heap would otherwise keep
+        raise
     frame = read.frame
     result = store.process_frame(session_id, frame, start_mirror=False, frame_index_given=read.frame_index_given)
     try:
@@ -329,13 +340,15 @@ async def _start_mirror(store: SessionStore, session_id: str) -> None:
     store.start_mirror(session_id)  # never blocks: hands the write to the store's writer threads
 
 
-def _parse_frame(body: bytes, layout: str | dict, max_pixels: int) -> LayoutFrame:
+def _parse_frame(body: bytes, layout: str | dict, max_pixels: int, max_decoded_bytes: int | None = None,
+                 reserve: Callable[[int], None] | None = None) -> LayoutFrame:
     try:
         # NaN / Inf / out-of-range values pass here and are repaired before the step (X-Sanitized-Pixels); "live"
         # also renormalises lossy-compressed normals and reads a missing jitter as 0 (X-Repairs). The header's
-        # pixel count is checked against ``max_pixels`` before anything is decoded, whatever the layout.
+        # pixel count and decoded size are checked (413) and the decode's bytes reserved in the frame budget (503)
+        # before anything is decoded, whatever the layout.
         return read_layout_frame_bytes(body, layout_from_value(layout), FRAME_SOURCE, mode="live",
-                                       max_pixels=max_pixels)
+                                       max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes, reserve=reserve)
     except FrameError as error:
         raise api_error(error, frame_error_details(error)) from None
 

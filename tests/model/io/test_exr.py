@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import io
+import pickle
+
 import numpy as np
 import OpenEXR
 import pytest
@@ -365,3 +368,21 @@ def test_the_pixel_limit_holds_every_pass_part_and_bounds_the_values_of_all_part
                                                 r"limit is 12800 \(128 per pixel"):
         exr.check_declared_pixels(parts, "f.exr", 100)
     exr.check_declared_pixels(parts, "f.exr", 157)  # 128 x 157 = 20096 values
+
+
+def test_the_decoded_size_is_refused_from_the_header_before_decoding(monkeypatch):
+    import model.io.exr as exr
+    from tests.builders import aov_bomb
+
+    def decode(*args):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(exr, "_read_coalesced", decode)
+    bomb = aov_bomb(16, 8)
+    with pytest.raises(exr.DecodeTooLarge) as refused:
+        exr.read_frame_bytes(bomb, "bomb.exr", max_pixels=16 * 8, max_decoded_bytes=16 * 8 * 127 * 4 - 1)
+    assert (refused.value.pixels, refused.value.limit) == (16 * 8 * 127 * 4, 16 * 8 * 127 * 4 - 1)
+    assert "bomb.exr: decodes to 65024 bytes (pixels x channels x 4 bytes per value, all 1 parts)" in str(refused.value)
+    assert pickle.loads(pickle.dumps(refused.value)).pixels == 65024
+    parts = OpenEXR.File(io.BytesIO(bomb), header_only=True).parts
+    assert exr.decoded_part_bytes(parts) == [("", 65024)] and exr.check_decoded_bytes(parts, "b", 65024) == 65024

@@ -309,3 +309,18 @@ def test_a_reference_render_may_declare_a_2x_render_of_the_limit(tmp_path):
     with pytest.raises(FrameTooLarge, match="declares 64x64 = 4096 pixels; the limit is 4092 pixels per reference "
                                             "render"):
         read_layout_reference(path, blender, max_pixels=1023)
+
+
+def test_a_required_buffer_missing_from_the_headers_is_refused_before_decoding(monkeypatch):
+    import model.io.exr as exr
+    from tests.builders import aov_bomb
+
+    def decode(*args):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(exr, "_read_coalesced", decode)
+    reserved = []
+    with pytest.raises(FrameFormatError, match="buffer 'color': required buffer is missing.*aov000.Y"):
+        read_layout_frame_bytes(aov_bomb(8, 4, channels=3), BUILTIN_LAYOUTS["denoiser"], mode="live",
+                                reserve=reserved.append)
+    assert reserved == []  # refused before the memory budget was asked

@@ -140,3 +140,22 @@ def test_frames_declaring_too_many_pixels_are_413_before_decoding_in_any_layout(
     assert "in part 'ViewLayer.Depth'" in error["message"]
     assert decoded == []
     assert not (storage.datasets / "bomb").exists()
+
+
+def test_a_frame_upload_decoding_past_the_limit_is_413_before_decoding(make_app, storage, monkeypatch):
+    import model.io.exr
+    from tests.builders import aov_bomb
+
+    api = TestClient(make_app(datasets.router, max_decoded_frame_bytes=16 * 8 * 127 * 4 - 1))
+
+    def decode(*args):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(model.io.exr, "_read_coalesced", decode)
+    response = api.post("/datasets/live/sequences/cam/frames", content=aov_bomb(16, 8),
+                        headers={"Content-Type": "image/x-exr"})
+    assert response.status_code == 413, response.text
+    error = response.json()["error"]
+    assert error["code"] == "frame_too_large"
+    assert error["message"].startswith("frame upload to live/cam: decodes to 65024 bytes")
+    assert error["details"]["decoded_bytes"] == 65024 and error["details"]["limit_bytes"] == 65023

@@ -228,11 +228,67 @@ def test_a_decompression_bomb_frame_is_413_before_it_is_decoded(api, monkeypatch
     assert client.get(f"/sessions/{session['id']}").json()["frames_processed"] == 0
 
 
+def _refuse_decodes(monkeypatch) -> None:
+    import model.io.exr
+
+    def decode(*args):
+        raise AssertionError("a frame that the headers refuse was decoded")
+
+    monkeypatch.setattr(model.io.exr, "_read_coalesced", decode)
+
+
+def test_a_bomb_of_unused_channels_is_refused_from_its_header(api, monkeypatch):
+    from service.http.routes import sessions as sessions_routes
+    from tests.builders import aov_bomb, error_of
+
+    # 127 unused float channels at the pixel limit: within 128 values per pixel, but 127 x 4 bytes a pixel decoded.
+    bomb = aov_bomb(32, 16)
+    decoded = 32 * 16 * 127 * 4
+    client, _ = api(max_frame_pixels=32 * 16, max_decoded_frame_bytes=decoded - 1)
+    session = create(client)
+    _refuse_decodes(monkeypatch)
+    trims = []
+    monkeypatch.setattr(sessions_routes, "release_freed_memory", lambda: trims.append(1))
+    error = error_of(post_frame(client, session["id"], bomb), 413, "frame_too_large")
+    assert trims == [1]  # a refused frame gives back what it allocated
+    assert f"decodes to {decoded} bytes" in error["message"] and f"the limit is {decoded - 1} bytes" in error["message"]
+    assert error["details"] == {"decoded_bytes": decoded, "limit_bytes": decoded - 1}
+    # Under the size limit, the missing colour is read from the header: still nothing decoded.
+    client, _ = api(max_frame_pixels=32 * 16)
+    session = create(client)
+    message = error_message(post_frame(client, session["id"], bomb), 400, "invalid_frame")
+    assert "required buffer is missing" in message and "aov000.Y" in message
+
+
+def test_a_frame_with_a_large_reference_part_is_413_before_decoding(api, monkeypatch):
+    from tests.builders import with_reference_part
+
+    # The bindings decode every part, so a reference part a session never reads counts against the limit too.
+    body = frame_bytes(stream_frames(1)[0])
+    client, _ = api(max_decoded_frame_bytes=64 * 1024)
+    session = create(client)
+    assert post_frame(client, session["id"], body).status_code == 200
+    _refuse_decodes(monkeypatch)
+    message = error_message(post_frame(client, session["id"], with_reference_part(body, 8)), 413, "frame_too_large")
+    assert "largest part, 'reference_x8', 196608 bytes" in message  # 128 x 128 pixels x 3 channels x 4 bytes
+
+
+@pytest.mark.slow
+def test_the_full_size_unused_channel_bomb_is_refused_by_default(api, monkeypatch):
+    from tests.builders import aov_bomb
+
+    client, _ = api()
+    session = create(client)
+    _refuse_decodes(monkeypatch)
+    message = error_message(post_frame(client, session["id"], aov_bomb(2048, 1024)), 413, "frame_too_large")
+    assert "decodes to 1065353216 bytes" in message and "the limit is 536870912 bytes" in message
+
+
 def test_frames_past_the_memory_budget_are_503_with_retry_after(api):
     from service.http.request_limits import frame_budget
 
     body = frame_bytes(stream_frames(1)[0])
-    budget = 3 * len(body) // 2
+    budget = 3 * len(body) // 2 + _decoded_bytes(body)  # the body and its decode fit; a second body does not
     client, _ = api(max_buffered_frame_bytes=budget)
     session = create(client)
     with frame_budget(budget).hold() as other:
@@ -244,6 +300,38 @@ def test_frames_past_the_memory_budget_are_503_with_retry_after(api):
                               headers={"Content-Type": "image/x-exr"})  # no Content-Length: held as it arrives
         error_message(chunked, 503, "server_busy")
     assert post_frame(client, session["id"], body).status_code == 200
+
+
+def _decoded_bytes(body: bytes) -> int:
+    from model.io.exr import decoded_part_bytes
+
+    return sum(size for _, size in decoded_part_bytes(OpenEXR.File(io.BytesIO(body), header_only=True).parts))
+
+
+def test_a_decode_past_the_memory_budget_is_503_before_decoding(api, monkeypatch):
+    import model.io.exr as exr
+
+    body = frame_bytes(stream_frames(1)[0])
+    decoded = _decoded_bytes(body)
+    budget = len(body) + decoded
+    client, _ = api(max_buffered_frame_bytes=budget)
+    session = create(client)
+    decodes = []
+    real_read = exr._read_coalesced
+    monkeypatch.setattr(exr, "_read_coalesced", lambda *args: decodes.append(1) or real_read(*args))
+    with frame_budget_hold(budget) as other:
+        other(decoded // 2)  # another frame's decode in progress: this body fits the budget, its decode does not
+        response = post_frame(client, session["id"], body)
+        assert response.status_code == 503 and response.headers["retry-after"] == "1"
+        assert "bytes of session frames in progress" in error_message(response, 503, "server_busy")
+    assert decodes == []
+    assert post_frame(client, session["id"], body).status_code == 200 and decodes == [1]
+
+
+def frame_budget_hold(budget: int):
+    from service.http.request_limits import frame_budget
+
+    return frame_budget(budget).hold()
 
 
 def test_with_owner_tokens_only_the_creator_drives_a_session(api):
