@@ -74,7 +74,7 @@ class Settings(BaseSettings):
                                                              "unpacked at once; one more answers 429")
     max_decoded_frame_bytes: int = Field(
         512 * 1024**2, gt=0, description="most bytes decoding one frame EXR may take (all its parts and channels, "
-        "4 bytes a value), checked from the headers before decoding (sessions and frame uploads); past it 413")
+        "4 bytes a value), checked from the headers before decoding (session frames, frame uploads, archives' EXRs); past it 413")
     max_buffered_frame_bytes: int = Field(
         1024**3, gt=0, description="bytes of session frame bodies held in memory at once (each from its first byte "
                                    "until its output is encoded); a frame past it answers 503 (retry)")

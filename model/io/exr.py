@@ -313,10 +313,14 @@ def check_decoded_bytes(parts: list, source: str, max_bytes: int) -> int:
 
 
 def check_frame_file_pixels(path: str | os.PathLike, max_pixels: int, source: str | None = None, *,
-                            reference_render: bool = False) -> None:
-    """``check_declared_pixels`` for an EXR file, reading its headers only."""
+                            reference_render: bool = False, max_decoded_bytes: int | None = None) -> None:
+    """``check_declared_pixels`` (and with ``max_decoded_bytes``, ``check_decoded_bytes``) for an EXR file, reading
+    its headers only."""
     source = source or str(path)
-    check_declared_pixels(_read_headers(str(path), source), source, max_pixels, reference_render=reference_render)
+    parts = _read_headers(str(path), source)
+    check_declared_pixels(parts, source, max_pixels, reference_render=reference_render)
+    if max_decoded_bytes is not None:
+        check_decoded_bytes(parts, source, max_decoded_bytes)
 
 
 def _read_exr(target: Callable[[], str | io.BytesIO], source: str, max_pixels: int | None = None,

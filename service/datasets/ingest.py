@@ -262,9 +262,10 @@ def _add_to_dataset(storage: Storage, dataset_id: str, sequences: list[_Staged],
 def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str, *, create: bool,
                    split: str = "train", replace: bool = False, max_unpacked_bytes: int,
                    max_pixels: int | None = None, layout: Layout | None = None,
-                   notes: UploadNotes | None = None) -> DatasetDetail:
-    """Unpack and validate an uploaded archive in ``work`` (a staging workspace), then store it; ``max_pixels``:
-    every EXR's header is checked against it before any frame is decoded, in any layout (FrameTooLargeUpload).
+                   notes: UploadNotes | None = None, max_decoded_bytes: int | None = None) -> DatasetDetail:
+    """Unpack and validate an uploaded archive in ``work`` (a staging workspace), then store it; ``max_pixels`` and
+    ``max_decoded_bytes``: every EXR's header is checked against them before any frame is decoded, in any layout
+    (FrameTooLargeUpload).
 
     ``create``: make dataset ``dataset_id`` (UploadConflict if it exists), else add the archive's sequences
     to it (UnknownDataset if it does not exist; UploadConflict for taken names unless ``replace``).
@@ -280,7 +281,8 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
     archive.unlink()  # the unpacked copy is all we need; free the space early
     renderer_frames = layout is not None and layout.name != "denoiser"
     if max_pixels is not None:  # before the conversion or the stripping of unused channels decodes a frame
-        check_unpacked_frame_pixels(unpacked, max_pixels, renderer_frames=renderer_frames)
+        check_unpacked_frame_pixels(unpacked, max_pixels, renderer_frames=renderer_frames,
+                                    max_decoded_bytes=max_decoded_bytes)
     try:
         if renderer_frames:
             unpacked = import_renderer_folders(unpacked, _unwrap(unpacked), work / "imported", layout, split, notes)
@@ -299,8 +301,10 @@ def ingest_archive(storage: Storage, archive: Path, work: Path, dataset_id: str,
     return describe_dataset(storage, dataset_id)
 
 
-def check_unpacked_frame_pixels(root: Path, max_pixels: int, *, renderer_frames: bool = False) -> None:
-    """FrameTooLargeUpload for the first EXR under ``root`` whose header declares more than ``max_pixels``.
+def check_unpacked_frame_pixels(root: Path, max_pixels: int, *, renderer_frames: bool = False,
+                                max_decoded_bytes: int | None = None) -> None:
+    """FrameTooLargeUpload for the first EXR under ``root`` whose header declares more than ``max_pixels`` (or
+    whose decode would take more than ``max_decoded_bytes``, ``model.io.exr.check_decoded_bytes``).
 
     ``renderer_frames`` (an upload in another renderer's layout): files in a ``references/`` folder are reference
     renders, at up to 2x the frames' resolution (``model.io.exr.check_declared_pixels``)."""
@@ -308,7 +312,8 @@ def check_unpacked_frame_pixels(root: Path, max_pixels: int, *, renderer_frames:
         if path.is_file():
             try:
                 check_frame_file_pixels(path, max_pixels, _relative(path, root),
-                                        reference_render=renderer_frames and path.parent.name == REFERENCES_FOLDER)
+                                        reference_render=renderer_frames and path.parent.name == REFERENCES_FOLDER,
+                                        max_decoded_bytes=max_decoded_bytes)
             except FrameTooLarge as error:
                 raise _too_many_pixels(error) from None
             except FrameError:

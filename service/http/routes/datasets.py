@@ -116,7 +116,7 @@ async def _receive_archive(request: Request, response: Response, storage: Storag
         detail = await run_in_threadpool(
             ingest.ingest_archive, storage, archive, work, dataset_id, create=create, split=split,
             replace=replace, max_unpacked_bytes=limit, max_pixels=settings.max_frame_pixels, layout=chosen,
-            notes=notes)
+            notes=notes, max_decoded_bytes=settings.max_decoded_frame_bytes)
     _note_headers(response, notes)
     return detail
 

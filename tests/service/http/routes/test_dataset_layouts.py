@@ -142,7 +142,8 @@ def test_frames_declaring_too_many_pixels_are_413_before_decoding_in_any_layout(
     assert not (storage.datasets / "bomb").exists()
 
 
-def test_a_frame_upload_decoding_past_the_limit_is_413_before_decoding(make_app, storage, monkeypatch):
+def test_a_frame_upload_decoding_past_the_limit_is_413_before_decoding(make_app, storage, tmp_path, make_archive,
+                                                                       monkeypatch):
     import model.io.exr
     from tests.builders import aov_bomb
 
@@ -159,3 +160,11 @@ def test_a_frame_upload_decoding_past_the_limit_is_413_before_decoding(make_app,
     assert error["code"] == "frame_too_large"
     assert error["message"].startswith("frame upload to live/cam: decodes to 65024 bytes")
     assert error["details"]["decoded_bytes"] == 65024 and error["details"]["limit_bytes"] == 65023
+    # The same file in an archive: refused from its header before the archive's frames are read.
+    (tmp_path / "up" / "seq").mkdir(parents=True)
+    (tmp_path / "up" / "seq" / "frame_0000.exr").write_bytes(aov_bomb(16, 8))
+    response = upload(api, make_archive(tmp_path / "up", prefix=""), name="bomb")
+    assert response.status_code == 413, response.text
+    error = response.json()["error"]
+    assert error["details"] == {"path": "seq/frame_0000.exr", "decoded_bytes": 65024, "limit_bytes": 65023}
+    assert not (storage.datasets / "bomb").exists()
