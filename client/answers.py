@@ -76,8 +76,15 @@ class SessionModel(Answer):
 
 
 @dataclass(kw_only=True, eq=False)
+class SessionMirror(Answer):
+    current: bool | None = None
+    last_written_frame: int | None = None
+    pending_since: str | None = None
+
+
+@dataclass(kw_only=True, eq=False)
 class Session(Answer):
-    NESTED = {"model": SessionModel}
+    NESTED = {"model": SessionModel, "mirror": SessionMirror}
     id: str | None = None
     model: SessionModel | None = None
     created_at: str | None = None
@@ -90,6 +97,7 @@ class Session(Answer):
     choice: dict | None = None
     layout: str | dict | None = None
     token: str | None = None
+    mirror: SessionMirror | None = None  # whether Redis holds the session as it is (a restart continues it)
 
 
 @dataclass(kw_only=True, eq=False)

@@ -11,6 +11,8 @@ Prints, for the README:
 - kills: kill -9 of the worker during a training job (the job resumes from its checkpoint on a new worker), of the
   API during streams (the sessions continue exactly from Redis), and of Redis (the queued job, the job records and
   the session mirrors are there after its restart from the append-only file);
+- outage: Redis killed under a streaming session and back, the client idle, then the API killed: whether the
+  session's Redis copy caught up without a request, and whether the restarted API continued or lost the history;
 - bombs: decompression and archive bombs and deeply nested JSON, each with the API's answer and the API's peak
   memory (VmHWM, reset before each) against its memory before;
 - decoding: frames whose decode would be large (127 unused channels at the pixel limit, an 8192x8192 reference part a
@@ -71,7 +73,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--big-size", type=int, default=256,
                         help="also stream the sessions beside one session of frames this large (0: no)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["sessions", "training", "kills", "bombs",
-                                                                         "decoding"])
+                                                                         "decoding", "outage"])
     return parser.parse_args()
 
 
@@ -515,6 +517,53 @@ def kill_redis_phase(stack: Stack, client: DenoiserClient, args, streams, result
     client.delete_session(session)
 
 
+def redis_outage_phase(stack: Stack, client: DenoiserClient, args, streams, expected, results: dict) -> None:
+    """Redis dies under a streaming session and comes back; the client pauses (no request at all) until the
+    session's mirror holds every frame or 60 s pass; then the API is killed and the stream goes on."""
+    from model.io.exr import decode_image_exr
+
+    before, during = args.frames // 3, 2 * args.frames // 3
+    session = client.create_session(MODEL, version="1")["id"]
+    outputs, histories = [], []
+
+    def send(frames: list[bytes]) -> None:
+        for body in frames:
+            data, info = client.send_frame_raw(session, body)
+            outputs.append(decode_image_exr(data))
+            histories.append(info.history)
+
+    send(streams[0][:before])
+    stack.kill("redis")
+    send(streams[0][before:during])
+    stack.start_redis()
+    mirror = redis.Redis.from_url(stack.redis_url)
+
+    def mirrored_frames() -> int | None:
+        raw = mirror.hget(f"denoiser:session:{session}", "meta")
+        return None if raw is None else json.loads(raw)["next_frame_index"]
+
+    started = time.monotonic()
+    while mirrored_frames() != during and time.monotonic() - started < 60:
+        time.sleep(0.2)
+    landed, waited = mirrored_frames(), time.monotonic() - started
+    view = client.get_session(session).get("mirror")
+    stack.kill("api")
+    stack.start_api()
+    send(streams[0][during:])
+    after = histories[during]
+    worst = crossing([outputs], expected[:1])
+    results["redis_outage_idle"] = {
+        "frames_before": before, "frames_during": during - before, "histories_during": sorted(set(
+            histories[before:during])), "mirrored_next_frame_index": landed, "seconds_until_mirrored": waited,
+        "mirror_view": view, "history_after_api_restart": after, "history_lost": after != "continued",
+        "max_difference": worst}
+    print(f"[drill] Redis down for frames {before}..{during - 1} ({sorted(set(histories[before:during]))}), back, "
+          f"client idle: Redis held next_frame_index {landed} after {waited:.1f} s; kill -9 API; frame {during}: "
+          f"{after} ({'history LOST' if after != 'continued' else 'history kept'}), largest difference from "
+          f"in-process {worst:.2e}", flush=True)
+    client.delete_session(session)
+
+
 # --- main ----------------------------------------------------------------------------------------------------
 
 
@@ -566,6 +615,8 @@ def main() -> None:
             kill_worker_phase(stack, client, results)
             kill_api_phase(stack, args, streams, expected, results)
             kill_redis_phase(stack, DenoiserClient(stack.url, timeout=300), args, streams, results)
+        if "outage" not in args.skip:
+            redis_outage_phase(stack, DenoiserClient(stack.url, timeout=300), args, streams, expected, results)
     finally:
         stack.stop_all()
     results["load_average_at_end"] = os.getloadavg()

@@ -129,6 +129,17 @@ class SessionModel:
         return f"{self.source} {self.name!r}"
 
 
+@dataclass(frozen=True)
+class MirrorState:
+    """A session's Redis mirror: ``current`` when Redis holds its newest revision; ``last_written_frame``: the last
+    frame whose history Redis holds (None: none, a new or reset session); ``pending_since``: when Redis started
+    lacking the newest revision (seconds since the epoch; None while current)."""
+
+    current: bool
+    last_written_frame: int | None
+    pending_since: float | None
+
+
 @dataclass
 class Session:
     id: str
@@ -148,6 +159,9 @@ class Session:
     state: State | None = field(default=None, repr=False)
     method: Method | None = field(default=None, repr=False)
     mirrored_revision: int = field(default=-1, repr=False)  # the revision Redis holds, as far as we know
+    mirrored_frame: int | None = field(default=None, repr=False)  # the last frame whose history Redis holds
+    # Since when (seconds since the epoch) Redis has lacked the newest revision; None while it holds it.
+    mirror_behind_since: float | None = field(default=None, repr=False)
     # Used only by the session's mirror writer, one write at a time.
     codec_memo: CompressionMemo = field(default_factory=CompressionMemo, repr=False)
 
@@ -158,6 +172,11 @@ class Session:
     def expired(self, now: float) -> bool:
         return now >= self.expires_at
 
+    def mirror_state(self) -> MirrorState:
+        """Whether Redis holds this revision (what a restarted API would continue from)."""
+        current = self.mirrored_revision >= self.revision
+        return MirrorState(current, self.mirrored_frame, None if current else self.mirror_behind_since)
+
     def metadata(self) -> dict[str, Any]:
         return {"id": self.id, "model": self.model.__dict__, "on_gap": self.on_gap, "created_at": self.created_at,
                 "last_used_at": self.last_used_at, "frames_processed": self.frames_processed,
@@ -167,7 +186,10 @@ class Session:
 
     @classmethod
     def from_metadata(cls, meta: dict[str, Any], ttl_seconds: int) -> Session:
-        return cls(id=meta["id"], model=SessionModel(**meta["model"]), on_gap=meta["on_gap"],
+        """The session as Redis holds it (so its mirror is current)."""
+        frame = meta["next_frame_index"] - 1 if meta["next_frame_index"] is not None else None
+        return cls(mirrored_revision=meta["revision"], mirrored_frame=frame,
+                   id=meta["id"], model=SessionModel(**meta["model"]), on_gap=meta["on_gap"],
                    created_at=meta["created_at"], last_used_at=meta["last_used_at"], ttl_seconds=ttl_seconds,
                    frames_processed=meta["frames_processed"], next_frame_index=meta["next_frame_index"],
                    resolution=tuple(meta["resolution"]) if meta["resolution"] else None, revision=meta["revision"],
@@ -240,6 +262,7 @@ class _Snapshot:
     revision: int
     meta: str
     state: State | None
+    frame: int | None = None  # the last frame this history follows (None: no history)
 
 
 def _daemon_timer(delay: float, function: Callable[[], None]) -> threading.Timer:
@@ -258,11 +281,15 @@ class _MirrorWriter:
     handed over sooner waits (newer ones replace it) and is written when the interval is over, by a timer if no
     other call comes; ``wait()`` writes at once.
 
+    A write that fails (``write`` returns False) is kept and retried after ``retry_delay()`` seconds, by a timer,
+    until it lands, so an idle session's history reaches Redis once it is back; ``retry()`` tries it at once. A
+    newer snapshot replaces it; ``discard()`` and ``close()`` drop it, so no late retry brings a session back.
     """
 
-    def __init__(self, write: Callable[[_Snapshot], None], executor: ThreadPoolExecutor,
+    def __init__(self, write: Callable[[_Snapshot], bool], executor: ThreadPoolExecutor,
                  min_interval: float = 0.0, monotonic: Callable[[], float] = time.monotonic,
-                 timer: Callable[[float, Callable[[], None]], Any] | None = None) -> None:
+                 timer: Callable[[float, Callable[[], None]], Any] | None = None,
+                 retry_delay: Callable[[], float] = lambda: REDIS_PAUSE_SECONDS) -> None:
         self._write = write
         self._executor = executor
         # Injectable so a test drives the interval by construction (a fake clock, a timer it fires itself).
@@ -275,9 +302,15 @@ class _MirrorWriter:
         self._not_before = 0.0  # time.monotonic() before which start() defers a write
         self._timer: threading.Timer | None = None
         self._forced = 0  # callers of wait() waiting: their writes are not deferred
+        self._retry_delay = retry_delay
+        self._failed: _Snapshot | None = None  # the newest snapshot whose write failed, until one lands
+        self._retry_timer: Any = None
+        self._closed = False  # discarded or closed: nothing is written any more
 
     def submit(self, snapshot: _Snapshot, start: bool = True) -> None:
         with self._condition:
+            if self._closed:
+                return
             self._pending = snapshot  # an older one not started yet is superseded: Redis wants the newest
         if start:
             self.start()
@@ -286,7 +319,7 @@ class _MirrorWriter:
         """Write the pending snapshot in the background, unless there is none, a write is running (which then
         writes it next) or the minimum interval since the last write is not over (a timer starts it then)."""
         with self._condition:
-            if self._running or self._pending is None or self._defer():
+            if self._closed or self._running or self._pending is None or self._defer():
                 return
             self._running = True
         try:
@@ -308,14 +341,50 @@ class _MirrorWriter:
             with self._condition:
                 self._forced -= 1
 
-    def discard(self) -> None:
-        """Drop a pending write and wait for one in progress (the session is being deleted)."""
+    def retry(self) -> None:
+        """Write the snapshot whose write failed now (in the background), unless a newer one replaced it."""
         with self._condition:
-            self._pending = None
-            if self._timer is not None:
-                self._timer.cancel()
-                self._timer = None
+            if self._closed or self._failed is None:
+                return
+            if self._pending is None:  # a pending snapshot is newer: it wins
+                self._pending = self._failed
+            self._failed = None
+            if self._retry_timer is not None:
+                self._retry_timer.cancel()
+                self._retry_timer = None
+        self.start()
+
+    @property
+    def failed(self) -> bool:
+        with self._condition:
+            return self._failed is not None
+
+    def drop_failed(self) -> None:
+        """Give up the failed write (Redis holds a newer revision, written by another API process)."""
+        with self._condition:
+            self._failed = None
+
+    def discard(self) -> None:
+        """Drop pending and failed writes and wait for one in progress (the session is being deleted)."""
+        self.close()
+        with self._condition:
             self._condition.wait_for(lambda: not self._running)
+
+    def close(self) -> None:
+        """Write nothing more: drop pending and failed writes and stop their timers (without waiting)."""
+        with self._condition:
+            self._closed = True
+            self._pending = self._failed = None
+            for timer in (self._timer, self._retry_timer):
+                if timer is not None:
+                    timer.cancel()
+            self._timer = self._retry_timer = None
+            self._condition.notify_all()
+
+    def _retry_due(self) -> None:
+        with self._condition:
+            self._retry_timer = None
+        self.retry()
 
     def _defer(self) -> bool:
         """(Under the lock.) Whether the pending write must wait for the interval; if so, a timer will start it."""
@@ -342,9 +411,19 @@ class _MirrorWriter:
                 self._pending = None
                 self._not_before = self._monotonic() + self._min_interval
             try:
-                self._write(snapshot)
+                written = self._write(snapshot)
             except Exception:  # never leave the writer marked running: the session would wait forever
                 log.exception("session %s: writing its mirror failed", snapshot.session.id)
+                written = False
+            with self._condition:
+                if written:
+                    if self._failed is not None and self._failed.revision <= snapshot.revision:
+                        self._failed = None
+                elif not self._closed:
+                    # A newer pending snapshot replaces this one (and any older failure).
+                    self._failed = snapshot if self._pending is None else None
+                    if self._retry_timer is None:
+                        self._retry_timer = self._start_timer(self._retry_delay(), self._retry_due)
 
 
 class SessionStore:
@@ -371,6 +450,7 @@ class SessionStore:
         self.redis = redis_client if redis_client is not None else redis.Redis.from_url(
             settings.redis_url, socket_timeout=5, socket_connect_timeout=1, retry=Retry(NoBackoff(), 1))
         self._redis_paused_until = 0.0
+        self._redis_failed = False  # the last Redis call failed: the next one that works retries failed mirrors
         # Every tensor operation of the sessions (steps, state (de)serialization, loading weights) runs on these
         # few threads: torch's OpenMP threads then form one team per worker instead of one per request thread, and
         # a slow session holds one worker while the others serve the rest (service.sessions.torch_thread).
@@ -612,10 +692,14 @@ class SessionStore:
         return planes.permute(1, 2, 0).numpy(), state, inference_ms, sanitized
 
     def flush(self, timeout: float | None = None) -> bool:
-        """Wait until every mirror handed to the background writers is written (or failed); False on timeout."""
+        """Try failed mirror writes once more (unless Redis failed moments ago), then wait until every mirror
+        handed to the background writers is written (or failed again); False on timeout."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._lock:
             writers = list(self._writers.values())
+        if time.monotonic() >= self._redis_paused_until:
+            for writer in writers:
+                writer.retry()
         for writer in writers:
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
             if not writer.wait(left):
@@ -628,6 +712,10 @@ class SessionStore:
         global _store
         if not self.flush(timeout=2 * 5 + 1):  # a write on a hung Redis gives up after its socket timeouts
             log.warning("session store closed with mirror writes still pending")
+        with self._lock:
+            writers = list(self._writers.values())
+        for writer in writers:
+            writer.close()  # no retry timer writes after the store is gone
         self._mirror_pool.shutdown(wait=False)
         self._torch.shutdown()
         self._readers.shutdown()
@@ -690,7 +778,9 @@ class SessionStore:
         with self._lock:
             self._sessions.pop(session_id, None)
             self._locks.pop(session_id, None)
-            self._writers.pop(session_id, None)
+            writer = self._writers.pop(session_id, None)
+            if writer is not None:
+                writer.close()  # a retry landing later would bring a forgotten session back into Redis
             # Weights no session in memory uses any more are released; a session restored later reloads them.
             used = {s.model.origin.key for s in self._sessions.values()}
             for key in [key for key in self._methods if key not in used]:
@@ -749,7 +839,9 @@ class SessionStore:
             raise SessionStoreUnavailable(f"session {session_id!r}: its history in Redis cannot be read ({error}); "
                                           f"reset the session to start a new one") from None
         fresh.method = self._method(fresh.model.origin)
-        fresh.mirrored_revision = fresh.revision
+        writer = self._writer_of(session_id)
+        if writer is not None:
+            writer.drop_failed()  # its retry would put an older revision over this one
         with self._lock:
             self._sessions[session_id] = fresh
         log.info("session %s restored from Redis at frame %s", session_id, fresh.next_frame_index)
@@ -760,10 +852,26 @@ class SessionStore:
         if time.monotonic() < self._redis_paused_until:
             raise redis.ConnectionError("Redis failed moments ago; not retried yet")
         try:
-            return call(self.redis)
+            result = call(self.redis)
         except redis.RedisError:
             self._redis_paused_until = time.monotonic() + REDIS_PAUSE_SECONDS
+            self._redis_failed = True
             raise
+        if self._redis_failed:  # Redis is back: write the mirrors it missed now rather than at their timers
+            self._redis_failed = False
+            self._retry_failed_mirrors()
+        return result
+
+    def _retry_failed_mirrors(self) -> None:
+        """Start every failed mirror write again, in the background (never blocks)."""
+        with self._lock:
+            writers = list(self._writers.values())
+        for writer in writers:
+            writer.retry()
+
+    def _mirror_retry_delay(self) -> float:
+        """Seconds until a failed mirror is tried again: once Redis is no longer left alone after its failure."""
+        return max(0.0, self._redis_paused_until - time.monotonic()) + 0.05
 
     def _mirror(self, session: Session, wait: bool, start: bool = True) -> None:
         """Hand the session's current revision to its background writer (see the module notes); with ``wait``,
@@ -772,13 +880,19 @@ class SessionStore:
             writer = self._writers.get(session.id)
             if writer is None:
                 writer = self._writers[session.id] = _MirrorWriter(self._write_mirror, self._mirror_pool,
-                                                                   self.mirror_interval, *self.mirror_timing)
-        writer.submit(_Snapshot(session, session.revision, json.dumps(session.metadata()), session.state), start)
+                                                                   self.mirror_interval, *self.mirror_timing,
+                                                                   retry_delay=self._mirror_retry_delay)
+            if session.mirror_behind_since is None:
+                session.mirror_behind_since = self.clock()
+        last_frame = None if session.next_frame_index is None else session.next_frame_index - 1
+        writer.submit(_Snapshot(session, session.revision, json.dumps(session.metadata()), session.state,
+                                last_frame), start)
         if wait:
             writer.wait()
 
-    def _write_mirror(self, snapshot: _Snapshot) -> None:
-        """Write one snapshot (metadata and state together) to Redis and restart the key's TTL."""
+    def _write_mirror(self, snapshot: _Snapshot) -> bool:
+        """Write one snapshot (metadata and state together) to Redis and restart the key's TTL; False if that
+        failed (its writer retries it)."""
         session = snapshot.session
         key = self._key(session.id)
         # Beside the next frame's step, which reads the same tensors but never changes them.
@@ -794,11 +908,18 @@ class SessionStore:
 
         try:
             self._redis(write)
-            session.mirrored_revision = max(session.mirrored_revision, snapshot.revision)
         except redis.RedisError as error:
-            log.warning("session %s: could not mirror to Redis (a restart would lose it): %s", session.id, error)
+            log.warning("session %s: could not mirror to Redis (a restart would lose it until a retry lands): %s",
+                        session.id, error)
             for sink in self._metrics:
                 sink.mirror_failed(MIRROR_WRITE)
+            return False
+        with self._lock:
+            if snapshot.revision > session.mirrored_revision:
+                session.mirrored_revision, session.mirrored_frame = snapshot.revision, snapshot.frame
+            if session.mirrored_revision >= session.revision:
+                session.mirror_behind_since = None
+        return True
 
     def _purge_expired(self) -> None:
         """Drop idle sessions from memory (Redis drops them by their TTL); called on every store operation that
@@ -902,6 +1023,6 @@ def get_session_store() -> SessionStore:
         return _store
 
 
-__all__ = ["FrameRejected", "FrameResult", "ModelNotLoadable", "ReadFrame", "Session", "SessionError",
+__all__ = ["FrameRejected", "FrameResult", "MirrorState", "ModelNotLoadable", "ReadFrame", "Session", "SessionError",
            "SessionLimitReached", "SessionModel", "SessionNotFound", "SessionStore", "SessionStoreUnavailable",
            "UnknownModelError", "get_session_store"]

@@ -28,7 +28,7 @@ from model.methods.registry import method_buffers
 from service.http.errors import ApiError, api_error, documented_error, domain_errors, frame_error_details
 from core.names import AUTO_MODEL
 from service.http.request_limits import frame_budget
-from service.http.schemas.sessions import SessionIn, SessionModelOut, SessionOut
+from service.http.schemas.sessions import SessionIn, SessionMirrorOut, SessionModelOut, SessionOut
 from service.sessions.store import Session, SessionStore, get_session_store, token_digest
 from core.settings import Settings, get_settings
 
@@ -82,7 +82,14 @@ def session_out(session: Session) -> SessionOut:
                       created_at=_time(session.created_at), last_used_at=_time(session.last_used_at),
                       expires_at=_time(session.expires_at), frames_processed=session.frames_processed,
                       next_frame_index=session.next_frame_index, on_gap=session.on_gap,
-                      resolution=list(session.resolution) if session.resolution else None, layout=session.layout)
+                      resolution=list(session.resolution) if session.resolution else None, layout=session.layout,
+                      mirror=_mirror_out(session))
+
+
+def _mirror_out(session: Session) -> SessionMirrorOut:
+    state = session.mirror_state()
+    return SessionMirrorOut(current=state.current, last_written_frame=state.last_written_frame,
+                            pending_since=None if state.pending_since is None else _time(state.pending_since))
 
 
 def _session_link(path: str, method: str) -> dict:

@@ -123,6 +123,17 @@ class SessionModelOut(BaseModel):
                                            "ones it uses; a stream client sends only these (others are ignored)")
 
 
+class SessionMirrorOut(BaseModel):
+    """Whether Redis holds the session's newest frame, i.e. what a restarted API would continue from."""
+
+    current: bool = Field(description="Redis holds the session as it is now: a restart loses nothing")
+    last_written_frame: int | None = Field(description="the last frame whose history Redis holds; null: none (a "
+                                                       "new or reset session)")
+    pending_since: datetime | None = Field(description="since when Redis has lacked the newest frame (a write "
+                                                       "in progress, or failed and retried until it lands); null "
+                                                       "while current")
+
+
 class SessionOut(BaseModel):
     """A session: its model, its stream position and when it expires."""
 
@@ -133,6 +144,7 @@ class SessionOut(BaseModel):
             "created_at": "2026-11-22T06:30:57.715000Z", "last_used_at": "2026-11-22T06:31:02.100000Z",
             "expires_at": "2026-11-22T07:01:02.100000Z", "frames_processed": 42, "next_frame_index": 42,
             "on_gap": "reset", "resolution": [640, 360],
+            "mirror": {"current": True, "last_written_frame": 41, "pending_since": None},
         }]
     })
 
@@ -149,6 +161,8 @@ class SessionOut(BaseModel):
                                                       "(set by the first frame); null before it")
     choice: AutoChoiceOut | None = Field(None, description="model 'auto' only: the version chosen and why")
     layout: str | dict[str, Any] = Field("denoiser", description="the layout posted frames are read in")
+    mirror: SessionMirrorOut | None = Field(None, description="the session's copy in Redis (the session store): "
+                                                              "whether a restarted API continues it where it is")
     token: str | None = Field(None, description="only in the answer to POST /sessions, and only where the server "
                                                 "has DENOISER_SESSION_OWNER_TOKENS on: send it as X-Session-Token "
                                                 "with every request on this session")

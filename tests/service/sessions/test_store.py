@@ -24,6 +24,7 @@ from service.sessions.store import (
     RESET_GAP,
     STARTED,
     FrameRejected,
+    MirrorState,
     SessionLimitReached,
     SessionNotFound,
     SessionStore,
@@ -645,3 +646,148 @@ def test_a_1080p_session_survives_a_restart_with_its_history_in_chunks(make_stor
 @pytest.mark.slow
 def test_a_1080p_session_of_the_shipped_fused_model_survives_a_restart(make_store, redis_db):
     _full_hd_session_survives_a_restart(make_store, redis_db, "fused-balanced-x1")
+
+
+# --- a failed mirror is retried until it lands --------------------------------------------------------------
+
+
+def _snapshot(revision: int):
+    from types import SimpleNamespace
+
+    from service.sessions.store import _Snapshot
+
+    return _Snapshot(SimpleNamespace(id="retried"), revision, "{}", None, revision)
+
+
+def test_a_failed_mirror_is_retried_until_redis_takes_it_and_a_newer_one_wins():
+    from service.sessions.store import _MirrorWriter
+
+    timers, attempts, up = ManualTimers(), [], threading.Event()
+
+    def write(snapshot) -> bool:  # a Redis that fails until the test brings it back
+        attempts.append(snapshot.revision)
+        return up.is_set()
+
+    with ThreadPoolExecutor(1) as pool:
+        writer = _MirrorWriter(write, pool, 0.0, timers.monotonic, timers.start, retry_delay=lambda: 5.0)
+        for revision in (1, 2):
+            writer.submit(_snapshot(revision))
+            assert writer.wait(30)  # waits for the attempt, not for Redis: frames go on during the outage
+        assert attempts == [1, 2] and writer.failed
+        assert [delay for delay, _ in timers.pending] == [5.0]  # one retry timer, however many failures
+        timers.fire()  # still down: tried again, and a new timer
+        assert writer.wait(30) and attempts == [1, 2, 2] and len(timers.pending) == 1
+        up.set()
+        timers.fire()  # back: the newest snapshot lands, nothing is left to retry
+        assert writer.wait(30) and attempts == [1, 2, 2, 2] and not writer.failed and not timers.pending
+
+        up.clear()
+        writer.submit(_snapshot(3))
+        assert writer.wait(30) and writer.failed
+        up.set()
+        writer.submit(_snapshot(4))  # a newer frame's mirror before the retry: it replaces the failed one
+        assert writer.wait(30) and not writer.failed
+        timers.fire()
+        assert writer.wait(30) and attempts == [1, 2, 2, 2, 3, 4]
+
+        up.clear()
+        writer.submit(_snapshot(5))
+        assert writer.wait(30) and writer.failed
+        up.set()
+        writer.drop_failed()  # another API process wrote a newer revision: an older one must not go over it
+        timers.fire()
+        assert writer.wait(30) and attempts == [1, 2, 2, 2, 3, 4, 5]
+
+        up.clear()
+        writer.submit(_snapshot(6))
+        assert writer.wait(30) and writer.failed
+        up.set()
+        writer.discard()  # the session is deleted: its failed write is never retried
+        timers.fire()
+        writer.retry()
+        writer.submit(_snapshot(7))
+        assert writer.wait(30) and attempts == [1, 2, 2, 2, 3, 4, 5, 6]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class OwnRedis:
+    """A redis-server of the test's own, on a free port, that the test stops and starts again (empty)."""
+
+    def __init__(self) -> None:
+        self.port = _free_port()
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self.process = None
+
+    def start(self) -> None:
+        import subprocess
+        import time
+
+        self.process = subprocess.Popen(["redis-server", "--port", str(self.port), "--save", "", "--appendonly",
+                                         "no", "--daemonize", "no"], stdout=subprocess.DEVNULL)
+        client = redis.Redis(port=self.port)
+        for _ in range(200):  # until it accepts connections (it starts in milliseconds)
+            try:
+                client.ping()
+                return
+            except redis.ConnectionError:
+                time.sleep(0.05)
+        raise RuntimeError(f"redis-server on port {self.port} did not start")
+
+    def stop(self) -> None:
+        if self.process is not None:
+            self.process.terminate()
+            self.process.wait(30)
+            self.process = None
+
+
+@pytest.fixture
+def own_redis():
+    import shutil
+
+    if shutil.which("redis-server") is None:
+        pytest.skip("redis-server is not installed")
+    server = OwnRedis()
+    server.start()
+    yield server
+    server.stop()
+
+
+def test_an_idle_sessions_history_reaches_redis_once_it_is_back_and_a_restart_continues_it(make_store, own_redis):
+    import time
+
+    frames = stream_frames(40)
+    expected = in_process_outputs(shared_registry().checkpoints["1"], frames)  # the uninterrupted run
+    first = make_store(redis_url=own_redis.url, session_history_precision="float")
+    session = first.create(MODEL_NAME, version="1", on_gap="reject")
+    for frame in frames[:10]:
+        first.process_frame(session.id, frame)
+    assert first.flush(timeout=30)
+    assert session.mirror_state() == MirrorState(True, 9, None)
+
+    own_redis.stop()
+    results = [first.process_frame(session.id, frame) for frame in frames[10:30]]
+    assert {result.history for result in results} == {CONTINUED}
+    state = session.mirror_state()
+    assert (state.current, state.last_written_frame) == (False, 9) and state.pending_since is not None
+
+    own_redis.start()  # empty (no persistence): only the retry can bring the session back
+    # The client pauses: no request reaches the store, so only the retry timer writes the mirror.
+    deadline = time.monotonic() + 60
+    while not session.mirror_state().current and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert session.mirror_state() == MirrorState(True, 29, None)
+    assert json.loads(redis.Redis.from_url(own_redis.url).hget(f"{first.prefix}{session.id}", "meta"))[
+        "next_frame_index"] == 30
+
+    restarted = make_store(redis_url=own_redis.url, session_history_precision="float")  # a new API process
+    for index in range(30, 40):
+        result = restarted.process_frame(session.id, frames[index])
+        assert result.history == CONTINUED
+        assert_same_image(result.output, expected[index])

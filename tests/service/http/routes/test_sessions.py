@@ -67,6 +67,34 @@ def test_a_restarted_api_continues_the_session_from_redis(api):
     assert_same_image_after_half_history(decode_image_exr(response.content), expected[3])
 
 
+def test_a_session_says_whether_redis_holds_it_and_a_failed_mirror_lands_once_redis_answers_again(api):
+    import redis
+    from redis.backoff import NoBackoff
+    from redis.retry import Retry
+
+    client, store = api()
+    session = create(client)
+    frames = stream_frames(2)
+    assert post_frame(client, session["id"], frames[0]).status_code == 200
+    assert store.flush(timeout=30)
+    assert client.get(f"/sessions/{session['id']}").json()["mirror"] == {
+        "current": True, "last_written_frame": 0, "pending_since": None}
+
+    reachable = store.redis
+    store.redis = redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2, socket_timeout=0.2,
+                              retry=Retry(NoBackoff(), 0))  # Redis goes away
+    assert post_frame(client, session["id"], frames[1]).status_code == 200
+    assert store.flush(timeout=30)
+    mirror = client.get(f"/sessions/{session['id']}").json()["mirror"]  # served from memory
+    assert (mirror["current"], mirror["last_written_frame"]) == (False, 0) and mirror["pending_since"]
+
+    store.redis, store._redis_paused_until = reachable, 0.0  # back, and no longer left alone
+    client.get(f"/sessions/{session['id']}")  # the first Redis call that works starts the failed write again
+    assert store._writer_of(session["id"]).wait(30)  # (that write; waiting retries nothing itself)
+    assert client.get(f"/sessions/{session['id']}").json()["mirror"] == {
+        "current": True, "last_written_frame": 1, "pending_since": None}
+
+
 def test_session_lifecycle(api):
     client, _ = api()
     first, second = create(client), create(client, on_gap="reject")
