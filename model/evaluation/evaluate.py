@@ -21,6 +21,7 @@ from model.methods.base import FrameBatch, Method
 from model.evaluation.metrics import VDP_DISPLAY, VDP_FRAMES_PER_SECOND, FovVideoVdp, frame_metrics, temporal_error
 from model.ops.tonemap import display_encode
 from model.io.sanitize import SanitizeReport, sanitize_frame
+from model.ops.output_bound import output_ratio
 from model.evaluation.tables import cell, compact, source_label, table_row, table_rule
 from model.evaluation.timing import median_ms, timed, torch_threads
 
@@ -130,9 +131,9 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
     Every input frame goes through ``sanitize_frame`` first (not timed). Returns {"frames", "step_seconds": [...],
     "sanitized": the repaired-pixel counts (``SanitizeReport.to_dict``), "keeps_history": whether any step
     returned a non-empty state (a temporal method; per-frame methods return ``{}``), with metrics "metrics":
-    {name: value or None} and "per_frame": {frame metric: [value per frame]}, and with ``keep_outputs`` (which
-    needs the metrics) "outputs": the linear outputs as one (T, C, H, W) CPU tensor, with ``keep_last`` (also with
-    the metrics) "last_output": the last frame's linear (1, C, H, W) CPU output}.
+    {name: value or None}, "per_frame": {frame metric: [value per frame]} and "output_ratio" (the largest
+    brightest-output / brightest-input ratio of any frame), and with ``keep_outputs`` (which needs the metrics)
+    "outputs": the linear outputs as one (T, C, H, W) CPU tensor, with ``keep_last`` (also with the metrics) "last_output": the last frame's linear (1, C, H, W) CPU output}.
     """
     if keep_outputs and not with_metrics:
         raise ValueError("keep_outputs needs with_metrics: outputs are checked and copied with the metrics")
@@ -145,6 +146,7 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
     references_ldr: list[torch.Tensor] = []
     kept: list[torch.Tensor] = []
     keeps_history = False
+    output_peak_ratio = 0.0  # the worst frame's brightest output over its brightest input
     sanitized = SanitizeReport()
     with torch.inference_mode():
         for index, frame in enumerate(sequence.frames):
@@ -157,6 +159,7 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
             if not with_metrics:
                 continue
             output = _checked_output(output, frame, method, sequence, index).cpu()
+            output_peak_ratio = max(output_peak_ratio, output_ratio(output, inputs.color.cpu()))
             for name, values in frame_metrics(output, frame.reference).items():
                 frame_values[name].append(float(values[0]))
             outputs_ldr.append(display_encode(output[0]))
@@ -174,6 +177,7 @@ def run_sequence(method: Method, sequence: EvaluationSequence, *, vdp: FovVideoV
         result["last_output"] = last
     if with_metrics:
         result["per_frame"] = frame_values
+        result["output_ratio"] = output_peak_ratio
         metrics: dict[str, float | None] = {name: statistics.fmean(v) for name, v in frame_values.items()}
         outputs, references = torch.stack(outputs_ldr), torch.stack(references_ldr)
         # On display-encoded frames, as the other LDR metrics: flicker in the dark counts as the eye sees it,

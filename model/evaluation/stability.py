@@ -337,7 +337,7 @@ def _run(method: Method, scenario: Scenario, metric: FovVideoVdp | None, device:
         return {"status": "failed", "error": f"{type(error).__name__}: {error}"}
     ghosting = ghosting_error(run["outputs"], scenario.references(), trails)
     result = {"status": "ok", "error": None, **run["metrics"], "per_frame_psnr": run["per_frame"]["psnr"],
-              "sanitized": run["sanitized"], "keeps_history": run["keeps_history"],
+              "sanitized": run["sanitized"], "keeps_history": run["keeps_history"], "output_ratio": run["output_ratio"],
               "ghost_error": ghosting["error"] if ghosting else None,
               "ghost_psnr": ghosting["psnr"] if ghosting else None,
               "per_frame_ghost_error": ghosting["per_frame_error"] if ghosting else None}

@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 
 from model.evaluation.stability import MIN_DROP_DB
+from model.ops.output_bound import OUTPUT_BOUND_FACTOR
 from model.evaluation.tables import cell, cell_text, table_row, table_rule
 
 __all__ = ["format_markdown", "write_report", "curves_chart", "drop_chart", "REPORT_JSON", "REPORT_MARKDOWN"]
@@ -24,6 +25,11 @@ def _worst_text(entry: dict) -> tuple[str, str]:
         return worst["scenario"], f"FAILED: {cell_text(worst['reason'])}"
     return worst["scenario"], (f"{worst['drop_db']:.2f} dB below its median gain (gain {worst['gain_db']:+.2f} dB, "
                                f"median {entry['median_gain_db']:+.2f} dB; PSNR {worst['psnr']:.2f} dB)")
+
+
+def _worst_output_ratio(entry: dict) -> float | None:
+    ratios = [run["output_ratio"] for run in entry["scenarios"].values() if run.get("output_ratio") is not None]
+    return max(ratios) if ratios else None  # None: a report written before the ratio was recorded
 
 
 def _run_cell(run: dict, key: str, fmt: str) -> str:
@@ -44,11 +50,15 @@ def format_markdown(report: dict, charts: dict[str, str] | None = None) -> str:
                      "" if vdp["available"] else f"; FovVideoVDP unavailable: {vdp['reason']}"))
     lines = ["# Stability suite", "", conditions, "", "## Where each method fails worst", "",
              f"Definition: {report['definition']}", "",
-             table_row(["method", "worst scenario", "by how much", "failures"]), table_rule("llll")]
+             "worst output / input: the largest ratio, over the scenarios and frames it completed, of its brightest "
+             "output pixel to the frame's brightest input value (the output bound keeps it at or below "
+             f"{OUTPUT_BOUND_FACTOR:g}; docs/methods.md).", "",
+             table_row(["method", "worst scenario", "by how much", "failures", "worst output / input"]),
+             table_rule("llllr")]
     for entry in methods:
         scenario, how = _worst_text(entry)
         failures = ", ".join(f["scenario"] for f in entry["failures"]) or "none"
-        lines.append(table_row([entry["label"], scenario, how, failures]))
+        lines.append(table_row([entry["label"], scenario, how, failures, cell(_worst_output_ratio(entry), "{:.3g}")]))
 
     labels = [report["input"][scenarios[0]["name"]]["label"]] + [e["label"] for e in methods]
     lines += ["", "## PSNR per scenario (dB, display-encoded; FAIL: error or non-finite output)", "",

@@ -3,12 +3,14 @@
 Training (unrolled over T frames), evaluation, benchmarks and inference sessions all drive methods through
 `step`, one frame at a time, carrying `state` (the method's temporal history). `state=None` starts a
 sequence. A camera cut is signalled per sample by `frame.camera_cut`: methods drop that sample's history
-(see `drop_history`), so a batch may mix samples that continue with samples that restart.
+(see `drop_history`), so a batch may mix samples that continue with samples that restart. Every subclass's `step`
+ends with the output bound of `model.ops.output_bound` (applied here, in `Method.__init_subclass__`).
 """
 
 from __future__ import annotations
 
 import abc
+import functools
 from dataclasses import dataclass, fields, replace
 from typing import Any, Iterable
 
@@ -17,6 +19,7 @@ import torch
 from torch import nn
 
 from model.io.frames import FrameBundle
+from model.ops.output_bound import bound_output
 
 State = dict[str, torch.Tensor]
 
@@ -147,6 +150,14 @@ class Method(nn.Module, abc.ABC):
     #: (spatial, temporal) loss weights the training engine uses unless the user sets them.
     loss_weights: tuple[float, float] = (1.0, 0.25)
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        # Every subclass's own `step` ends with the output bound (model/ops/output_bound.py), in this one place,
+        # so no method, however its network behaves, returns radiance its inputs cannot explain or a NaN.
+        super().__init_subclass__(**kwargs)
+        step = cls.__dict__.get("step")
+        if step is not None and not getattr(step, "bounds_output", False):
+            cls.step = _bounded_step(step)
+
     def __init__(self, preset: str = "default", scale: int = 1):
         super().__init__()
         if scale not in (1, 2):
@@ -198,6 +209,22 @@ class Method(nn.Module, abc.ABC):
     def config(self) -> dict[str, Any]:
         """What reconstructs this method: registry name, preset, scale (checkpoints store it)."""
         return {"method": self.name, "preset": self.preset, "scale": self.scale}
+
+
+def _bounded_step(step):
+    @functools.wraps(step)
+    def bounded(self: Method, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
+        output, new_state = step(self, frame, state)
+        return bound_output(output, frame.color), new_state
+
+    bounded.bounds_output = True
+    return bounded
+
+
+def unbounded_step(method: Method, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
+    """``method.step`` without the output bound: for measuring what the bound changes, never for serving."""
+    step = type(method).step
+    return getattr(step, "__wrapped__", step)(method, frame, state)
 
 
 def inference_outputs(method: Method, frames: Iterable[FrameBundle], inference_forms="measured") -> list[np.ndarray]:

@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from model.io.dataset import Dataset, DatasetError
-from model.evaluation.evaluate import EvaluationSequence, evaluate, evaluate_method, format_table, run_sequence
+from model.evaluation.evaluate import (EvaluationSequence, _checked_output, evaluate, evaluate_method, format_table,
+                                      run_sequence)
 from model.methods.base import FrameBatch, State
 from model.evaluation.metrics import frame_metrics
 from tests.builders import GRADIENT_FRAMES as FRAMES
@@ -162,9 +163,18 @@ def test_an_existing_file_is_loaded_as_a_checkpoint(dataset_dir, tmp_path, monke
     assert loaded[-1] == (checkpoint, 2)
 
 
+def test_a_method_computing_nan_returns_black_frames_through_the_output_bound(dataset_dir):
+    report = run(dataset_dir, [NaNOutput()])
+    row = report["methods"][0]
+    assert math.isfinite(row["metrics"]["psnr"]) and row["metrics"]["psnr"] > 0
+
+
 def test_non_finite_output_is_an_error_naming_method_sequence_and_frame(dataset_dir):
+    # No Method's step returns one (the output bound); the evaluator still checks what it is handed.
+    sequence = EvaluationSequence.from_sequence(Dataset(dataset_dir).sequence("a"), scale=1)
+    nan = torch.full_like(sequence.frames[0].reference, math.nan)
     with pytest.raises(RuntimeError, match="nan_output on sequence 'a', frame 0: output is not finite"):
-        run(dataset_dir, [NaNOutput()])
+        _checked_output(nan, sequence.frames[0], NaNOutput(), sequence, 0)
 
 
 def test_bad_input_is_reported_before_any_frame_is_read(tmp_path, dataset_dir):

@@ -21,6 +21,7 @@ from model.evaluation.stability import (DERIVED_SCENARIOS, EXPOSURE_BRIGHT, MIN_
                              build_scenarios, derive_scenarios, fails_worst, name_shared_labels, run_suite,
                              scale_exposure)
 from model.evaluation.stability_report import write_report
+from model.ops.output_bound import OUTPUT_BOUND_FACTOR
 from cli.main import main
 from tests.builders import GRADIENT_FRAMES as FRAMES
 from tests.builders import GRADIENT_SIZE as SIZE
@@ -70,7 +71,7 @@ class NeedsSpecular(Method):
 
 
 class NaNOnFastMotion(Method):
-    """Returns NaN when motion is larger than the image: the non-finite output case."""
+    """Computes NaN when motion is larger than the image: the output bound must keep it from leaving the step."""
 
     name = "nan_on_fast_motion"
 
@@ -215,9 +216,19 @@ def test_failures_are_recorded_and_named_as_the_worst_scenario(suite):
     assert [f["scenario"] for f in fragile["failures"]] == ["missing_buffers"]
     assert fragile["worst"]["scenario"] == "missing_buffers" and fragile["worst"]["failed"]
     assert "TypeError" in fragile["worst"]["reason"] or "AttributeError" in fragile["worst"]["reason"]
+    # Its NaN never leaves the step (model.ops.output_bound): it completes garbage_motion, with black frames.
     nan_method = entries["nan_on_fast_motion"]
-    assert [f["scenario"] for f in nan_method["failures"]] == ["garbage_motion"]
-    assert "not finite" in nan_method["failures"][0]["error"]
+    assert nan_method["failures"] == [] and nan_method["scenarios"]["garbage_motion"]["status"] == "ok"
+    assert nan_method["scenarios"]["garbage_motion"]["output_ratio"] == 0.0
+    assert nan_method["scenarios"]["clean"]["output_ratio"] == pytest.approx(1.0)  # it returns the input there
+
+
+def test_the_report_states_each_methods_worst_output_to_input_ratio(suite):
+    report, _, out = suite
+    for entry in report["methods"]:
+        ratios = [run["output_ratio"] for run in entry["scenarios"].values() if run["status"] == "ok"]
+        assert ratios and all(0.0 <= r <= OUTPUT_BOUND_FACTOR + 1e-6 for r in ratios), entry["label"]
+    assert "| worst output / input |" in (out / "stability.md").read_text()
 
 
 def test_sanitized_counts_are_reported_per_scenario(suite):

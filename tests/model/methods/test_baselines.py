@@ -40,10 +40,11 @@ def test_identity_returns_the_noisy_input():
 
 
 def test_identity_at_scale_2_is_the_bicubic_upscale_of_the_input():
-    color = torch.rand(1, 3, HEIGHT, WIDTH, generator=torch.Generator().manual_seed(1))
+    color = 4.0 * torch.rand(1, 3, HEIGHT, WIDTH, generator=torch.Generator().manual_seed(1))
     output, _ = build_method("identity", scale=2).step(plane_frame(color), None)
     expected = torch.nn.functional.interpolate(color, scale_factor=2, mode="bicubic", align_corners=False)
-    torch.testing.assert_close(output, expected.clamp_min(0.0))
+    assert float(expected.max()) > float(color.max())  # the kernel rings above the brightest input ...
+    torch.testing.assert_close(output, expected.clamp(0.0, float(color.max())))  # ... which the output bound clips
 
 
 def test_bicubic_upscale_clamps_the_overshoot_at_edges():
@@ -247,6 +248,7 @@ def test_the_rectified_preset_clips_a_stale_bright_history(name):
     # A light that was here and is gone: the plain history keeps it for many frames, the rectified one drops it.
     bright = plane_frame(torch.full((1, 3, HEIGHT, WIDTH), 40.0))
     dark_color = noisy_constant(torch.full((1, 3, HEIGHT, WIDTH), 0.2), torch.Generator().manual_seed(5))
+    dark_color[:, :, 0, 0] = 40.0  # the lamp, still in a corner: the output bound allows the ghost's brightness
     results = {}
     for preset in ("default", "rectified"):
         method = build_method(f"{name}:{preset}" if preset != "default" else name)
