@@ -34,6 +34,7 @@ from pathlib import Path
 
 from mlflow.exceptions import MlflowException
 
+from core.names import at_most_pattern
 from core.storage import Storage
 from core.tracking import CHECKPOINT_ARTIFACT, MLflowTracker, download_registered_checkpoint
 
@@ -46,6 +47,7 @@ METRIC_TAGS = ("validation_psnr", "validation_ssim", "ms_per_frame")
 METRIC_TAG_PREFIX = "metric."  # any other measurement a job records on a version, e.g. metric.flip
 _PAGE = 1000
 MAX_VERSION = 2**31 - 1
+VERSION_PATTERN = at_most_pattern(MAX_VERSION)  # 1..MAX_VERSION as text, what checked_version accepts
 
 
 class UnknownModelError(KeyError):

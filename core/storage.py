@@ -16,14 +16,16 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+from core.names import ID_MAX_LENGTH, ID_PATTERN
+
+_ID = re.compile(ID_PATTERN)
 
 
 def checked_id(value: str, what: str) -> str:
     """An id safe to use as one path component (no separators, no '..'), else ValueError naming it."""
-    if not _ID.fullmatch(value) or ".." in value:  # fullmatch: "$" alone would let a trailing newline through
+    if not _ID.fullmatch(value) or len(value) > ID_MAX_LENGTH:  # fullmatch: "$" alone passes a final newline
         raise ValueError(f"{what} {value!r} is not a valid id: use letters, digits, '.', '_' and '-' "
-                         f"(at most 128, not starting with a punctuation mark)")
+                         f"(at most {ID_MAX_LENGTH}, not starting with a punctuation mark)")
     return value
 
 

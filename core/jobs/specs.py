@@ -6,7 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from core.names import AUTO_MODEL, AUTO_MODEL_RESERVED, DEVICES, JOB_KINDS, JOB_STATES, SPLITS
+from core.names import (AUTO_MODEL, AUTO_MODEL_RESERVED, DEVICES, ID_MAX_LENGTH, ID_PATTERN, JOB_KINDS, JOB_STATES,
+                        SPLITS)
 from model.names import STABILITY_SCENARIOS
 from model.training.training_settings import FitTrainingSettings, TrainingSettings
 
@@ -19,7 +20,7 @@ JobSplit = Literal[SPLITS]
 # Job bodies are validated strictly (strict=True on every model below): a value must have its documented JSON
 # type, so `"steps": "100"` or `"overwrite": 0` is a 422 naming the field rather than silently coerced.
 # A stored id (dataset, registered model name): one safe path component, as core.storage.checked_id.
-_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
+_ID = {"pattern": ID_PATTERN, "max_length": ID_MAX_LENGTH}
 
 
 def _registrable(name: str | None) -> str | None:
@@ -35,7 +36,7 @@ class GenerateParams(BaseModel):
         "dataset": "rooms", "scenes": ["diffuse_room", "metals"], "frames": 16, "size": [128, 128],
         "ref_spp": 1024, "scales": [1, 2], "seed": 0, "split": "train"}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN, description="dataset id; created when it does not exist")
+    dataset: str = Field(**_ID, description="dataset id; created when it does not exist")
     scenes: list[str] = Field(min_length=1, max_length=64,
                               description="scene recipes (see `denoiser scenes`), or ['all']")
     frames: int = Field(16, ge=1, le=10_000, description="frames per sequence")
@@ -80,7 +81,7 @@ class TrainParams(TrainingSettings):
          "lr": 0.0001, "schedule": "constant", "warmup_steps": 0, "temporal_weight": 0.5,
          "register_as": "jnds-s-int8-rooms"}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
+    dataset: str = Field(**_ID, description="id of a stored dataset")
     track: bool = Field(True, description="log to MLflow and register the model")
     _register_as_not_auto = field_validator("register_as")(_registrable)
 
@@ -92,7 +93,7 @@ class EvaluateParams(BaseModel):
         "dataset": "rooms", "split": "test", "scale": 1,
         "methods": ["identity", "oidn:high", "models:/wskpn-s-rooms@champion"], "frames": 32}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
+    dataset: str = Field(**_ID, description="id of a stored dataset")
     split: JobSplit = Field("test", description="split to evaluate on")
     scale: Literal[1, 2] = Field(1, description="output / render resolution ratio; the data needs references at it")
     methods: list[str] = Field(min_length=1, max_length=64, description="registry NAME[:PRESET], model refs "
@@ -130,7 +131,7 @@ class InferParams(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{
         "dataset": "rooms", "model": "models:/wskpn-s-rooms@champion", "split": "test"}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
+    dataset: str = Field(**_ID, description="id of a stored dataset")
     model: str = Field(min_length=1, max_length=500, description="model ref, registry NAME[:PRESET] or checkpoint")
     split: JobSplit | None = Field(None, description="every sequence of this split")
     sequences: list[str] | None = Field(None, min_length=1, max_length=10_000, description="these sequences")
@@ -157,7 +158,7 @@ class FitParams(FitTrainingSettings):
          "steps": 2000, "register_as": "wskpn-rooms-fit", "alias": "fitted"},
         {"dataset": "rooms", "method": "wskpn", "target": "ms=20@128x128", "steps": 2000, "threads": 2}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
+    dataset: str = Field(**_ID, description="id of a stored dataset")
     method: str = Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9_]+$",
                         description="learned registry method family (no preset), e.g. wskpn")
     presets: list[str] | None = Field(None, min_length=1, max_length=32,
@@ -194,13 +195,13 @@ class StabilityParams(BaseModel):
         "dataset": "rooms", "methods": ["svgf", "oidn-taa:high", "models:/wskpn-s-rooms@champion"],
         "scenarios": ["moving_light", "clean", "nan_inf_color"], "frames": 8}]})
 
-    dataset: str = Field(pattern=_ID_PATTERN, description="id of a stored dataset")
+    dataset: str = Field(**_ID, description="id of a stored dataset")
     methods: list[str] = Field(min_length=1, max_length=64, description="as for evaluate: registry NAME[:PRESET], "
                                "model references, pretrained model names or checkpoints")
     scenarios: list[Literal[STABILITY_SCENARIOS]] | None = Field(None, min_length=1, description="scenarios to "
                                                                  "run (none: all that the dataset allows)")
     scale: Literal[1, 2] = Field(1, description="output / render resolution ratio")
-    base: str | None = Field(None, pattern=_ID_PATTERN, description="clean sequence the derived scenarios are made "
+    base: str | None = Field(None, **_ID, description="clean sequence the derived scenarios are made "
                              "from (none: a diffuse_room one, else the first that is no scene scenario)")
     frames: int | None = Field(None, ge=1, le=100_000, description="first N frames of each sequence (none: all)")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="seed of the corruptions (NaN/Inf pixels, garbage motion)")

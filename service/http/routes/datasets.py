@@ -9,12 +9,13 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from model.layouts import BUILTIN_LAYOUTS, Layout
 from service.datasets import archives, catalog, errors, ingest, receive, staged
 from service.http.errors import ApiError, documented_error, domain_errors
+from service.http.identifiers import ID_SCHEMA, DatasetId, SequenceName
 from service.http.request_limits import upload_slots
 from service.datasets.descriptions import DatasetDetail, DatasetSummary, Split, StagedSequence
 from core.settings import Settings, get_settings
@@ -26,13 +27,6 @@ router = APIRouter(prefix="/datasets", tags=["datasets"])
 
 StorageDep = Annotated[Storage, Depends(get_storage)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-# What core.storage.checked_id accepts (letters, digits, '.', '_', '-', no leading punctuation, no '..', at most
-# 128), written without look-arounds so API testers can generate from it. Documentation only: the routes answer
-# anything else with their own 400 invalid_name, which names the problem.
-ID_SCHEMA = {"pattern": r"^[A-Za-z0-9](?:[A-Za-z0-9_-]|\.[A-Za-z0-9_-])*\.?$", "maxLength": 128}
-DatasetId = Annotated[str, Path(description="dataset id", examples=["kitchens"], json_schema_extra=ID_SCHEMA)]
-SequenceName = Annotated[str, Path(description="sequence name (its folder name)", examples=["kitchen_7"],
-                                   json_schema_extra=ID_SCHEMA)]
 
 # Any of these may carry an archive; the bytes decide which kind it is.
 ARCHIVE_TYPES = ("application/zip", "application/x-zip-compressed", "application/x-tar", "application/gzip",

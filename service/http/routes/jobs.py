@@ -24,6 +24,7 @@ from model.io.dataset import frame_file_name
 from model.fit.report import LADDER_JSON, LADDER_MARKDOWN
 from service.http.dispatch import get_dispatcher
 from service.http.errors import ApiError, documented_error, domain_errors
+from service.http.identifiers import JobId, SequenceName
 from service.http.schemas.jobs import Job, JobCreate, JobLogs, JobResults
 from core.job_store import JobStore, store_for
 from core.jobs.checks import invalid
@@ -59,14 +60,13 @@ StoreDep = Annotated[JobStore, Depends(job_store_dependency)]
 StorageDep = Annotated[Storage, Depends(get_storage)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 DispatcherDep = Annotated[CeleryDispatcher, Depends(get_dispatcher)]
-JobId = Annotated[str, Path(description="job id", examples=["5f0c3a9e2b6d4f1a8c7e9d0b1a2c3d4e"])]
 
 _TYPES = {".json": "application/json", ".md": "text/markdown; charset=utf-8", ".png": "image/png"}
 ARTIFACT_TYPES = {name: _TYPES[FilePath(name).suffix] for name in
                   ("report.json", "report.md", QUALITY_SPEED_CHART, *BENCHMARK_FILES, *STABILITY_FILES, LADDER_JSON,
                    LADDER_MARKDOWN)}
 EXR_TYPE = "image/x-exr"
-_FRAME = re.compile(r"^(?:frame_)?(\d{1,9})(?:\.exr)?$")
+_FRAME = re.compile(r"^(?:frame_)?([0-9]{1,9})(?:\.exr)?$")  # [0-9]: \d also takes non-ASCII digits
 
 
 _NOT_FOUND = documented_error("no such job", "not_found", "job '5f0c3a9e2b6d4f1a8c7e9d0b1a2c3d4e' does not exist")
@@ -262,11 +262,12 @@ def job_results_zip(job_id: JobId, store: StoreDep, storage: StorageDep) -> Stre
 @router.get("/{job_id}/results/{sequence}/{frame}", summary="One output frame of an infer job (EXR)",
             response_class=FileResponse, responses={200: {"content": {EXR_TYPE: {}}}, 404: _NOT_FOUND})
 def job_result_frame(job_id: JobId, store: StoreDep, storage: StorageDep,
-                     sequence: Annotated[str, Path(description="sequence name", examples=["kitchen_0"])],
-                     frame: Annotated[str, Path(description="frame file name or index", examples=["frame_0003.exr"])]
+                     sequence: SequenceName,
+                     frame: Annotated[str, Path(description="frame file name or index", examples=["frame_0003.exr"],
+                                                json_schema_extra={"pattern": _FRAME.pattern})]
                      ) -> FileResponse:
     _, folder = _results_folder(store, storage, job_id)
-    match = _FRAME.match(frame)
+    match = _FRAME.fullmatch(frame)  # match would let "3\n" through: "$" passes a final newline
     try:
         sequence = checked_id(sequence, "sequence name")
     except ValueError as error:

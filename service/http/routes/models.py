@@ -9,9 +9,10 @@ from __future__ import annotations
 from pathlib import Path as FilePath
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Response
+from fastapi import APIRouter, Depends, Response
 
 from service.http.errors import documented_error, domain_errors
+from service.http.identifiers import AliasName, ModelName, VersionNumber
 from core.registry import (
     ModelVersionInfo,
     RegisteredModelInfo,
@@ -30,9 +31,6 @@ def registry_dependency(settings: Annotated[Settings, Depends(get_settings)]) ->
 
 
 RegistryDep = Annotated[Registry, Depends(registry_dependency)]
-ModelName = Annotated[str, Path(description="registered model name", examples=["jnds-xs-x2"])]
-VersionNumber = Annotated[str, Path(description="version number", examples=["2"])]
-AliasName = Annotated[str, Path(description="alias name (letters, digits, '_' and '-')", examples=["champion"])]
 
 
 _NOT_FOUND = documented_error("no such model, version or alias", "not_found",

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from datetime import datetime, timezone
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Header, Path, Request, Response
+from fastapi import APIRouter, Depends, Header, Request, Response
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
@@ -26,6 +26,7 @@ from model.io.frames import FrameError
 from model.layouts import LayoutFrame, layout_from_value, read_layout_frame_bytes
 from model.methods.registry import method_buffers
 from service.http.errors import ApiError, api_error, documented_error, domain_errors, frame_error_details
+from service.http.identifiers import SessionId
 from core.names import AUTO_MODEL
 from service.http.request_limits import frame_budget
 from service.http.schemas.sessions import SessionIn, SessionMirrorOut, SessionModelOut, SessionOut
@@ -36,7 +37,6 @@ router = APIRouter(prefix="/sessions", tags=["sessions"])
 
 StoreDep = Annotated[SessionStore, Depends(get_session_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-SessionId = Annotated[str, Path(description="session id", examples=["0f8fad5bd9cb469fa16570867728950e"])]
 SESSION_TOKEN_HEADER = "X-Session-Token"
 SessionToken = Annotated[str | None, Header(alias=SESSION_TOKEN_HEADER, description="the session's owner token "
                                             "(the `token` of its creation), where the server has owner tokens on")]
@@ -277,8 +277,8 @@ _FRAME_HEADERS = {
     },
     openapi_extra={"requestBody": {
         "required": True,
-        "description": "one frame bundle EXR, as model.io.exr.write_frame writes it (references optional and "
-                       "not read, though decoded: they count toward the decoded-size limit)",
+        "description": "one frame bundle EXR, as model.io.exr.write_frame writes it (references optional; "
+                       "reference parts are not decoded)",
         "content": {kind: {"schema": {"type": "string", "format": "binary"}} for kind in FRAME_TYPES}}},
 )
 async def post_frame(session_id: SessionId, request: Request, store: StoreDep, settings: SettingsDep,
@@ -353,9 +353,11 @@ def _parse_frame(body: bytes, layout: str | dict, max_pixels: int, max_decoded_b
         # NaN / Inf / out-of-range values pass here and are repaired before the step (X-Sanitized-Pixels); "live"
         # also renormalises lossy-compressed normals and reads a missing jitter as 0 (X-Repairs). The header's
         # pixel count and decoded size are checked (413) and the decode's bytes reserved in the frame budget (503)
-        # before anything is decoded, whatever the layout.
+        # before anything is decoded, whatever the layout. A session never reads references: their parts are left
+        # out undecoded.
         return read_layout_frame_bytes(body, layout_from_value(layout), FRAME_SOURCE, mode="live",
-                                       max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes, reserve=reserve)
+                                       max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes, reserve=reserve,
+                                       read_references=False)
     except FrameError as error:
         raise api_error(error, frame_error_details(error)) from None
 

@@ -6,6 +6,8 @@ from datetime import datetime
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from core.registry import VERSION_PATTERN
+
 
 class ModelSummary(BaseModel):
     """One entry of GET /models: a registered model, its newest version and its aliases."""
@@ -70,7 +72,7 @@ class AliasIn(BaseModel):
 
     model_config = ConfigDict(json_schema_extra={"examples": [{"version": "3"}]})
 
-    version: str = Field(pattern=r"^[1-9][0-9]*$", description="an existing version number of the model",
+    version: str = Field(pattern=VERSION_PATTERN, description="an existing version number of the model",
                          examples=["3"])
 
 
