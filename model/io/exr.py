@@ -16,6 +16,7 @@ from __future__ import annotations
 import io
 import os
 import re
+import struct
 import uuid
 from pathlib import Path
 from typing import Callable
@@ -141,12 +142,80 @@ def open_exr(path: str | os.PathLike, *, max_pixels: int | None = None, referenc
 
 
 def open_exr_bytes(data: bytes, source: str = "<bytes>", *, max_pixels: int | None = None,
-                   max_decoded_bytes: int | None = None, before_decode: BeforeDecode | None = None) -> OpenEXR.File:
-    """``open_exr`` for an EXR held in memory."""
+                   max_decoded_bytes: int | None = None, before_decode: BeforeDecode | None = None,
+                   skip_reference_parts: bool = False) -> OpenEXR.File:
+    """``open_exr`` for an EXR held in memory. ``skip_reference_parts``: parts named ``reference_x<scale>`` (scale
+    >= 2) are left out before anything is decoded (``select_parts``), for a reader that never uses them."""
     if data[: len(EXR_MAGIC)] != EXR_MAGIC:
         problem = "empty" if not data else "not an OpenEXR file (wrong magic number)"
         raise FrameFormatError(source, None, problem)
+    if skip_reference_parts:
+        names = [_part_name(part) for part in _read_headers(io.BytesIO(data), source)]
+        keep = [index for index, name in enumerate(names) if index == 0 or not _is_reference_part(name)]
+        if len(keep) < len(names):
+            data = select_parts(data, keep) or data
     return _read_exr(lambda: io.BytesIO(data), source, max_pixels, False, max_decoded_bytes, before_decode)
+
+
+def _is_reference_part(name: str) -> bool:
+    match = REFERENCE_PART_PATTERN.fullmatch(name)
+    return match is not None and int(match.group(1)) >= 2
+
+
+# The EXR file layout (openexr.com, "OpenEXR File Layout"): version flags, then for a multi-part file the headers
+# (attributes up to an empty name, the list ended by an empty header), one offset table per part (chunkCount
+# 64-bit offsets) and the chunks, each led by its part number.
+_MULTIPART = 0x1000
+_NON_IMAGE = 0x800
+
+
+def select_parts(data: bytes, keep: list[int]) -> bytes | None:
+    """The bytes of a multi-part EXR holding only the parts ``keep`` (indices, in file order), their compressed
+    chunks copied as they are, so the parts left out are never decoded; None where the file is not a multi-part
+    scanline file this can read (the caller then reads it whole). The bindings can only decode a whole file."""
+    try:
+        version = struct.unpack_from("<i", data, 4)[0]
+        if not version & _MULTIPART or version & _NON_IMAGE:
+            return None
+        position, headers = 8, []
+        while data[position] != 0:  # a header: attributes (name, type, size, value) up to an empty name
+            start, attributes = position, {}
+            while data[position] != 0:
+                name_end = data.index(b"\0", position)
+                type_end = data.index(b"\0", name_end + 1)
+                size = struct.unpack_from("<i", data, type_end + 1)[0]
+                value_start = type_end + 5
+                attributes[data[position:name_end]] = data[value_start:value_start + size]
+                position = value_start + size
+            position += 1
+            headers.append((data[start:position], attributes))
+        position += 1
+        tables = []
+        for _, attributes in headers:
+            count = struct.unpack("<i", attributes[b"chunkCount"])[0]
+            tables.append(struct.unpack_from(f"<{count}Q", data, position))
+            position += 8 * count
+        if any(headers[index][1].get(b"type") != b"scanlineimage" for index in keep):
+            return None
+        out = bytearray(data[:8])
+        for index in keep:
+            out += headers[index][0]
+        out += b"\0"
+        chunks_start = len(out) + 8 * sum(len(tables[index]) for index in keep)
+        table_bytes, chunk_bytes = bytearray(), bytearray()
+        for new_index, index in enumerate(keep):
+            for offset in tables[index]:  # a scanline chunk: part number, first line, size, data
+                if struct.unpack_from("<i", data, offset)[0] != index:
+                    return None
+                size = struct.unpack_from("<i", data, offset + 8)[0]
+                end = offset + 12 + size
+                if size < 0 or end > len(data):
+                    return None
+                table_bytes += struct.pack("<Q", chunks_start + len(chunk_bytes))
+                chunk_bytes += struct.pack("<i", new_index) + data[offset + 4:end]
+        return bytes(out + table_bytes + chunk_bytes)
+    except (struct.error, IndexError, KeyError, ValueError):
+        return None
 
 
 def part_planes(part: OpenEXR.Part) -> dict[str, np.ndarray]:

@@ -74,11 +74,13 @@ def read_layout_frame(path: str | os.PathLike, layout: Layout, *, mode: Mode = "
 
 def read_layout_frame_bytes(data: bytes, layout: Layout, source: str = "<bytes>", *, mode: Mode = "strict",
                             fov_y_degrees: float | None = None, max_pixels: int | None = None,
-                            max_decoded_bytes: int | None = None, reserve: Callable[[int], None] | None = None
-                            ) -> LayoutFrame:
-    """``read_layout_frame`` for an EXR held in memory (a request body)."""
+                            max_decoded_bytes: int | None = None, reserve: Callable[[int], None] | None = None,
+                            read_references: bool = True) -> LayoutFrame:
+    """``read_layout_frame`` for an EXR held in memory (a request body). ``read_references=False``: the reference
+    parts (``reference_x<scale>``) are left out before decoding and before the size checks (a session's read)."""
     return _read(open_exr_bytes(data, source, max_pixels=max_pixels, max_decoded_bytes=max_decoded_bytes,
-                                before_decode=_header_check(layout, source, reserve)),
+                                before_decode=_header_check(layout, source, reserve),
+                                skip_reference_parts=not read_references),
                  source, layout, mode, fov_y_degrees)
 
 

@@ -386,3 +386,22 @@ def test_the_decoded_size_is_refused_from_the_header_before_decoding(monkeypatch
     assert pickle.loads(pickle.dumps(refused.value)).pixels == 65024
     parts = OpenEXR.File(io.BytesIO(bomb), header_only=True).parts
     assert exr.decoded_part_bytes(parts) == [("", 65024)] and exr.check_decoded_bytes(parts, "b", 65024) == 65024
+
+
+def test_select_parts_keeps_the_chosen_parts_without_decoding_the_others():
+    from model.io.exr import select_parts
+    from tests.builders import with_reference_part
+
+    frame = make_frame(scales=(1, 2))
+    data = encode_frame_exr(frame)
+    render_only = select_parts(data, [0])
+    parts = OpenEXR.File(io.BytesIO(render_only), separate_channels=True).parts
+    assert [part.name() for part in parts] == ["render"]
+    assert np.array_equal(parts[0].channels["color.G"].pixels, frame.color[:, :, 1])
+    # Parts after a dropped one are renumbered: the third part of three becomes the second of two.
+    both = OpenEXR.File(io.BytesIO(select_parts(with_reference_part(data, 4), [0, 2])), separate_channels=True)
+    assert [part.name() for part in both.parts] == ["render", "reference_x4"]
+    assert both.parts[1].channels["reference.R"].pixels.shape == (frame.height * 4, frame.width * 4)
+    # What it cannot read is left to the whole read: a one-part file, a truncated one.
+    assert select_parts(zero_bomb(8, 8), [0]) is None
+    assert select_parts(data[: len(data) // 2], [0]) is None

@@ -288,17 +288,27 @@ def test_a_bomb_of_unused_channels_is_refused_from_its_header(api, monkeypatch):
     assert "required buffer is missing" in message and "aov000.Y" in message
 
 
-def test_a_frame_with_a_large_reference_part_is_413_before_decoding(api, monkeypatch):
+def test_a_session_leaves_reference_parts_undecoded(api, monkeypatch):
+    import model.io.exr as exr
     from tests.builders import with_reference_part
 
-    # The bindings decode every part, so a reference part a session never reads counts against the limit too.
+    # 128x128 x 3 channels x 4 bytes = 196608 bytes in reference_x8 alone: past the limit, were it decoded.
     body = frame_bytes(stream_frames(1)[0])
     client, _ = api(max_decoded_frame_bytes=64 * 1024)
-    session = create(client)
-    assert post_frame(client, session["id"], body).status_code == 200
-    _refuse_decodes(monkeypatch)
-    message = error_message(post_frame(client, session["id"], with_reference_part(body, 8)), 413, "frame_too_large")
-    assert "largest part, 'reference_x8', 196608 bytes" in message  # 128 x 128 pixels x 3 channels x 4 bytes
+    plain, with_x8 = create(client), create(client)
+    opened = []
+    real_read = exr._read_coalesced
+
+    def read(target, count):
+        result = real_read(target, count)
+        opened.append([part.name() for part in result.parts])
+        return result
+
+    monkeypatch.setattr(exr, "_read_coalesced", read)
+    response = post_frame(client, with_x8["id"], with_reference_part(body, 8))
+    assert response.status_code == 200, response.text
+    assert opened == [["render"]]  # reference_x2 and reference_x8 left out before decoding
+    assert response.content == post_frame(client, plain["id"], body).content
 
 
 @pytest.mark.slow
