@@ -102,8 +102,10 @@ def test_bad_files_are_reported(tmp_path):
 
 
 def test_a_render_resolution_method_trained_at_1x_runs_at_2x_with_the_same_weights(tmp_path):
+    from model.methods.base import unbounded_step
     from model.methods.baselines import bicubic_upscale
     from model.methods.registry import build_method
+    from model.ops.output_bound import bound_output
 
     torch.manual_seed(0)
     wskpn = build_method("wskpn:xs")
@@ -112,7 +114,8 @@ def test_a_render_resolution_method_trained_at_1x_runs_at_2x_with_the_same_weigh
     assert at_2x.scale == 2
     frame = example_batch(8, 8, seed=2)
     with torch.no_grad():
-        expected = bicubic_upscale(wskpn.eval().step(frame, None)[0], 2)
+        # The output bound applies to the 2x output, after the upscale.
+        expected = bound_output(bicubic_upscale(unbounded_step(wskpn.eval(), frame, None)[0], 2), frame.color)
         assert torch.allclose(at_2x.step(frame, None)[0], expected, atol=1e-6)
 
 
