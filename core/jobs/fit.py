@@ -10,6 +10,7 @@ from typing import Any
 from core.errors import Invalid
 from core.jobs.checks import invalid, open_dataset, split_sequences
 from core.jobs.specs import FitParams, TrainParams
+from core.names import RESERVED_ALIAS_PATTERN
 from core.settings import Settings
 from core.storage import Storage
 from model.training.training_settings import FitTrainingSettings
@@ -47,7 +48,7 @@ def check(params: FitParams, storage: Storage, settings: Settings) -> dict[str, 
         Target.parse(params.target, tuple(params.time_at))
     except ValueError as error:
         raise invalid(error, "invalid_target") from None
-    if params.alias == "latest" or re.fullmatch(r"v\d+", params.alias):
+    if re.fullmatch(RESERVED_ALIAS_PATTERN, params.alias):  # as MLflow: any case of latest, v or V + digits
         raise Invalid("invalid_params", f"alias {params.alias!r} is reserved by MLflow ('latest', 'vN')")
     dataset = open_dataset(storage, params.dataset)
     split_sequences(dataset, params.dataset, params.validation_split, params.scale)

@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from core.names import (AUTO_MODEL, AUTO_MODEL_RESERVED, DEVICES, ID_MAX_LENGTH, ID_PATTERN, JOB_KINDS, JOB_STATES,
-                        SPLITS)
+                        RESERVED_ALIAS_PATTERN, SPLITS)
 from model.names import STABILITY_SCENARIOS
 from model.training.training_settings import FitTrainingSettings, TrainingSettings
 
@@ -173,6 +173,7 @@ class FitParams(FitTrainingSettings):
     timing_frames: int = Field(10, ge=1, le=10_000, description="frames timed per preset (after 3 warm-up frames)")
     _register_as_not_auto = field_validator("register_as")(_registrable)
     alias: str = Field("fitted", pattern=r"^[A-Za-z_][A-Za-z0-9_-]{0,63}$",
+                       json_schema_extra={"not": {"pattern": RESERVED_ALIAS_PATTERN}},
                        description="alias set on the chosen version")
     track: bool = Field(True, description="log to MLflow, register versions and set the alias (false: only the "
                                           "ladder files in the job folder)")

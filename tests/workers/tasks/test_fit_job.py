@@ -67,6 +67,7 @@ def test_a_target_no_preset_meets_fails_the_job_with_the_closest(store, storage,
     ({"dataset": "missing"}, NotFound, "dataset_not_found", "'missing' does not exist"),
     ({"validation_split": "train", "train_split": "test", "crop": 32}, Invalid, "crop_too_large", "32x32 crop"),
     ({"alias": "v3"}, Invalid, "invalid_params", "reserved by MLflow"),
+    ({"alias": "LATEST"}, Invalid, "invalid_params", "reserved by MLflow"),  # MLflow ignores the case
 ])
 def test_bad_fits_are_refused_before_queueing(store, storage, settings, dataset, changes, error_type, code, words):
     with pytest.raises(DomainError) as caught:
