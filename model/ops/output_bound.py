@@ -26,7 +26,7 @@ OUTPUT_BOUND_FLOOR = 1.0
 
 def input_peak(color: torch.Tensor) -> torch.Tensor:
     """The largest finite value of each sample's (N, C, H, W) input, (N, 1, 1, 1); 0 for an all non-finite one."""
-    finite = torch.where(torch.isfinite(color), color, torch.zeros_like(color))
+    finite = torch.nan_to_num(color, nan=0.0, posinf=0.0, neginf=0.0)
     return finite.flatten(1).amax(dim=1).view(-1, 1, 1, 1)
 
 
@@ -39,9 +39,9 @@ def output_bound(color: torch.Tensor, factor: float = OUTPUT_BOUND_FACTOR,
 def bound_output(output: torch.Tensor, color: torch.Tensor, factor: float = OUTPUT_BOUND_FACTOR,
                  floor: float = OUTPUT_BOUND_FLOOR) -> torch.Tensor:
     """``output`` with NaN set to 0 and clamped to ``[0, output_bound(color)]`` per sample (any resolution)."""
+    # Elementwise passes only (no torch.where over the image): the bound runs on every frame of every session.
     bound = output_bound(color, factor, floor).to(output.dtype)
-    output = torch.where(torch.isnan(output), torch.zeros_like(output), output)
-    return torch.minimum(output.clamp_min(0.0), bound)
+    return torch.minimum(torch.nan_to_num(output, nan=0.0).clamp_min(0.0), bound)
 
 
 def output_ratio(output: torch.Tensor, color: torch.Tensor) -> float:
