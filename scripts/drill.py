@@ -3,7 +3,8 @@
     .venv/bin/python scripts/drill.py                      # everything (about 10 minutes on 2 busy cores)
     .venv/bin/python scripts/drill.py --sessions 8 --frames 12 --skip kills
 
-Prints, for the README:
+Prints a line per case and writes every figure to WORK/results.json (summarised in docs/results/drill.md and
+drill_decoding.md):
 
 - sessions: N concurrent sessions streaming frames, p50 and p95 of the client's round trip and of the server's
   time (X-Server-Ms), and whether any session's output differs from the same method stepped in process over that
@@ -480,10 +481,16 @@ def kill_api_phase(stack: Stack, args, streams, expected, results: dict) -> None
     stack.start_api()
     _, rest, _, _ = stream_sessions(stack.url, streams[:count], half, None, session_ids=ids)
     worst = crossing([first[i] + rest[i] for i in ids], expected[:count])
-    results["kill_api"] = {"sessions": count, "max_difference": worst}
+    # A history kept in Redis as float16 (the default precision) comes back rounded: outputs then differ by
+    # that rounding, not by a lost or crossed history, which would differ by far more.
+    precision = stack.env.get("DENOISER_SESSION_HISTORY_PRECISION", "half")
+    tolerance = 1e-4 if precision == "float" else 5e-3
+    verdict = ("continued exactly" if worst < 1e-4 else
+               f"continued, within float16 history rounding ({precision} history)" if worst < tolerance else "MISMATCH")
+    results["kill_api"] = {"sessions": count, "max_difference": worst, "history_precision": precision,
+                           "verdict": verdict}
     print(f"[drill] kill -9 API after {half} frames of {count} sessions: restarted, streams continued, largest "
-          f"difference from in-process {worst:.2e} ({'continued exactly' if worst < 1e-4 else 'MISMATCH'})",
-          flush=True)
+          f"difference from in-process {worst:.2e} ({verdict})", flush=True)
     for session_id in ids:
         DenoiserClient(stack.url).delete_session(session_id)
 
