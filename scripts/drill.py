@@ -3,8 +3,7 @@
     .venv/bin/python scripts/drill.py                      # everything (about 10 minutes on 2 busy cores)
     .venv/bin/python scripts/drill.py --sessions 8 --frames 12 --skip kills
 
-Prints a line per case and writes every figure to WORK/results.json (summarised in docs/results/drill.md and
-drill_decoding.md):
+Prints a line per case and writes every figure to WORK/results.json (summarised in docs/results/drill*.md):
 
 - sessions: N concurrent sessions streaming frames, p50 and p95 of the client's round trip and of the server's
   time (X-Server-Ms), and whether any session's output differs from the same method stepped in process over that
@@ -17,8 +16,8 @@ drill_decoding.md):
 - bombs: decompression and archive bombs and deeply nested JSON, each with the API's answer and the API's peak
   memory (VmHWM, reset before each) against its memory before;
 - decoding: frames whose decode would be large (127 unused channels at the pixel limit, an 8192x8192 reference part a
-  session never reads), one at a time and several at once, with the answers, the API's peak memory and its memory
-  after each against the phase's start.
+  session never reads), alone and several at once: the answers, the API's peak memory and its memory after each;
+- access: the API restarted with an API key and owner tokens: docs, session lists and frames answer only to holders.
 
 Nothing here touches the shared Redis or the default data folder: Redis runs on --redis-port with its files under
 --work, which is deleted first. Thread budgets of the stack: DENOISER_SESSION_WORKERS / _THREADS and
@@ -74,7 +73,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--big-size", type=int, default=256,
                         help="also stream the sessions beside one session of frames this large (0: no)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["sessions", "training", "kills", "bombs",
-                                                                         "decoding", "outage"])
+                                                                         "decoding", "outage", "access"])
     return parser.parse_args()
 
 
@@ -571,6 +570,80 @@ def redis_outage_phase(stack: Stack, client: DenoiserClient, args, streams, expe
     client.delete_session(session)
 
 
+# --- access --------------------------------------------------------------------------------------------------
+
+
+def access_phase(stack: Stack, body: bytes, results: dict) -> None:
+    """The API restarted with an API key and owner tokens: the docs and the sessions answer only to their holders.
+    The previous environment and API come back at the end, so later phases run as before."""
+    import secrets
+
+    key = secrets.token_urlsafe(32)
+    saved = {name: stack.env.get(name) for name in ("DENOISER_API_KEY", "DENOISER_SESSION_OWNER_TOKENS")}
+    stack.env.update(DENOISER_API_KEY=key, DENOISER_SESSION_OWNER_TOKENS="true")
+    stack.kill("api")
+    stack.start_api()
+    statuses: list[int] = []
+    failed: list[str] = []
+    checks = 0
+    http = httpx.Client(base_url=stack.url, timeout=300,
+                        event_hooks={"response": [lambda response: statuses.append(response.status_code)]})
+
+    def check(label: str, response: httpx.Response, wanted: tuple[int, ...]) -> httpx.Response:
+        nonlocal checks
+        checks += 1
+        if response.status_code not in wanted:
+            failed.append(f"{label}: {response.status_code}, wanted {'/'.join(map(str, wanted))}")
+        return response
+
+    keyed = {"X-API-Key": key}
+    try:
+        for path in ("/openapi.json", "/docs", "/redoc"):
+            check(f"{path} without the key", http.get(path), (401,))
+            check(f"{path} with the key", http.get(path, headers=keyed), (200,))
+        check("/health without the key", http.get("/health"), (200,))
+        created = [check("POST /sessions with the key", http.post("/sessions", json={"model": MODEL, "version": "1"},
+                                                                  headers=keyed), (201,)).json() for _ in range(2)]
+        (a, token_a), (b, token_b) = ((s.get("id"), s.get("token")) for s in created)
+        if not (token_a and token_b):
+            failed.append("a created session carries no owner token")
+        listed = check("GET /sessions with A's token", http.get("/sessions", headers={
+            **keyed, "X-Session-Token": token_a or ""}), (200,)).json()
+        if [s["id"] for s in listed] != [a]:
+            failed.append(f"GET /sessions with A's token listed {[s['id'] for s in listed]}, wanted only {a}")
+        unlisted = check("GET /sessions without a token", http.get("/sessions", headers=keyed), (200,)).json()
+        if unlisted:
+            failed.append(f"GET /sessions without a token listed {len(unlisted)} sessions, wanted none")
+        frame = {**keyed, "Content-Type": "image/x-exr"}
+        crossed = check("a frame to B's session with A's token", http.post(
+            f"/sessions/{b}/frames", content=body, headers={**frame, "X-Session-Token": token_a or ""}), (403, 404))
+        check("a frame to B's session with B's token", http.post(
+            f"/sessions/{b}/frames", content=body, headers={**frame, "X-Session-Token": token_b or ""}), (200,))
+        for session, token in ((a, token_a), (b, token_b)):
+            check("DELETE a session with its token", http.delete(
+                f"/sessions/{session}", headers={**keyed, "X-Session-Token": token or ""}), (200, 204))
+    finally:
+        http.close()
+        for name, value in saved.items():
+            if value is None:
+                stack.env.pop(name, None)
+            else:
+                stack.env[name] = value
+        stack.kill("api")
+        stack.start_api()
+    restored = httpx.get(f"{stack.url}/openapi.json", timeout=60)  # the API without a key again, for later phases
+    statuses.append(restored.status_code)
+    check("/openapi.json without a key after the restore", restored, (200,))
+    errors = sum(status >= 500 for status in statuses)
+    code = crossed.json().get("error", {}).get("code") if crossed.status_code >= 400 else None
+    results["access"] = {"tried": len(statuses), "checks": checks, "5xx": errors, "failed": failed,
+                         "crossed_frame": f"{crossed.status_code} {code}"}
+    print(f"[drill] access (API key, owner tokens): docs without and with the key, /health without it, GET /sessions "
+          f"with A's token and with none, B's frame with A's token ({crossed.status_code} {code}), the API restored: "
+          f"{len(statuses)} requests, {errors} 5xx, {checks - len(failed)} of {checks} checks passed"
+          f"{'' if not failed else '; FAILED: ' + '; '.join(failed)}", flush=True)
+
+
 # --- main ----------------------------------------------------------------------------------------------------
 
 
@@ -624,6 +697,8 @@ def main() -> None:
             kill_redis_phase(stack, DenoiserClient(stack.url, timeout=300), args, streams, results)
         if "outage" not in args.skip:
             redis_outage_phase(stack, DenoiserClient(stack.url, timeout=300), args, streams, expected, results)
+        if "access" not in args.skip:
+            access_phase(stack, streams[0][0], results)
     finally:
         stack.stop_all()
     results["load_average_at_end"] = os.getloadavg()
