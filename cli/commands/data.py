@@ -207,8 +207,8 @@ def _add_preview(commands) -> None:
 
 
 def _run_preview(args) -> int:
-    from model.io.exr import is_image_exr, read_frame, read_image
-    from model.io.preview import save_buffer_sheet, save_image_png
+    from model.io.exr import is_image_exr, read_frame
+    from model.io.preview import save_buffer_sheet
 
     if args.frame.is_dir() and (args.frame / "manifest.json").is_file():
         from model.io.dataset import Sequence
@@ -225,8 +225,12 @@ def _run_preview(args) -> int:
             raise UsageError(f"{path}: neither a sequence folder (manifest.json) nor a folder of EXR files")
         path = files[_folder_index(args, len(files))]
     if is_image_exr(path):
-        out = save_image_png(read_image(path), args.out)
-        print(f"wrote {out} (output image {path.name}, display-encoded)")
+        # The same reader and PNG writer as `denoiser stream --png`: one display encoding of output images.
+        from client.frames import decode_image_exr, encode_png
+
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_bytes(encode_png(decode_image_exr(path.read_bytes(), source=str(path))))
+        print(f"wrote {args.out} (output image {path.name}, display-encoded)")
         return 0
     frame = read_frame(path)
     title = f"{path.name}"

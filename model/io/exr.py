@@ -740,13 +740,6 @@ def is_image_exr(path: str | os.PathLike) -> bool:
     return set(IMAGE_CHANNELS) <= declared and declared <= {*IMAGE_CHANNELS, "A"}
 
 
-def read_image(path: str | os.PathLike) -> np.ndarray:
-    """The (H, W, 3) float32 image of a one-part R/G/B EXR file (``decode_image_exr`` of its bytes)."""
-    path = Path(path)
-    _check_exr_file(path, str(path))
-    return decode_image_exr(path.read_bytes(), source=str(path))
-
-
 def _check_exr_file(path: Path, source: str) -> None:
     if not path.is_file():
         raise FrameFormatError(source, None, "is a directory, not a file" if path.is_dir() else "file not found")

@@ -67,15 +67,3 @@ def save_buffer_sheet(frame: FrameBundle, out: str | Path, title: str | None = N
     figure.savefig(out, dpi=100)
     plt.close(figure)
     return out
-
-
-def save_image_png(image: np.ndarray, out: str | Path) -> Path:
-    """Write a linear (H, W, 3) image as an 8-bit PNG of the same size, display-encoded (``display_encode``)."""
-    image = np.asarray(image, dtype=np.float32)
-    if image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"an RGB image must have shape (H, W, 3), got {image.shape}")
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # NaN would turn into an arbitrary byte; an output that has one shows it black.
-    plt.imsave(out, np.nan_to_num(display_encode(image), nan=0.0), format="png")
-    return out
