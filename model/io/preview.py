@@ -1,5 +1,5 @@
-"""PNGs for people to look at: a contact sheet of one frame bundle's buffers side by side, or one output image
-(the plain R/G/B EXRs the service, ``denoiser stream`` and ``denoiser infer`` write), display-encoded."""
+"""A PNG for people to look at: a contact sheet of one frame bundle's buffers side by side, display-encoded.
+(An output image, a plain R/G/B EXR, is written as a PNG by ``client.frames.encode_png``.)"""
 
 from __future__ import annotations
 
