@@ -1,34 +1,29 @@
-"""How each method's step scales from 128x128 to 1920x1080 output: ms per frame, peak memory, achieved GFLOP/s.
+"""Step speed against output size, in fresh processes: p50 / p95 ms per frame, peak memory, GFLOP/s, OIDN's part.
 
+    .venv/bin/python scripts/bench_resolution_scaling.py --suite fused --results docs/results
+    .venv/bin/python scripts/bench_resolution_scaling.py --suite fused --model fused-fast-x1 --size 128 --frames 4
     .venv/bin/python scripts/bench_resolution_scaling.py --chart docs/resolution_scaling.png \
         --out var/results/resolution_scaling.json
-    .venv/bin/python scripts/bench_resolution_scaling.py --model munet-s-x2 --model oidn:high --size 512 \
-        --size 1920x1080
-    .venv/bin/python scripts/bench_resolution_scaling.py --device cuda --out var/results/resolution_scaling_gpu.json
+    .venv/bin/python scripts/bench_resolution_scaling.py --device cuda --model munet-s-x2 --size 1920x1080
 
-Every (model, output size) runs in a fresh process (so its peak memory is its own): the model is loaded as sessions
-load it (inference form and the measured ``model.deployment.inference_forms`` table), a synthetic stream at the render size
-(the output size over the model's scale) is stepped, the first frame as a warm-up, and the child reports the median
-step, the process's peak resident memory and how much of it the steps added over the loaded model and frames,
-and the FLOPs per output pixel torch counts (convolutions and matmuls; OIDN's are not visible, so it has none).
-The parent measures fp32 sgemm on the same threads as the ceiling the achieved GFLOP/s are compared with, prints a
-markdown table and draws ms per frame against output megapixels (log-log, one panel per scale).
-
-With ``--device cuda`` the frames, the model and its history live on the GPU (fp32 eager: the CPU's inference-form
-table does not apply), each step is timed with the device synchronized, the peak memory is the GPU's (torch's
-allocator), the ceiling is a fp32 matrix product on the GPU with TF32 off, and the table says which OIDN device
-denoised (OIDN's CUDA device when pyoidn has one, else its CPU device and a host round trip every frame).
+Each group of models runs at each output size in a fresh process (``model.evaluation.step_speed.time_group``):
+loaded as sessions load them (inference form: the measured ``model.deployment.inference_forms`` table on the CPU,
+a CUDA graph on a GPU), stepped interleaved over the same synthetic stream at the render size (the output size
+over the models' scale), after warm-up frames. Without ``--suite`` each model is its own group (its memory its
+own). ``--suite fused`` groups every shipped fused model with OIDN and OIDN + TAA at its quality and scale (OIDN
++ bicubic at 2x), at 128x128, 512x512 and 1080p output, the 2x models also 1080p -> 4K; rows then carry the
+ratio to the same-quality OIDN, the learned part (the step less its OIDN call, timed inside it) and the check of
+the inference form against the plain fp32 model. ``--results DIR`` writes JSON, Markdown and a chart named with
+the device. The parent prints the table and measures the fp32 matrix-product ceiling. More: docs/benchmark.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import resource
-import statistics
+import shlex
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -37,22 +32,45 @@ DEFAULT_MODELS = ["oidn:balanced", "oidn:high", "oidn-taa:balanced", "wskpn-s-x1
                   "jnds-s-x1", "fused-balanced-x1", "oidn:balanced@2", "oidn:high@2", "oidn-taa:balanced@2",
                   "wskpn-s-x2", "afn-m-x2", "munet-s-x2", "jnds-s-x2", "jnds-s-int8-x2", "fused-balanced-x2"]
 DEFAULT_SIZES = ["128", "256", "512", "1280x720", "1920x1080"]
+FUSED_SIZES = ["128", "512", "1920x1080", "3840x2160"]
+MAX_RENDER_PIXELS = 1920 * 1080  # the fused suite runs an output size above it only where the render stays within
+# Timed frames per output size by default (more where a frame is cheap): a full fused suite on two CPU cores
+# stays within minutes per size.
+DEFAULT_FRAMES = ((128 * 128, 40), (512 * 512, 16), (1920 * 1080, 6), (3840 * 2160, 4))
 
 
-def parse_args() -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--suite", choices=("fused",), help="fused: every shipped fused model against OIDN and "
+                        "OIDN + TAA at its quality (see above)")
     parser.add_argument("--model", action="append", default=[],
                         help="pretrained name, or METHOD[:PRESET][@SCALE] (repeat; default: the shipped models and "
-                             "OIDN / OIDN + TAA at both scales)")
+                             "OIDN / OIDN + TAA at both scales; with --suite fused: which fused models)")
     parser.add_argument("--size", action="append", default=[], help="output size WxH or N (repeat; default "
-                                                                   + ", ".join(DEFAULT_SIZES) + ")")
+                        + ", ".join(DEFAULT_SIZES) + "; with --suite fused " + ", ".join(FUSED_SIZES) + ")")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the steps run (default cpu)")
-    parser.add_argument("--frames", type=int, default=3, help="timed frames, after one warm-up (default 3)")
+    parser.add_argument("--frames", type=int, help="timed frames (default by output size: "
+                        + ", ".join(f"{frames} up to {pixels / 1e6:.2f} MP" for pixels, frames in DEFAULT_FRAMES)
+                        + ")")
+    parser.add_argument("--warmup", type=int, help="untimed frames first (default 2 on the CPU, 3 on CUDA: the "
+                        "first frame has no history, a CUDA graph is captured on the third)")
+    parser.add_argument("--check-frames", type=int, default=3,
+                        help="frames on which learned models are compared with the plain fp32 model (default 3)")
+    parser.add_argument("--no-cuda-graph", action="store_true", help="on CUDA, run the steps eagerly")
+    parser.add_argument("--results", type=Path, metavar="DIR",
+                        help="write speed_<device>.json, .md and .png (the ratio chart) here")
+    parser.add_argument("--merge", action="store_true", help="keep the rows of --results' JSON that this run "
+                        "does not measure again (a quick run updates a full one)")
     parser.add_argument("--chart", type=Path, help="write the ms-per-frame chart (PNG) here")
-    parser.add_argument("--out", type=Path, help="write the rows (JSON) here")
-    parser.add_argument("--child", nargs=2, metavar=("MODEL", "SIZE"), help=argparse.SUPPRESS)
-    return parser.parse_args()
+    parser.add_argument("--out", type=Path, help="write the report (JSON) here")
+    parser.add_argument("--child", nargs="+", metavar="SIZE MODEL", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.merge and not args.results:
+        parser.error("--merge needs --results")
+    if args.warmup is None:
+        args.warmup = 3 if args.device == "cuda" else 2
+    return args
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -60,54 +78,96 @@ def parse_size(text: str) -> tuple[int, int]:
     return int(width), int(height or width)
 
 
-def rss_mb() -> float:
-    with open("/proc/self/statm") as statm:
-        return int(statm.read().split()[1]) * resource.getpagesize() / 2 ** 20
+def default_frames(width: int, height: int) -> int:
+    return next((frames for pixels, frames in DEFAULT_FRAMES if width * height <= pixels), DEFAULT_FRAMES[-1][1])
 
 
-def child(model: str, size: str, threads: int, frames: int, device_name: str = "cpu") -> dict:
+def fused_groups(models: list[str], sizes: list[str]) -> list[tuple[str, list[str]]]:
+    """(output size, models) of the fused suite: each shipped fused model (or those of ``models``) with OIDN and
+    OIDN + TAA at its quality and scale, at every size whose render fits ``MAX_RENDER_PIXELS``."""
+    from model.deployment.pretrained import get_pretrained, pretrained_names
+
+    fused = [name for name in pretrained_names() if name.startswith("fused-")]
+    unknown = [name for name in models if name not in fused]
+    if unknown:
+        raise SystemExit(f"--suite fused runs shipped fused models; not one: {', '.join(unknown)} "
+                         f"(shipped: {', '.join(fused)})")
+    groups = []
+    for size in sizes or FUSED_SIZES:
+        width, height = parse_size(size)
+        for name in models or fused:
+            shipped = get_pretrained(name)
+            if width * height > MAX_RENDER_PIXELS * shipped.scale ** 2:
+                continue
+            suffix = f"@{shipped.scale}" if shipped.scale > 1 else ""
+            groups.append((size, [name, f"oidn:{shipped.preset}{suffix}", f"oidn-taa:{shipped.preset}{suffix}"]))
+    return groups
+
+
+def load_model(model: str):
+    from model.deployment.pretrained import is_pretrained, load_pretrained
+    from model.methods.registry import build_method
+
+    name, _, scale = model.partition("@")
+    return (load_pretrained(name) if is_pretrained(name) else build_method(name, int(scale or 1))).eval()
+
+
+def child(size: str, models: list[str], args: argparse.Namespace) -> list[dict]:
+    """Time ``models`` side by side at output ``size`` in this process; their report rows."""
+    import copy
+
     import numpy as np
     import torch
 
-    from model.deployment.inference_forms import load_form_table, with_inference_forms
+    from model.deployment.cuda_graph import with_cuda_graphs
+    from model.deployment.inference_forms import load_form_table, method_key, with_inference_forms
     from model.deployment.malloc import tune_for_large_frames
+    from model.evaluation.step_speed import speed_rows, time_group
+    from model.io.synthetic import moving_pattern_frames
     from model.methods.base import FrameBatch
     from model.methods.oidn import oidn_device_for
-    from model.methods.registry import build_method, inference_cost
-    from model.deployment.pretrained import is_pretrained, load_pretrained
-    from model.io.synthetic import moving_pattern_frames
-    from model.evaluation.timing import timed
+    from model.methods.registry import inference_cost
 
-    torch.set_num_threads(threads)
+    torch.set_num_threads(args.threads)
     tune_for_large_frames()  # as the sessions and the CLI run
-    device = torch.device(device_name)
-    name, _, scale = model.partition("@")
-    method = load_pretrained(name) if is_pretrained(name) else build_method(name, int(scale or 1))
-    method = method.eval()
-    _, flops_per_pixel = inference_cost(method)
-    method = with_inference_forms(method.for_inference().to(device), load_form_table("measured"), device)
+    device = torch.device(args.device)
+    table = load_form_table("measured")
     width, height = parse_size(size)
-    render = (width // method.scale, height // method.scale)
+    methods, references, entries = {}, {}, []
+    for model in models:
+        method = load_model(model)
+        _, flops_per_pixel = inference_cost(method)
+        plain = method.for_inference().to(device)
+        render = (width // method.scale, height // method.scale)
+        if method.learned and args.check_frames:
+            references[model] = copy.deepcopy(plain)
+        if device.type == "cuda":
+            fast = plain if args.no_cuda_graph else with_cuda_graphs(plain, device)
+            form = "cuda-graph" if getattr(fast, "_cuda_graphs", None) is not None else "eager"
+        else:
+            fast = with_inference_forms(plain, table, device)
+            form = table.form_for(method_key(method), *render).name if method_key(method) in table.keys() \
+                else "eager"
+        methods[model] = fast
+        entries.append({"label": model, "method": method.name, "preset": method.preset, "scale": method.scale,
+                        "output": [width, height], "render": list(render), "learned": bool(method.learned),
+                        "form": form if method.learned else None, "flops_per_pixel": flops_per_pixel,
+                        "device": device.type})
+    renders = {tuple(entry["render"]) for entry in entries}
+    if len(renders) != 1:
+        raise SystemExit(f"a group's models must share a render size; got {sorted(renders)}")
+    frames = args.frames or default_frames(width, height)
     batches = [FrameBatch.from_bundles([bundle], scale=None).to(device)
-               for bundle in moving_pattern_frames(frames + 1, render, np.random.default_rng(0))]
-    before = rss_mb() if device.type == "cpu" else torch.cuda.memory_allocated(device) / 2 ** 20
-    if device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats(device)
-    seconds, state = [], None
-    with torch.inference_mode():
-        for index, batch in enumerate(batches):
-            (_, state), elapsed = timed(lambda: method.step(batch, state), device)
-            if index:
-                seconds.append(elapsed)
-    if device.type == "cuda":
-        peak = torch.cuda.max_memory_allocated(device) / 2 ** 20
-    else:
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    uses_oidn = "oidn" in model or "fused" in model
-    return {"model": model, "scale": method.scale, "output": [width, height], "render": list(render),
-            "ms": 1000 * statistics.median(seconds), "peak_mb": peak, "step_mb": max(0.0, peak - before),
-            "flops_per_pixel": flops_per_pixel, "device": device.type,
-            "oidn_device": oidn_device_for(device) if uses_oidn else None}
+               for bundle in moving_pattern_frames(args.warmup + frames, renders.pop(), np.random.default_rng(0))]
+    records = time_group(methods, batches, device, warmup=args.warmup, references=references,
+                         check_frames=args.check_frames)
+    rows = speed_rows(entries, records)
+    for row in rows:
+        row["gflops"] = row["flops_per_pixel"] * width * height / (row["p50_ms"] / 1000) / 1e9 \
+            if row["flops_per_pixel"] else None
+        row["oidn_device"] = oidn_device_for(device) if records[row["model"]].oidn_seconds \
+            and any(records[row["model"]].oidn_seconds) else None
+    return rows
 
 
 def sgemm_ceiling(threads: int, device_name: str = "cpu", size: int = 2048) -> float:
@@ -136,13 +196,13 @@ def draw(rows: list[dict], path: Path) -> None:
     for index, scale in enumerate(scales):
         axis = figure.add_subplot(1, len(scales), index + 1)
         for model in dict.fromkeys(row["model"] for row in rows if row["scale"] == scale):
-            points = sorted((row["output"][0] * row["output"][1] / 1e6, row["ms"]) for row in rows
+            points = sorted((row["output"][0] * row["output"][1] / 1e6, row["p50_ms"]) for row in rows
                             if row["model"] == model and row["scale"] == scale)
             axis.plot(*zip(*points), marker="o", label=model.split("@")[0])
         axis.set_xscale("log")
         axis.set_yscale("log")
         axis.set_xlabel("output megapixels")
-        axis.set_ylabel("ms per frame")
+        axis.set_ylabel("p50 ms per frame")
         axis.set_title(f"{scale}x: step time against output size")
         axis.grid(True, which="both", alpha=0.3)
         axis.legend(fontsize=7)
@@ -150,46 +210,92 @@ def draw(rows: list[dict], path: Path) -> None:
     save_figure(figure, path)
 
 
-def main() -> None:
-    args = parse_args()
-    if args.child:
-        print(json.dumps(child(*args.child, args.threads, args.frames, args.device)))
-        return
-    ceiling = sgemm_ceiling(args.threads, args.device)
-    if args.device == "cuda":
-        import torch
+def groups_of(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
+    if args.suite == "fused":
+        return fused_groups(args.model, args.size)
+    return [(size, [model]) for model in args.model or DEFAULT_MODELS for size in args.size or DEFAULT_SIZES]
 
-        print(f"{torch.cuda.get_device_name()}; fp32 matrix-product ceiling (TF32 off) {ceiling:.0f} GFLOP/s; "
-              f"peak: the GPU memory torch's allocator held at most; step: what the steps added over the loaded "
-              f"model and frames; OIDN: the OIDN device that denoised\n")
-    else:
-        print(f"{args.threads} torch threads; fp32 sgemm ceiling {ceiling:.0f} GFLOP/s; peak: the process's peak "
-              f"resident memory; step: what the steps added over the loaded model and frames\n")
-    print("| model | output | render | ms per frame | peak MB | step MB | GFLOP/s | of sgemm |"
-          + (" OIDN |" if args.device == "cuda" else ""))
-    print("|---|---|---|---:|---:|---:|---:|---:|" + ("---|" if args.device == "cuda" else ""))
+
+def run_group(size: str, models: list[str], args: argparse.Namespace) -> list[dict] | str:
+    """The group's rows from a fresh process, or the last line of its error."""
+    command = [sys.executable, __file__, "--child", size, *models, "--threads", str(args.threads), "--device",
+               args.device, "--warmup", str(args.warmup), "--check-frames", str(args.check_frames)]
+    command += ["--frames", str(args.frames)] if args.frames else []
+    command += ["--no-cuda-graph"] if args.no_cuda_graph else []
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 0:
+        lines = (done.stderr.strip() or done.stdout.strip() or f"exit {done.returncode}").splitlines()
+        return lines[-1][:200]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def table_row(row: dict, ceiling: float) -> str:
+    gflops = f"{row['gflops']:.1f} | {100 * row['gflops'] / ceiling:.0f}%" if row.get("gflops") else "- | -"
+    ratio = f"{row['ratio_to_oidn']:.2f}" if row.get("ratio_to_oidn") is not None else "-"
+    share = f"{row['learned_share']:.0%}" if row.get("learned_share") is not None else "-"
+    return (f"| {row['model']} | {row['output'][0]}x{row['output'][1]} | {row['render'][0]}x{row['render'][1]} | "
+            f"{row['p50_ms']:.1f} | {row['p95_ms']:.1f} | {row['peak_mb']:.0f} | {row['step_mb']:.0f} | {gflops} | "
+            f"{ratio} | {share} | {row.get('oidn_device') or '-'} |")
+
+
+def write_results(report: dict, folder: Path, merge: bool) -> Path:
+    from model.evaluation.benchmark import save_figure
+    from model.evaluation.step_speed import file_stem, markdown_table, merge_rows, ratio_figure
+
+    stem = folder / file_stem(report["device"]["name"], report["device"]["type"], report["device"]["threads"])
+    json_path = stem.with_suffix(".json")
+    if merge and json_path.is_file():
+        report["rows"] = merge_rows(json.loads(json_path.read_text())["rows"], report["rows"])
+    folder.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(report, indent=1) + "\n")
+    figure = ratio_figure(report)
+    chart = f"\n![ratio to OIDN]({stem.with_suffix('.png').name})\n" if figure is not None else ""
+    if figure is not None:
+        save_figure(figure, stem.with_suffix(".png"))
+    stem.with_suffix(".md").write_text(
+        f"# Step speed on {report['device']['name']}\n\n{markdown_table(report)}{chart}\n"
+        f"Regenerate: `{report['command']}`\n")
+    return json_path
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    if args.child:
+        print(json.dumps(child(args.child[0], args.child[1:], args)))
+        return
+    import torch
+
+    from model.evaluation.step_speed import device_name
+
+    groups = groups_of(args)  # checked before the ceiling is measured
+    ceiling = sgemm_ceiling(args.threads, args.device)
+    name = device_name(args.device)
+    ceiling_text = f"fp32 matrix-product ceiling{' (TF32 off)' if args.device == 'cuda' else ''} {ceiling:.0f} GFLOP/s"
+    print(f"{name}; {args.threads} torch threads; {ceiling_text}; peak: the most memory a step held "
+          f"({'torch allocator' if args.device == 'cuda' else 'process resident set'}); step: its peak over what "
+          f"was held before it; / OIDN: p50 over the same-quality OIDN's in the same process; learned: the step "
+          f"less its OIDN call\n")
+    print("| model | output | render | p50 ms | p95 ms | peak MB | step MB | GFLOP/s | of sgemm | / OIDN | "
+          "learned share | OIDN device |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     rows = []
-    for model in args.model or DEFAULT_MODELS:
-        for size in args.size or DEFAULT_SIZES:
-            command = [sys.executable, __file__, "--child", model, size, "--threads", str(args.threads),
-                       "--frames", str(args.frames), "--device", args.device]
-            done = subprocess.run(command, capture_output=True, text=True)
-            if done.returncode != 0:
-                print(f"| {model} | {size} | failed: {done.stderr.strip().splitlines()[-1][:150]} |||||")
-                continue
-            row = json.loads(done.stdout.strip().splitlines()[-1])
-            pixels = row["output"][0] * row["output"][1]
-            row["gflops"] = row["flops_per_pixel"] * pixels / (row["ms"] / 1000) / 1e9
-            rows.append(row)
-            gflops = (f"{row['gflops']:.1f} | {100 * row['gflops'] / ceiling:.0f}%" if row["flops_per_pixel"]
-                      else "- | -")
-            print(f"| {model} | {row['output'][0]}x{row['output'][1]} | {row['render'][0]}x{row['render'][1]} | "
-                  f"{row['ms']:.1f} | {row['peak_mb']:.0f} | {row['step_mb']:.0f} | {gflops} |"
-                  + (f" {row['oidn_device'] or '-'} |" if args.device == "cuda" else ""), flush=True)
+    for size, models in groups:
+        result = run_group(size, models, args)
+        if isinstance(result, str):
+            print(f"| {' + '.join(models)} | {size} | failed: {result} |||||||||", flush=True)
+            continue
+        rows += result
+        for row in result:
+            print(table_row(row, ceiling), flush=True)
+    report = {"format": "step-speed/1", "device": {"type": args.device, "name": name, "threads": args.threads},
+              "torch": torch.__version__, "sgemm_gflops": ceiling, "warmup": args.warmup,
+              "command": shlex.join([".venv/bin/python", "scripts/bench_resolution_scaling.py",
+                                     *(argv if argv is not None else sys.argv[1:])]), "rows": rows}
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"threads": args.threads, "device": args.device, "sgemm_gflops": ceiling,
-                                        "rows": rows}, indent=1))
+        args.out.write_text(json.dumps(report, indent=1))
+    if args.results and rows:
+        print(f"\nreport: {write_results(report, args.results, args.merge)}")
     if args.chart and rows:
         draw(rows, args.chart)
         print(f"\nchart: {args.chart}")

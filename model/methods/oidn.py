@@ -9,6 +9,9 @@ output is bicubic-upscaled like the other baselines. Not a torch model: `paramet
 from __future__ import annotations
 
 import logging
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import pyoidn
@@ -18,7 +21,7 @@ from model.methods.base import FrameBatch, State
 from model.methods.baselines import RenderResolutionFilter
 from model.methods.registry import MethodSpec, register
 
-__all__ = ["OIDN", "QUALITIES", "oidn_albedo", "oidn_denoise", "oidn_device_for"]
+__all__ = ["OIDN", "QUALITIES", "intercepted_oidn", "oidn_albedo", "oidn_denoise", "oidn_device_for"]
 
 log = logging.getLogger(__name__)
 
@@ -42,13 +45,42 @@ def _to_hwc(image: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(image.detach().to("cpu", torch.float32).permute(1, 2, 0).numpy())
 
 
+Denoise = Callable[[FrameBatch, str], torch.Tensor]
+_INTERCEPTOR = threading.local()
+
+
+@contextmanager
+def intercepted_oidn(interceptor: Callable[[Denoise, FrameBatch, str], torch.Tensor]) -> Iterator[None]:
+    """For the block, this thread's ``oidn_denoise(frame, quality)`` calls ``interceptor(denoise, frame, quality)``,
+    which must return ``denoise(frame, quality)``'s result: the speed benchmark times OIDN inside a step so, and a
+    CUDA graph (model.deployment.cuda_graph) runs OIDN between its captured parts. An interceptor set inside another
+    one's block wraps it (its ``denoise`` is the outer interceptor's call)."""
+    outer = getattr(_INTERCEPTOR, "call", None)
+    if outer is None:
+        _INTERCEPTOR.call = interceptor
+    else:
+        _INTERCEPTOR.call = lambda denoise, frame, quality: interceptor(
+            lambda inner_frame, inner_quality: outer(denoise, inner_frame, inner_quality), frame, quality)
+    try:
+        yield
+    finally:
+        _INTERCEPTOR.call = outer
+
+
 def oidn_denoise(frame: FrameBatch, quality: str) -> torch.Tensor:
     """OIDN's RT filter on every frame of the batch (HDR, albedo + normal, clean aux), at render resolution.
 
     The one place OIDN is called: the `oidn` peer, `oidn-taa` and the `fused` family's spatial estimate all
     use it, so they denoise with exactly the same settings. A frame on a CUDA device is denoised by OIDN's CUDA
-    device when this pyoidn build has one, else (after one warning) on the CPU.
+    device when this pyoidn build has one, else (after one warning) on the CPU. ``intercepted_oidn`` may wrap it.
     """
+    interceptor = getattr(_INTERCEPTOR, "call", None)
+    if interceptor is not None:
+        return interceptor(_denoise, frame, quality)
+    return _denoise(frame, quality)
+
+
+def _denoise(frame: FrameBatch, quality: str) -> torch.Tensor:
     if quality not in QUALITIES:
         raise KeyError(f"OIDN has no quality {quality!r}; qualities: {', '.join(QUALITIES)}")
     albedo = oidn_albedo(frame)

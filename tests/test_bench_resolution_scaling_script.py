@@ -1,0 +1,39 @@
+"""scripts/bench_resolution_scaling.py: the fused suite's groups, and one tiny run's report (JSON, Markdown, chart)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tests.builders import load_script
+
+bench = load_script("bench_resolution_scaling")
+
+
+def test_the_fused_suite_pairs_each_model_with_oidn_at_its_quality_and_4k_only_at_2x():
+    groups = bench.fused_groups(["fused-fast-x1", "fused-balanced-x2"], ["512", "3840x2160"])
+    assert groups == [("512", ["fused-fast-x1", "oidn:fast", "oidn-taa:fast"]),
+                      ("512", ["fused-balanced-x2", "oidn:balanced@2", "oidn-taa:balanced@2"]),
+                      ("3840x2160", ["fused-balanced-x2", "oidn:balanced@2", "oidn-taa:balanced@2"])]
+    with pytest.raises(SystemExit, match="shipped fused models"):
+        bench.fused_groups(["munet-s-x1"], [])
+    assert bench.default_frames(128, 128) > bench.default_frames(512, 512) > bench.default_frames(1920, 1080)
+
+
+def test_a_tiny_fused_run_writes_the_report_named_by_device(tmp_path, capsys):
+    bench.main(["--suite", "fused", "--model", "fused-fast-x1", "--size", "24x16", "--frames", "2", "--warmup", "1",
+                "--check-frames", "2", "--results", str(tmp_path)])
+    (report_path,) = tmp_path.glob("speed_*_2-threads.json")
+    report = json.loads(report_path.read_text())
+    assert report["device"]["type"] == "cpu" and report["device"]["threads"] == 2
+    assert [row["model"] for row in report["rows"]] == ["fused-fast-x1", "oidn:fast", "oidn-taa:fast"]
+    fused = report["rows"][0]
+    assert fused["output"] == [24, 16] and fused["frames"] == 2
+    assert fused["p95_ms"] >= fused["p50_ms"] > 0
+    assert fused["ratio_to_oidn"] == pytest.approx(fused["p50_ms"] / report["rows"][1]["p50_ms"])
+    assert 0 <= fused["learned_share"] <= 1 and fused["learned_p50_ms"] <= fused["p50_ms"]
+    assert fused["check"]["frames"] == 2 and fused["check"]["max_abs_diff"] >= 0
+    assert report_path.with_suffix(".md").read_text().count("| fused-fast-x1 | 24x16 |") == 1
+    assert report_path.with_suffix(".png").stat().st_size > 0
+    assert "report:" in capsys.readouterr().out
