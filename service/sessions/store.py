@@ -8,7 +8,10 @@ render resolution of the first frame since the last reset.
 Sessions live in memory and are mirrored to Redis (one hash per session: its metadata and its state as
 ``service.sessions.state_codec`` chunks, replaced whole in one transaction), so a restarted API process continues each
 live session from its last mirrored frame, and Redis is the record of which sessions exist. A frame's mirror is
-written by a background writer while the next step runs: Redis is at most one frame behind memory. Every step,
+written by a background writer while the next step runs: Redis is at most one frame behind memory. Several API
+processes may serve one session in turn (replicas behind a proxy): each mirror names the process that wrote it, a
+memory copy is used only while Redis holds its own lineage, and a write lands only over the revision its copy
+continues (compare-and-set), so no process steps a session from, or writes back, a copy another one has moved past. Every step,
 weight load and history restore runs on the store's torch threads (``service.sessions.torch_thread``). The frame
 rules, the mirror's timing and what a crash loses: docs/architecture.md, "service.sessions.store".
 """
@@ -57,6 +60,7 @@ log = logging.getLogger("denoiser.sessions")
 T = TypeVar("T")
 
 KEY_PREFIX = "denoiser:session:"
+DELETED_SUFFIX = "-deleted:"  # + session id: a deleted session's marker, so no other process writes it back
 ON_GAP_POLICIES = ("reset", "reject")
 SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
 REDIS_PAUSE_SECONDS = 5.0  # after a Redis failure, serve from memory this long before trying Redis again
@@ -162,6 +166,11 @@ class Session:
     mirrored_frame: int | None = field(default=None, repr=False)  # the last frame whose history Redis holds
     # Since when (seconds since the epoch) Redis has lacked the newest revision; None while it holds it.
     mirror_behind_since: float | None = field(default=None, repr=False)
+    # The writer tag ("<process>:<revision>") of the revision this copy was loaded from or last wrote to Redis: its
+    # next write lands only over that one (None: a new session, whose key must not exist yet).
+    mirror_tag: str | None = field(default=None, repr=False)
+    # Redis refused this copy's write: another process moved the session on (or deleted it); never step it again.
+    superseded: bool = field(default=False, repr=False)
     # Used only by the session's mirror writer, one write at a time.
     codec_memo: CompressionMemo = field(default_factory=CompressionMemo, repr=False)
 
@@ -185,10 +194,10 @@ class Session:
                 "owner_digest": self.owner_digest, "layout": self.layout}
 
     @classmethod
-    def from_metadata(cls, meta: dict[str, Any], ttl_seconds: int) -> Session:
-        """The session as Redis holds it (so its mirror is current)."""
+    def from_metadata(cls, meta: dict[str, Any], ttl_seconds: int, mirror_tag: str | None = None) -> Session:
+        """The session as Redis holds it (so its mirror is current); ``mirror_tag``: the hash's writer tag."""
         frame = meta["next_frame_index"] - 1 if meta["next_frame_index"] is not None else None
-        return cls(mirrored_revision=meta["revision"], mirrored_frame=frame,
+        return cls(mirrored_revision=meta["revision"], mirrored_frame=frame, mirror_tag=mirror_tag,
                    id=meta["id"], model=SessionModel(**meta["model"]), on_gap=meta["on_gap"],
                    created_at=meta["created_at"], last_used_at=meta["last_used_at"], ttl_seconds=ttl_seconds,
                    frames_processed=meta["frames_processed"], next_frame_index=meta["next_frame_index"],
@@ -263,6 +272,7 @@ class _Snapshot:
     meta: str
     state: State | None
     frame: int | None = None  # the last frame this history follows (None: no history)
+    tag: str = ""  # the writer tag this revision gets in Redis
 
 
 def _daemon_timer(delay: float, function: Callable[[], None]) -> threading.Timer:
@@ -443,6 +453,8 @@ class SessionStore:
         self.max_sessions = settings.max_sessions
         self.device = torch.device(settings.session_device)
         self.prefix = prefix or KEY_PREFIX
+        # Names this process in the writer tag of every mirror it writes (several API replicas share Redis).
+        self.instance = uuid.uuid4().hex[:12]
         self.clock = clock
         self.registry = registry or registry_for(settings.resolved_tracking_uri(), Path(settings.data_dir))
         # One quick retry, no backoff: a frame must not wait seconds on a Redis that is down (redis-py's default
@@ -554,8 +566,16 @@ class SessionStore:
             if writer is not None:
                 writer.discard()  # a write landing after the delete would bring the session back
             self._forget(session_id)
+
+            def remove(client: redis.Redis) -> None:
+                pipeline = client.pipeline(transaction=True)
+                pipeline.delete(self._key(session_id))
+                # Another API process holding the session in memory must not write it back.
+                pipeline.set(self._deleted_key(session_id), 1, ex=self.ttl_seconds)
+                pipeline.execute()
+
             try:
-                self._redis(lambda client: client.delete(self._key(session_id)))
+                self._redis(remove)
             except redis.RedisError as error:
                 log.warning("session %s: could not delete its Redis copy: %s", session_id, error)
                 for sink in self._metrics:
@@ -612,8 +632,11 @@ class SessionStore:
             # given: tests/model/methods/test_registry.py) and must land before this frame is answered.
             self.start_mirror(session_id)
             session, planned, stepped = self._step_current(session_id, frame, frame_index_given)
-            image, state, inference_ms, sanitized = stepped
             self._wait_for_mirror(session_id)  # Redis lags by one frame at most: the one being answered
+            if session.superseded:  # Redis refused that mirror: another process moved the session on meanwhile
+                session, planned, stepped = self._step_current(session_id, frame, frame_index_given)
+                self._wait_for_mirror(session_id)
+            image, state, inference_ms, sanitized = stepped
             if not sanitized.clean:
                 log.warning("session %s frame %s: repaired input pixels (%s)", session_id, planned.frame.frame_index,
                             sanitized.describe())
@@ -759,6 +782,19 @@ class SessionStore:
     def _key(self, session_id: str) -> str:
         return f"{self.prefix}{session_id}"
 
+    def _deleted_key(self, session_id: str) -> str:
+        """Outside the sessions' key pattern, so counting sessions never reads it."""
+        return f"{self.prefix.rstrip(':')}{DELETED_SUFFIX}{session_id}"
+
+    def _tag(self, revision: int) -> str:
+        return f"{self.instance}:{revision}"
+
+    def _holds_lineage(self, session: Session, tag: str | None) -> bool:
+        """Whether Redis's writer ``tag`` is one this memory copy continues: the revision it was loaded from or last
+        wrote, or any revision this process wrote (a write of this copy may land just before its tag is recorded);
+        None: a mirror written before writer tags."""
+        return tag is None or tag == session.mirror_tag or tag.split(":", 1)[0] == self.instance
+
     def _lock_for(self, session_id: str) -> threading.Lock:
         with self._lock:
             return self._locks.setdefault(session_id, threading.Lock())
@@ -805,7 +841,7 @@ class SessionStore:
         session = self._in_memory(session_id)
         now = self.clock()
         try:
-            raw = self._redis(lambda client: client.hget(self._key(session_id), "meta"))
+            raw, raw_tag = self._redis(lambda client: client.hmget(self._key(session_id), "meta", "writer"))
         except redis.RedisError as error:
             if session is None:
                 raise SessionStoreUnavailable(f"session {session_id!r} is not in memory and the session store "
@@ -813,16 +849,19 @@ class SessionStore:
             log.warning("session %s: Redis unreachable, serving from memory: %s", session_id, error)
             return session
         meta = json.loads(raw) if raw is not None else None
+        tag = raw_tag.decode() if raw_tag is not None else None
         if meta is None or meta["last_used_at"] + self.ttl_seconds <= now:
-            if session is not None and session.mirrored_revision != session.revision:
+            if session is not None and session.mirrored_revision != session.revision and not session.superseded \
+                    and not self._deleted_elsewhere(session_id):
                 return session  # our last mirror failed, so Redis lacks it: memory is the record
             self._forget(session_id)
             raise SessionNotFound(f"session {session_id!r} does not exist (expired or deleted)")
-        if session is not None and session.revision >= meta["revision"]:
+        if session is not None and not session.superseded and session.revision >= meta["revision"] \
+                and self._holds_lineage(session, tag):
             return session
-        # Not in memory (e.g. after a restart) or older than Redis (another API process served it).
+        # Not in memory (e.g. after a restart), older than Redis or diverged from it (another API process served it).
         if not activate:
-            return Session.from_metadata(meta, self.ttl_seconds)
+            return Session.from_metadata(meta, self.ttl_seconds, tag)
         try:
             # The whole hash in one read: the history and the metadata saying which frame it precedes match.
             fields = self._redis(lambda client: client.hgetall(self._key(session_id)))
@@ -832,7 +871,8 @@ class SessionStore:
         if b"meta" not in fields:
             self._forget(session_id)
             raise SessionNotFound(f"session {session_id!r} does not exist (expired or deleted)")
-        fresh = Session.from_metadata(json.loads(fields[b"meta"]), self.ttl_seconds)
+        writer_tag = fields[b"writer"].decode() if b"writer" in fields else None
+        fresh = Session.from_metadata(json.loads(fields[b"meta"]), self.ttl_seconds, writer_tag)
         try:
             fresh.state = self._torch.run(state_from_fields, fields, self.device)
         except StateFormatError as error:
@@ -846,6 +886,13 @@ class SessionStore:
             self._sessions[session_id] = fresh
         log.info("session %s restored from Redis at frame %s", session_id, fresh.next_frame_index)
         return fresh
+
+    def _deleted_elsewhere(self, session_id: str) -> bool:
+        """Whether a DELETE (here or in another API process) left its marker; False when Redis cannot say."""
+        try:
+            return bool(self._redis(lambda client: client.exists(self._deleted_key(session_id))))
+        except redis.RedisError:
+            return False
 
     def _redis(self, call: Callable[[redis.Redis], Any]) -> Any:
         """``call(client)``, unless Redis failed less than REDIS_PAUSE_SECONDS ago (then ConnectionError at once)."""
@@ -886,7 +933,7 @@ class SessionStore:
                 session.mirror_behind_since = self.clock()
         last_frame = None if session.next_frame_index is None else session.next_frame_index - 1
         writer.submit(_Snapshot(session, session.revision, json.dumps(session.metadata()), session.state,
-                                last_frame), start)
+                                last_frame, self._tag(session.revision)), start)
         if wait:
             writer.wait()
 
@@ -894,27 +941,52 @@ class SessionStore:
         """Write one snapshot (metadata and state together) to Redis and restart the key's TTL; False if that
         failed (its writer retries it)."""
         session = snapshot.session
-        key = self._key(session.id)
+        if session.superseded:
+            return True  # another process moved the session on: nothing of this copy is written any more
+        key, deleted_key = self._key(session.id), self._deleted_key(session.id)
         # Beside the next frame's step, which reads the same tensors but never changes them.
         data = encode_state(snapshot.state, self.history_precision, session.codec_memo)
-        mapping = {"meta": snapshot.meta, **state_fields(data, STATE_CHUNK_BYTES)}
+        mapping = {"meta": snapshot.meta, "writer": snapshot.tag, **state_fields(data, STATE_CHUNK_BYTES)}
+        with self._lock:
+            expected = session.mirror_tag
 
-        def write(client: redis.Redis) -> None:
-            pipeline = client.pipeline(transaction=True)
-            pipeline.delete(key)  # the previous revision's chunks go; readers see the old key or the new one whole
-            pipeline.hset(key, mapping=mapping)
-            pipeline.expire(key, self.ttl_seconds)
-            pipeline.execute()
+        def write(client: redis.Redis) -> bool:
+            """Compare-and-set: False if Redis holds a revision this copy does not continue (or a delete marker)."""
+            with client.pipeline(transaction=True) as pipeline:
+                while True:
+                    try:
+                        pipeline.watch(key, deleted_key)
+                        held = pipeline.hget(key, "writer")
+                        if pipeline.exists(deleted_key) or (held is not None and held.decode() != expected):
+                            pipeline.unwatch()
+                            return False
+                        pipeline.multi()
+                        pipeline.delete(key)  # the previous revision's chunks go; readers see either key whole
+                        pipeline.hset(key, mapping=mapping)
+                        pipeline.expire(key, self.ttl_seconds)
+                        pipeline.execute()
+                        return True
+                    except redis.WatchError:
+                        continue  # the key changed between the check and the write: check again
 
         try:
-            self._redis(write)
+            landed = self._redis(write)
         except redis.RedisError as error:
             log.warning("session %s: could not mirror to Redis (a restart would lose it until a retry lands): %s",
                         session.id, error)
             for sink in self._metrics:
                 sink.mirror_failed(MIRROR_WRITE)
             return False
+        if not landed:
+            log.warning("session %s: Redis holds a history this process's copy does not continue (another API "
+                        "process served the session, or deleted it); the copy is dropped", session.id)
+            with self._lock:
+                session.superseded = True
+                if self._sessions.get(session.id) is session:
+                    del self._sessions[session.id]
+            return True  # nothing to retry
         with self._lock:
+            session.mirror_tag = snapshot.tag
             if snapshot.revision > session.mirrored_revision:
                 session.mirrored_revision, session.mirrored_frame = snapshot.revision, snapshot.frame
             if session.mirrored_revision >= session.revision:

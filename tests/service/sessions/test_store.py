@@ -791,3 +791,87 @@ def test_an_idle_sessions_history_reaches_redis_once_it_is_back_and_a_restart_co
         result = restarted.process_frame(session.id, frames[index])
         assert result.history == CONTINUED
         assert_same_image(result.output, expected[index])
+
+
+def _partitioned() -> redis.Redis:
+    """A client whose every call fails at once: this store's process has lost Redis (the others have not)."""
+    return redis.Redis(host="127.0.0.1", port=1, socket_connect_timeout=0.2, socket_timeout=0.2,
+                       retry=Retry(NoBackoff(), 0))
+
+
+def _until(condition, what: str, seconds: float = 60) -> None:
+    import time
+
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)
+
+
+def _diverged_replicas(make_store, seed: int):
+    """Two replicas of one session: A loses Redis and serves frame 3 from memory (its mirror fails); the proxy sends
+    the session to B, which serves a different frame 3 from Redis, so both copies hold revision 4. Returns A, B,
+    A's client to Redis, the session id, A's copy, frame 4 and the outputs of the stream that B's history holds."""
+    frames = stream_frames(5, seed=seed)
+    other_third = stream_frames(4, seed=seed + 100)[3]
+    checkpoint = shared_registry().checkpoints["1"]
+    expected = in_process_outputs(checkpoint, [*frames[:3], other_third, frames[4]])
+    assert not np.allclose(expected[4], in_process_outputs(checkpoint, frames)[4], atol=1e-3)  # histories differ
+    a = make_store(session_history_precision="float")
+    session = a.create(MODEL_NAME, version="1")
+    for frame in frames[:3]:
+        a.process_frame(session.id, frame)
+    assert a.flush(timeout=30)
+    reachable, a.redis = a.redis, _partitioned()
+    a_copy = a.process_frame(session.id, frames[3]).session
+    b = make_store(session_history_precision="float")
+    assert_same_image(b.process_frame(session.id, other_third).output, expected[3])
+    assert b.flush(timeout=30)
+    return a, b, reachable, session.id, a_copy, frames[4], expected
+
+
+def test_a_copy_another_api_process_moved_past_is_neither_stepped_nor_written_back(make_store, redis_db):
+    a, b, reachable, session_id, a_copy, fourth, expected = _diverged_replicas(make_store, seed=3)
+    b_meta = redis_meta(redis_db, b, session_id)
+    assert b_meta["revision"] == a_copy.revision == 4
+    # A's Redis is back: its failed mirror's retry finds B's revision there and is refused, so A drops its copy
+    # (before, the retry replaced B's history with A's, and A's equal revision passed for current).
+    a.redis = reachable
+    _until(lambda: a_copy.superseded, "A's mirror was not retried")
+    assert redis_meta(redis_db, b, session_id) == b_meta
+    assert redis_db.hget(f"{b.prefix}{session_id}", "writer").decode() == f"{b.instance}:4"
+    fifth = a.process_frame(session_id, fourth)  # A continues B's history, from Redis
+    assert (fifth.history, fifth.session.next_frame_index) == (CONTINUED, 5)
+    assert_same_image(fifth.output, expected[4])
+    assert a.flush(timeout=30)
+    assert redis_db.hget(f"{a.prefix}{session_id}", "writer").decode() == f"{a.instance}:5"
+
+
+def test_a_copy_is_not_stepped_when_redis_holds_another_processes_revision_of_the_same_number(make_store, redis_db,
+                                                                                              monkeypatch):
+    # A's retry has not run yet when its next frame comes: the frame's own Redis read sees that the revision there,
+    # though numbered like A's, was written by B.
+    a, _, reachable, session_id, _, fourth, expected = _diverged_replicas(make_store, seed=4)
+    monkeypatch.setattr(a, "_retry_failed_mirrors", lambda: None)  # the retry comes later (its timer is 5 s away)
+    a.redis = reachable
+    a._redis_paused_until = 0.0  # Redis answers A again now
+    fifth = a.process_frame(session_id, fourth)
+    assert (fifth.history, fifth.session.next_frame_index) == (CONTINUED, 5)
+    assert_same_image(fifth.output, expected[4])
+
+
+def test_a_session_deleted_by_another_api_process_is_not_written_back(make_store, redis_db):
+    a = make_store()
+    session = a.create(MODEL_NAME)
+    frames = stream_frames(2)
+    a.process_frame(session.id, frames[0])
+    assert a.flush(timeout=30)
+    reachable, a.redis = a.redis, _partitioned()
+    a_copy = a.process_frame(session.id, frames[1]).session  # its mirror fails: memory is A's only record
+    b = make_store()
+    b.delete(session.id)
+    a.redis = reachable
+    _until(lambda: a_copy.superseded, "A's mirror was not retried")
+    assert not redis_db.exists(f"{a.prefix}{session.id}")
+    with pytest.raises(SessionNotFound):
+        a.get(session.id)
