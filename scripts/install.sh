@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
 # Installs everything the project needs into .venv (idempotent: a second run with an unchanged
 # pyproject.toml only checks). System packages: libLLVM-19 for Mitsuba's vectorized CPU backend.
-# Usage: scripts/install.sh [--blender[=4.5]] [--browser]
+# Usage: scripts/install.sh [--blender[=4.5]] [--browser] [--proxy]
 #   --blender  also Blender as a Python module (the 'blender' extra of pyproject.toml, for scripts/render_blender.py),
 #              installed without its dependencies: bpy's metadata pins numpy<2, and the project's numpy 2 renders fine.
 #   --blender=4.5  Blender 4.5 LTS instead (the 'blender-4-5' extra), the same way; --blender=5 is --blender.
 #   --browser  also Chromium (Debian package chromium), for the test that renders /docs and /redoc headless.
+#   --proxy    also HAProxy (Debian package haproxy), for the test that runs two API replicas behind
+#              deploy/haproxy/denoiser.cfg (the reverse proxy of docker-compose.yml).
 # PIP (default: .venv/bin/python -m pip) is the pip the Blender step asks and installs with.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -14,6 +16,7 @@ PYTHON=${PYTHON:-python3}
 LLVM19=/usr/lib/x86_64-linux-gnu/libLLVM-19.so
 blender=""  # the extra of pyproject.toml to install bpy from
 browser=0
+proxy=0
 for arg in "$@"; do
   case "$arg" in
     --blender|--blender=5) blender=blender ;;
@@ -21,8 +24,9 @@ for arg in "$@"; do
     --blender=*) echo "[install] unknown Blender version '${arg#--blender=}' (--blender: 5.0, --blender=4.5: 4.5 LTS)" >&2
                  exit 2 ;;
     --browser) browser=1 ;;
-    -h|--help) sed -n '2,9p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
-    *) echo "[install] unknown option '$arg' (options: --blender, --browser)" >&2; exit 2 ;;
+    --proxy) proxy=1 ;;
+    -h|--help) sed -n '2,11p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    *) echo "[install] unknown option '$arg' (options: --blender, --browser, --proxy)" >&2; exit 2 ;;
   esac
 done
 
@@ -81,6 +85,19 @@ install_browser() {
   fi
 }
 
+install_proxy() {
+  if command -v haproxy >/dev/null 2>&1 || [ -x /usr/sbin/haproxy ]; then
+    echo "[install] haproxy is installed"
+    return
+  fi
+  echo "[install] installing Debian package haproxy (the test of API replicas behind deploy/haproxy/denoiser.cfg)"
+  if ! { as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq haproxy; }; then
+    echo "[install] could not install haproxy (needs root or sudo, and Debian's package lists)" >&2
+    return 1
+  fi
+}
+
 install_project
 if [ -n "$blender" ]; then install_blender "$blender"; fi
 if [ "$browser" = 1 ]; then install_browser; fi
+if [ "$proxy" = 1 ]; then install_proxy; fi

@@ -7,6 +7,8 @@ bash scripts/install.sh
 # The offline API docs test drives a real Chromium (Debian's package); where it cannot be installed, that one
 # test is skipped with its reason and everything else still runs.
 bash scripts/install.sh --browser > /dev/null || echo "[test] Chromium could not be installed: the /docs browser test will be skipped"
+# The API replicas test runs the real reverse proxy (Debian's haproxy) the same way.
+bash scripts/install.sh --proxy > /dev/null || echo "[test] HAProxy could not be installed: the API replicas test will be skipped"
 marker="not slow"
 if [ "${1:-}" = "--slow" ]; then marker="slow"; shift; fi
 status=0

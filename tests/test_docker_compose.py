@@ -50,7 +50,7 @@ def option(command: list[str], name: str) -> str | None:
 
 
 def test_the_expected_services_exist(services):
-    assert set(services) == {"redis", "postgres", "mlflow", "api", "worker", "worker-gpu"}
+    assert set(services) == {"redis", "postgres", "mlflow", "api", "proxy", "worker", "worker-gpu"}
 
 
 def test_every_service_has_an_image_or_an_existing_build_context(services):
@@ -67,9 +67,9 @@ def test_every_service_has_an_image_or_an_existing_build_context(services):
 
 
 def test_third_party_images_are_pinned_to_a_major_version(services):
-    for name in ("redis", "postgres"):
+    for name, image_name in (("redis", "redis"), ("postgres", "postgres"), ("proxy", "haproxy")):
         image = services[name]["image"]
-        assert re.fullmatch(rf"{name}:\d+(\.\d+)*", image), f"{name}: {image!r} should pin a version"
+        assert re.fullmatch(rf"{image_name}:\d+(\.\d+)*", image), f"{name}: {image!r} should pin a version"
 
 
 def test_uvicorn_target_exists(services):
@@ -84,8 +84,55 @@ def test_uvicorn_target_exists(services):
                 if isinstance(target, ast.Name)}
     assert attribute in assigned, f"{module} defines no module-level {attribute!r}"
     assert option(command, "--host") == "0.0.0.0"
+    # The replicas are reached through the proxy only, on the port uvicorn listens on.
     port = option(command, "--port")
-    assert any(str(mapping).endswith(f":{port}") for mapping in services["api"]["ports"])
+    assert f" api:{port} " in proxy_servers(PROXY_CONFIG.read_text())
+
+
+PROXY_CONFIG = ROOT / "deploy" / "haproxy" / "denoiser.cfg"
+
+
+def proxy_servers(config: str) -> str:
+    """The server lines between the markers of the proxy config (what the replicas test replaces)."""
+    match = re.search(r"# replica servers begin\n(.*?)\s*# replica servers end", config, re.DOTALL)
+    assert match, "the proxy config has no replica server markers"
+    return match.group(1)
+
+
+def test_the_api_scales_behind_the_proxy(compose, services):
+    api, proxy = services["api"], services["proxy"]
+    # `--scale api=N` needs replicas without a fixed host port or container name.
+    assert "ports" not in api and "container_name" not in api
+    assert proxy["ports"] == ["8000:8000"]
+    assert proxy["depends_on"]["api"]["condition"] == "service_healthy"
+    # The proxy runs the config file the replicas test runs.
+    (mounted,) = proxy["configs"]
+    assert mounted["target"] == "/usr/local/etc/haproxy/haproxy.cfg"
+    assert (ROOT / compose["configs"][mounted["source"]]["file"]).resolve() == PROXY_CONFIG.resolve()
+    config = PROXY_CONFIG.read_text()
+    assert re.search(r"^    bind :8000$", config, re.MULTILINE)
+    # Replicas come from Docker's DNS (the name of the api service), refreshed while the proxy runs.
+    servers = proxy_servers(config)
+    template = re.fullmatch(r"\s*server-template api (\d+) api:8000 check resolvers docker init-addr none.*", servers)
+    assert template and int(template.group(1)) >= 3, servers
+    assert re.search(r"^resolvers docker\n    nameserver dns 127\.0\.0\.11:53$", config, re.MULTILINE)
+    assert "balance hash var(txn.session_id)" in config and "hash-type consistent" in config
+    assert "option httpchk GET /health" in config  # the route open without the API key
+    assert "option redispatch 1" in config
+
+
+def test_the_proxy_hashes_exactly_the_paths_of_one_session():
+    from service.sessions.store import SESSION_ID
+
+    pattern = re.search(r"path_reg (\S+) }", PROXY_CONFIG.read_text()).group(1)
+    assert pattern == r"^/sessions/[0-9a-f]{32}(/|$)"
+    assert SESSION_ID.pattern == r"^[0-9a-f]{32}$"  # the ids the store makes, which the proxy's pattern spells out
+    session = "0123456789abcdef" * 2
+    for path in (f"/sessions/{session}", f"/sessions/{session}/frames", f"/sessions/{session}/stream",
+                 f"/sessions/{session}/reset"):
+        assert re.match(pattern, path) and path.split("/")[2] == session  # field(3,/): the hash key
+    for path in ("/sessions", "/sessions/", f"/sessions/{session}x", "/health", f"/jobs/{session}"):
+        assert not re.match(pattern, path), path
 
 
 def test_celery_workers_use_the_project_app_with_the_solo_pool(services):
@@ -131,7 +178,7 @@ def test_the_denoiser_console_script_and_its_serving_commands_exist():
 
 
 def test_healthchecks(services):
-    for name in ("redis", "postgres", "mlflow", "api"):
+    for name in ("redis", "postgres", "mlflow", "api"):  # the proxy checks the replicas itself
         test = services[name].get("healthcheck", {}).get("test")
         assert test and test[0] in ("CMD", "CMD-SHELL"), f"{name} has no healthcheck"
     assert "/health" in " ".join(services["api"]["healthcheck"]["test"])

@@ -97,20 +97,22 @@ def test_a_blender_version_is_installed_at_its_extras_pin_replacing_the_other(tm
     assert calls == ["show bpy", f"install -q --no-deps {blender_requirement(extra)}"]
 
 
-def test_the_browser_option_is_listed_among_the_options(tmp_path):
-    result, _ = run_with_pip(tmp_path, None, "--browsr")
-    assert result.returncode == 2 and "--browser" in result.stderr
+@pytest.mark.parametrize("option", ["--browser", "--proxy"])
+def test_the_debian_package_options_are_listed_among_the_options(tmp_path, option):
+    result, _ = run_with_pip(tmp_path, None, option[:-1])
+    assert result.returncode == 2 and option in result.stderr
 
 
 @needs_the_project
-def test_a_chromium_already_on_the_path_is_only_checked(tmp_path):
+@pytest.mark.parametrize(("option", "binary"), [("--browser", "chromium"), ("--proxy", "haproxy")])
+def test_a_debian_package_already_on_the_path_is_only_checked(tmp_path, option, binary):
     stubs = tmp_path / "bin"
     stubs.mkdir()
-    for name in ("chromium", "apt-get"):  # apt-get must not run: it would record a call
+    for name in (binary, "apt-get"):  # apt-get must not run: it would record a call
         (stubs / name).write_text(f'#!/usr/bin/env bash\necho "{name} $*" >> {tmp_path / "apt"}\n')
         (stubs / name).chmod(0o755)
-    result = subprocess.run(["bash", str(SCRIPT), "--browser"], capture_output=True, text=True,
+    result = subprocess.run(["bash", str(SCRIPT), option], capture_output=True, text=True,
                             env={**os.environ, "PATH": f"{stubs}:{os.environ['PATH']}"})
     assert result.returncode == 0, result.stderr
-    assert "chromium is installed" in result.stdout
+    assert f"{binary} is installed" in result.stdout
     assert not (tmp_path / "apt").exists()
