@@ -73,31 +73,24 @@ print(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependenci
   $pip install -q --no-deps "$requirement"
 }
 
-install_browser() {
-  if command -v chromium >/dev/null 2>&1; then
-    echo "[install] chromium is installed"
+# A Debian package for one test ($1: its command, $2: the package, $3: what needs it); already there: only checked.
+install_debian_package() {
+  if command -v "$1" >/dev/null 2>&1 || [ -x "/usr/sbin/$1" ]; then
+    echo "[install] $1 is installed"
     return
   fi
-  echo "[install] installing Debian package chromium (the headless browser test of /docs and /redoc)"
-  if ! { as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }; then
-    echo "[install] could not install chromium (needs root or sudo, and Debian's package lists)" >&2
-    return 1
-  fi
-}
-
-install_proxy() {
-  if command -v haproxy >/dev/null 2>&1 || [ -x /usr/sbin/haproxy ]; then
-    echo "[install] haproxy is installed"
-    return
-  fi
-  echo "[install] installing Debian package haproxy (the test of API replicas behind deploy/haproxy/denoiser.cfg)"
-  if ! { as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq haproxy; }; then
-    echo "[install] could not install haproxy (needs root or sudo, and Debian's package lists)" >&2
+  echo "[install] installing Debian package $2 ($3)"
+  if ! { as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$2"; }; then
+    echo "[install] could not install $2 (needs root or sudo, and Debian's package lists)" >&2
     return 1
   fi
 }
 
 install_project
 if [ -n "$blender" ]; then install_blender "$blender"; fi
-if [ "$browser" = 1 ]; then install_browser; fi
-if [ "$proxy" = 1 ]; then install_proxy; fi
+if [ "$browser" = 1 ]; then
+  install_debian_package chromium chromium "the headless browser test of /docs and /redoc"
+fi
+if [ "$proxy" = 1 ]; then
+  install_debian_package haproxy haproxy "the test of API replicas behind deploy/haproxy/denoiser.cfg"
+fi
