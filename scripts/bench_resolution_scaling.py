@@ -56,7 +56,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--warmup", type=int, help="untimed frames first (default 2 on the CPU, 3 on CUDA: the "
                         "first frame has no history, a CUDA graph is captured on the third)")
     parser.add_argument("--check-frames", type=int, default=3,
-                        help="frames on which learned models are compared with the plain fp32 model (default 3)")
+                        help="timed frames (after the warm-up ones) on which learned models are compared with the "
+                             "plain fp32 model (default 3)")
     parser.add_argument("--no-cuda-graph", action="store_true", help="on CUDA, run the steps eagerly")
     parser.add_argument("--results", type=Path, metavar="DIR",
                         help="write speed_<device>.json, .md and .png (the ratio chart) here")
@@ -240,14 +241,14 @@ def table_row(row: dict, ceiling: float) -> str:
 
 def write_results(report: dict, folder: Path, merge: bool) -> Path:
     from model.evaluation.benchmark import save_figure
-    from model.evaluation.step_speed import file_stem, markdown_table, merge_rows, ratio_figure
+    from model.evaluation.step_speed import file_stem, markdown_table, merge_rows, ratio_figure, rounded
 
     stem = folder / file_stem(report["device"]["name"], report["device"]["type"], report["device"]["threads"])
     json_path = stem.with_suffix(".json")
     if merge and json_path.is_file():
         report["rows"] = merge_rows(json.loads(json_path.read_text())["rows"], report["rows"])
     folder.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(report, indent=1) + "\n")
+    json_path.write_text(json.dumps(rounded(report), indent=1) + "\n")
     figure = ratio_figure(report)
     chart = f"\n![ratio to OIDN]({stem.with_suffix('.png').name})\n" if figure is not None else ""
     if figure is not None:

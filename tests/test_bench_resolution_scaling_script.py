@@ -31,9 +31,9 @@ def test_a_tiny_fused_run_writes_the_report_named_by_device(tmp_path, capsys):
     fused = report["rows"][0]
     assert fused["output"] == [24, 16] and fused["frames"] == 2
     assert fused["p95_ms"] >= fused["p50_ms"] > 0
-    assert fused["ratio_to_oidn"] == pytest.approx(fused["p50_ms"] / report["rows"][1]["p50_ms"])
+    assert fused["ratio_to_oidn"] == pytest.approx(fused["p50_ms"] / report["rows"][1]["p50_ms"], rel=1e-3)
     assert 0 <= fused["learned_share"] <= 1 and fused["learned_p50_ms"] <= fused["p50_ms"]
-    assert fused["check"]["frames"] == 2 and fused["check"]["max_abs_diff"] >= 0
+    assert fused["check"]["frames"] == 3 and fused["check"]["max_abs_diff"] >= 0
     assert report_path.with_suffix(".md").read_text().count("| fused-fast-x1 | 24x16 |") == 1
     assert report_path.with_suffix(".png").stat().st_size > 0
     assert "report:" in capsys.readouterr().out

@@ -10,6 +10,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 RESULTS = DOCS / "results"
 MAX_BYTES = 10 * 1024**2
+MAX_JSON_BYTES = 64 * 1024
 LINK = re.compile(r"\]\(([^)\s#]+)(?:#[^)]*)?\)|<img [^>]*src=\"([^\"]+)\"")
 
 
@@ -25,6 +26,11 @@ def test_docs_is_small_and_holds_no_exr():
     files = [path for path in DOCS.rglob("*") if path.is_file()]
     assert sum(path.stat().st_size for path in files) < MAX_BYTES
     assert not [path for path in files if path.suffix.lower() == ".exr"]
+
+
+def test_json_reports_in_docs_are_small():
+    # a report may keep its small JSON beside its Markdown (the speed reports); larger outputs go to var/results/
+    assert not [str(path.relative_to(ROOT)) for path in DOCS.rglob("*.json") if path.stat().st_size > MAX_JSON_BYTES]
 
 
 def test_every_picture_in_docs_is_shown_by_a_page():

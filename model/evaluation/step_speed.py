@@ -27,7 +27,8 @@ from model.evaluation.timing import synchronize, timed
 from model.methods.oidn import intercepted_oidn
 
 __all__ = ["GroupTiming", "MemoryProbe", "compare_outputs", "device_name", "file_stem", "learned_part",
-           "markdown_table", "merge_rows", "percentile", "ratio_figure", "speed_rows", "summary_ms", "time_group"]
+           "markdown_table", "merge_rows", "percentile", "ratio_figure", "rounded", "speed_rows", "summary_ms",
+           "time_group"]
 
 
 def percentile(values: Sequence[float], q: float) -> float:
@@ -126,9 +127,10 @@ def time_group(methods: dict[str, Any], frames: Sequence[Any], device: torch.dev
                references: dict[str, Any] | None = None, check_frames: int = 3,
                clock: Callable[[Callable[[], Any], torch.device], tuple[Any, float]] = timed) -> dict[str, GroupTiming]:
     """Step every method of ``methods`` (label -> method) over ``frames`` with its own history, interleaved frame
-    by frame; the first ``warmup`` frames are not timed. ``references`` (label -> the same model in plain fp32) are
-    stepped on the first ``check_frames`` frames and compared with the label's outputs (their steps are timed,
-    uninterleaved with nothing else, as ``reference_seconds``). ``clock`` times one call (tests give a fake one)."""
+    by frame; the first ``warmup`` frames are not timed. ``references`` (label -> the same model in plain fp32) step
+    the warm-up frames and the first ``check_frames`` timed ones, compared with the label's outputs on all of them
+    (so on CUDA the check covers graph replays, which begin after the warm-up); their timed steps are
+    ``reference_seconds``. ``clock`` times one call (tests give a fake one)."""
     device = torch.device(device)
     references = references or {}
     records = {label: GroupTiming() for label in methods}
@@ -157,10 +159,11 @@ def time_group(methods: dict[str, Any], frames: Sequence[Any], device: torch.dev
                     record.peak_mb, record.step_mb = max(record.peak_mb, peak), max(record.step_mb, step)
                     record.seconds.append(elapsed)
                     record.oidn_seconds.append(sum(oidn_calls))
-                if label in references and index < check_frames:
+                if label in references and index < warmup + check_frames:
                     (reference, reference_states[label]), reference_elapsed = clock(
                         lambda: references[label].step(frame, reference_states[label]), device)
-                    record.reference_seconds.append(reference_elapsed)
+                    if index >= warmup:
+                        record.reference_seconds.append(reference_elapsed)
                     checked[label][0].append(output.detach().clone())
                     checked[label][1].append(reference.detach().clone())
     synchronize(device)
@@ -201,6 +204,17 @@ def merge_rows(old: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[dic
 
     fresh = {key(row) for row in new}
     return [row for row in old if key(row) not in fresh] + list(new)
+
+
+def rounded(value: Any, digits: int = 4) -> Any:
+    """``value`` with every float rounded to ``digits`` significant digits (a report's JSON stays small and legible)."""
+    if isinstance(value, float):
+        return float(f"{value:.{digits}g}")
+    if isinstance(value, dict):
+        return {key: rounded(item, digits) for key, item in value.items()}
+    if isinstance(value, list):
+        return [rounded(item, digits) for item in value]
+    return value
 
 
 def device_name(device: torch.device | str) -> str:

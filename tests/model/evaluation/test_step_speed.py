@@ -8,7 +8,7 @@ import torch
 
 import model.methods.oidn as oidn
 from model.evaluation.step_speed import (compare_outputs, file_stem, learned_part, markdown_table, merge_rows,
-                                         percentile, speed_rows, summary_ms, time_group)
+                                         percentile, rounded, speed_rows, summary_ms, time_group)
 from model.methods.registry import example_batch
 
 
@@ -89,7 +89,7 @@ def test_a_group_is_timed_interleaved_with_ratios_learned_part_and_check(clock):
     assert records["fused-x"].seconds == pytest.approx([0.10] * 3)
     assert records["fused-x"].oidn_seconds == pytest.approx([0.03] * 3)
     assert records["fused-x"].reference_seconds == pytest.approx([0.53] * 2)
-    assert records["fused-x"].check["frames"] == 2
+    assert records["fused-x"].check["frames"] == 4  # the warm-up frames and the first two timed ones
     assert records["fused-x"].check["max_abs_diff"] == pytest.approx(0.125)
     assert records["oidn:fast"].check is None
 
@@ -124,3 +124,8 @@ def test_result_files_are_named_by_the_device():
     assert file_stem("Intel(R) Xeon(R) Platinum 8488C CPU @ 2.40GHz", "cpu", 2) == \
         "speed_intel-xeon-platinum-8488c_2-threads"
     assert file_stem("NVIDIA H100 80GB HBM3", "cuda", 8) == "speed_nvidia-h100-80gb-hbm3"
+
+
+def test_report_floats_are_rounded_to_significant_digits():
+    assert rounded({"rows": [{"ms": 123.456789, "frames": 6, "check": {"psnr": 0.000123456}}]}) == \
+        {"rows": [{"ms": 123.5, "frames": 6, "check": {"psnr": 0.0001235}}]}
