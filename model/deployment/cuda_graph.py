@@ -7,9 +7,11 @@ static buffers and replay graphs captured from its own eager step. The capture i
 before it wrote, and its result goes into a static buffer the next part reads. A structure (shapes, dtypes, which
 state entries and optional buffers are present) is captured the second time it is seen (the first runs eagerly,
 the warm-up a capture needs) and kept among the ``max_graphs`` most recent, so a new resolution is captured anew.
-A frame with a camera cut, tensors off the graphs' device and a structure whose capture failed run eagerly.
-Outputs are copies (a later replay never overwrites what a caller kept); one method's graphed steps run one at a
-time (one set of static buffers). Off CUDA the method is left as it is. More: docs/benchmark.md, "CUDA graphs".
+Small constants the ops make with ``torch.tensor(..., device=)`` are filled on the device during a capture (a
+host copy would break it). A frame with a camera cut, tensors off the graphs' device and a structure whose capture
+failed run eagerly. Outputs are copies (a later replay never overwrites what a caller kept); one method's graphed
+steps run one at a time (one set of static buffers). Off CUDA the method is left as it is. More:
+docs/benchmark.md, "CUDA graphs".
 """
 
 from __future__ import annotations
@@ -27,8 +29,9 @@ from torch import nn
 
 from model.methods.oidn import intercepted_oidn, oidn_denoise
 
-__all__ = ["CapturedStep", "CudaBackend", "GraphCache", "GraphedStep", "HostCall", "allocate_like", "clone_tensors",
-           "copy_into", "structure_key", "with_cuda_graphs"]
+__all__ = ["CapturedStep", "CudaBackend", "GraphCache", "GraphedStep", "HostCall", "allocate_like",
+           "capture_safe_constants", "clone_tensors", "copy_into", "device_constant", "structure_key",
+           "with_cuda_graphs"]
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +116,51 @@ def clone_tensors(value: Any) -> Any:
     return _map(value, lambda tensor, _: tensor.clone())
 
 
+def device_constant(data: Any, dtype: torch.dtype | None, device: torch.device | str) -> torch.Tensor:
+    """``torch.tensor(data, dtype=dtype, device=device)`` made by one fill per value on the device: no host-to-device
+    copy, which a capture refuses (a copy from pageable memory synchronizes)."""
+    host = _REAL_TENSOR(data, dtype=dtype)
+    out = torch.empty(host.shape, dtype=host.dtype, device=device)
+    flat = out.view(-1)
+    for index, value in enumerate(host.reshape(-1).tolist()):
+        flat[index].fill_(value)
+    return out
+
+
+_REAL_TENSOR = torch.tensor
+_CONSTANTS = threading.local()
+_CONSTANTS_LOCK = threading.Lock()
+_CONSTANTS_USERS = [0]
+MAX_CONSTANT_VALUES = 64  # larger data keeps torch's copy (and a capture that meets it fails, then runs eagerly)
+
+
+def _capture_safe_tensor(data: Any, *args: Any, dtype: torch.dtype | None = None, device: Any = None,
+                         **kwargs: Any) -> torch.Tensor:
+    if (getattr(_CONSTANTS, "capturing", False) and device is not None and not args and not kwargs
+            and torch.device(device).type == "cuda" and not isinstance(data, torch.Tensor)
+            and _REAL_TENSOR(data).numel() <= MAX_CONSTANT_VALUES):
+        return device_constant(data, dtype, device)
+    return _REAL_TENSOR(data, *args, dtype=dtype, device=device, **kwargs)
+
+
+@contextmanager
+def capture_safe_constants() -> Iterator[None]:
+    """For the block, this thread's ``torch.tensor(numbers, device=<cuda>)`` calls (the ops make small constants
+    so: grid sizes, scale factors, tap offsets) become ``device_constant``; other threads' calls are unchanged."""
+    with _CONSTANTS_LOCK:
+        _CONSTANTS_USERS[0] += 1
+        torch.tensor = _capture_safe_tensor
+    _CONSTANTS.capturing = True
+    try:
+        yield
+    finally:
+        _CONSTANTS.capturing = False
+        with _CONSTANTS_LOCK:
+            _CONSTANTS_USERS[0] -= 1
+            if not _CONSTANTS_USERS[0]:
+                torch.tensor = _REAL_TENSOR
+
+
 class CudaBackend:
     """torch.cuda's graphs, captured on a side stream (thread-local capture mode: other threads' work on the device
     does not break a capture)."""
@@ -173,7 +221,7 @@ class CapturedStep:
         copy_into(static_frame, frame)
         copy_into(static_state, state)
         parts: list[Any] = []
-        with backend.capturing():
+        with backend.capturing(), capture_safe_constants():
             graph = backend.new_graph()
             pool = backend.begin(graph, None)
 

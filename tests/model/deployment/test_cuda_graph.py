@@ -12,8 +12,8 @@ import pytest
 import torch
 
 import model.methods.oidn as oidn
-from model.deployment.cuda_graph import (CapturedStep, GraphCache, HostCall, allocate_like, clone_tensors, copy_into,
-                                         structure_key, with_cuda_graphs)
+from model.deployment.cuda_graph import (CapturedStep, GraphCache, HostCall, allocate_like, capture_safe_constants,
+                                         clone_tensors, copy_into, device_constant, structure_key, with_cuda_graphs)
 from model.methods.registry import example_batch
 
 
@@ -108,6 +108,17 @@ def test_the_cache_captures_on_the_second_sighting_and_keeps_the_most_recent():
         GraphCache(max_graphs=0)
 
 
+def test_constants_are_filled_on_the_device_during_a_capture_only():
+    made = device_constant([[1.5, -2.0], [3.0, 4.25]], torch.float32, "cpu")
+    assert torch.equal(made, torch.tensor([[1.5, -2.0], [3.0, 4.25]]))
+    assert device_constant([3, 4], None, "cpu").dtype == torch.int64
+    real = torch.tensor
+    with capture_safe_constants():
+        assert torch.tensor is not real
+        assert torch.equal(torch.tensor([1.0, 2.0], device="cpu"), real([1.0, 2.0]))  # not a CUDA constant: as is
+    assert torch.tensor is real
+
+
 def two_oidn_calls(frame, state):
     """A step with two OIDN calls between device work, as a step with a sample mean has one."""
     first = oidn.oidn_denoise(frame, "fast")
@@ -125,6 +136,7 @@ def test_a_capture_is_split_at_each_oidn_call_and_replayed_in_order(denoised):
                               "begin g2 pool=pool", "end g2", "replay g2", "/stream"]
     assert denoised == ["fast", "high"]
     assert [type(part).__name__ for part in captured.parts] == ["str", "HostCall", "str", "HostCall", "str"]
+    assert torch.tensor.__module__ == "torch"  # the capture's constant maker is gone again
     expected, _ = two_oidn_calls(frame, None)
     assert torch.allclose(outputs[0], expected)
     assert outputs[0] is not captured.outputs[0]
