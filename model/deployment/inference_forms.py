@@ -9,7 +9,8 @@ new resolution compiles). The form is read from a table that ``scripts/bench_inf
 method key (``wskpn:s:x1``: registry name, preset and scale) and render resolution: the fastest form whose output
 stays within ``MIN_PSNR_DB`` of eager fp32 on every frame. A frame takes the row of the nearest measured resolution
 in pixel count. Forms apply on the CPU (on CUDA the step runs from ``model.deployment.cuda_graph``); an entry
-that needs bf16 on a CPU without it falls back to the fastest measured form without bf16. More: docs/methods.md, "Inference forms".
+that needs bf16 on a CPU without it falls back to the fastest measured form without bf16. More: docs/methods.md,
+"Inference forms".
 """
 
 from __future__ import annotations
@@ -26,9 +27,6 @@ from typing import Any
 import torch
 from torch import nn
 
-from model.deployment.compiled_step import CompiledStep
-from model.ops.graph_breaks import outside_compiled_graph
-
 __all__ = ["FORMS", "InferenceForm", "FormTable", "MIN_PSNR_DB", "SHIPPED_TABLE", "form_psnr", "load_form_table",
            "method_key", "networks_of", "run_networks_as", "with_inference_forms", "bf16_available"]
 
@@ -42,7 +40,6 @@ class InferenceForm:
     channels_last: bool = False
     bf16: bool = False
     compiled: bool = False
-    compiled_step: bool = False  # the method's whole step compiled around its networks (model.deployment.compiled_step)
 
 
 FORMS = {form.name: form for form in (
@@ -52,8 +49,6 @@ FORMS = {form.name: form for form in (
     InferenceForm("channels_last+bf16", channels_last=True, bf16=True),
     InferenceForm("compile", compiled=True),
     InferenceForm("compile+bf16", compiled=True, bf16=True),
-    InferenceForm("compile-step", compiled_step=True),
-    InferenceForm("compile-step+bf16", bf16=True, compiled_step=True),
 )}
 
 
@@ -166,7 +161,6 @@ class _NetworkForms:
         self.selected = selected
         self.compiled: Callable[..., Any] | None = None
 
-    @outside_compiled_graph  # inside a compiled step the network runs in its own form
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         form = getattr(self.selected, "form", None) or FORMS["eager"]
         if form.name == "eager":
@@ -185,28 +179,14 @@ class _NetworkForms:
 
 
 def _install(method: nn.Module) -> threading.local:
-    """Route the method's networks through ``_NetworkForms`` and its step through ``_route_step`` (once); the
-    thread-local form selector."""
+    """Route the method's networks through ``_NetworkForms`` (once); the thread-local form selector."""
     selected = getattr(method, "_form_selector", None)
     if selected is None:
         selected = threading.local()
         for network in networks_of(method):
             network.forward = _NetworkForms(network.forward, selected)
         object.__setattr__(method, "_form_selector", selected)
-        object.__setattr__(method, "step", _route_step(method.step, selected))
     return selected
-
-
-def _route_step(step: Callable[[Any, Any], Any], selected: threading.local) -> Callable[[Any, Any], Any]:
-    """The step, compiled whole (``CompiledStep``) while the calling thread's form says so, else as it was."""
-    compiled = CompiledStep(step)
-
-    def routed_step(frame: Any, state: Any) -> Any:
-        form = getattr(selected, "form", None)
-        return compiled(frame, state) if form is not None and form.compiled_step else step(frame, state)
-
-    routed_step.compiled = compiled  # type: ignore[attr-defined]  # tests and benchmarks read its failure
-    return routed_step
 
 
 class run_networks_as:  # noqa: N801 (a context manager, used like a function)
