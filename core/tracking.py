@@ -354,6 +354,8 @@ def pretrained_description(model) -> str:
     if best.get("value") is not None:
         trained += f"; best {best.get('name', 'validation')} {best['value']:.2f}"
     lines.append(trained + ".")
+    if manifest.get("note"):
+        lines.append(manifest["note"])
     held_out = model.held_out
     if held_out.get("status") == "measured":
         where = ", ".join(part for part in (f"{held_out.get('split')} split" if held_out.get("split") else "",
@@ -403,7 +405,8 @@ def register_pretrained(model, tracking_uri: str | None = None, alias: str = PRE
     if not client.get_registered_model(model.name).description:
         client.update_registered_model(model.name, description=(
             f"{model.method}:{model.preset} at scale {model.scale}, shipped with the project (pretrained/{model.name}); "
-            f"alias `{alias}` marks the registered copy of the shipped weights."))
+            f"alias `{alias}` marks the registered copy of the shipped weights."
+            + (f" {model.manifest['note']}" if model.manifest.get("note") else "")))
     return {"name": model.name, "version": version, "uri": f"models:/{model.name}@{alias}", "created": created}
 
 

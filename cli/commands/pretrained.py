@@ -71,6 +71,9 @@ def _run_pretrained(args) -> int:
                      check if own else f"{check}, held-out pending"))
     _print_table(("name", "method", "scale", "params", "steps", "held-out PSNR", "FLIP", "OIDN-high PSNR",
                   "OIDN+TAA PSNR (quality)", "weights"), rows, empty="no pretrained models in pretrained/")
+    for model in models:
+        if model.manifest.get("note"):
+            print(f"{model.name}: {model.manifest['note']}")
     for message in broken:
         print(f"error: {message}")
     if args.register:

@@ -124,3 +124,26 @@ def test_a_pending_model_says_so_in_the_table(tmp_path, monkeypatch, capsys):
     ship_tiny(tmp_path / "pretrained")
     assert main(["pretrained", "--markdown"]) == 0
     assert "| wskpn-xs-x1 | held-out evaluation pending |" in capsys.readouterr().out
+
+
+def test_a_manifest_note_is_printed_under_the_listing_and_kept_in_the_registered_descriptions(shipped, tmp_path,
+                                                                                              capsys):
+    import json
+
+    from mlflow import MlflowClient
+
+    manifest_path = shipped.folder / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["note"] = "Not a faster model: see docs/results/int8.md."
+    manifest_path.write_text(json.dumps(manifest))
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    assert main(["pretrained", "--register", "--tracking-uri", uri]) == 0
+    assert "wskpn-xs-x1: Not a faster model: see docs/results/int8.md." in capsys.readouterr().out.splitlines()
+    client = MlflowClient(uri, registry_uri=uri)
+    assert "Not a faster model" in client.get_model_version("wskpn-xs-x1", "1").description
+    assert "Not a faster model" in client.get_registered_model("wskpn-xs-x1").description
+
+
+def test_the_shipped_int8_model_says_it_is_not_faster():
+    note = pretrained.get_pretrained("jnds-s-int8-x2").manifest["note"]
+    assert "Not a faster model" in note and "docs/results/int8.md" in note
