@@ -268,6 +268,8 @@ def main(argv: list[str] | None = None) -> None:
 
     from model.evaluation.step_speed import device_name
 
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: torch sees no CUDA device here (torch.cuda.is_available() is False)")
     groups = groups_of(args)  # checked before the ceiling is measured
     ceiling = sgemm_ceiling(args.threads, args.device)
     name = device_name(args.device)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 
 from tests.builders import load_script
 
@@ -37,3 +38,9 @@ def test_a_tiny_fused_run_writes_the_report_named_by_device(tmp_path, capsys):
     assert report_path.with_suffix(".md").read_text().count("| fused-fast-x1 | 24x16 |") == 1
     assert report_path.with_suffix(".png").stat().st_size > 0
     assert "report:" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+def test_cuda_without_a_cuda_device_is_refused_with_a_message():
+    with pytest.raises(SystemExit, match="no CUDA device"):
+        bench.main(["--suite", "fused", "--device", "cuda", "--size", "32"])
