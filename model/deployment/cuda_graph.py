@@ -162,15 +162,16 @@ def capture_safe_constants() -> Iterator[None]:
 
 
 class CudaBackend:
-    """torch.cuda's graphs, captured on a side stream (thread-local capture mode: other threads' work on the device
-    does not break a capture)."""
+    """torch.cuda's graphs, captured on a side stream, where a structure's warm-up call runs too, as torch asks
+    (thread-local capture mode: other threads' work on the device does not break a capture). The side stream
+    starts after the work queued on the current one and the current one waits for it at the end."""
 
     def __init__(self, device: torch.device) -> None:
         self.device = device
         self.stream: torch.cuda.Stream | None = None
 
     @contextmanager
-    def capturing(self) -> Iterator[None]:
+    def side_stream(self) -> Iterator[None]:
         if self.stream is None:
             self.stream = torch.cuda.Stream(self.device)
         self.stream.wait_stream(torch.cuda.current_stream(self.device))
@@ -221,7 +222,7 @@ class CapturedStep:
         copy_into(static_frame, frame)
         copy_into(static_state, state)
         parts: list[Any] = []
-        with backend.capturing(), capture_safe_constants():
+        with backend.side_stream(), capture_safe_constants():
             graph = backend.new_graph()
             pool = backend.begin(graph, None)
 
@@ -321,8 +322,11 @@ class GraphedStep:
         key = structure_key((frame, state))
         with self.lock:
             entry = self.cache.get(key)
-            if entry == FAILED or (entry is None and not self.cache.ready(key)):
+            if entry == FAILED:
                 return self.step(frame, state)
+            if entry is None and not self.cache.ready(key):
+                with self.backend.side_stream():  # the warm-up
+                    return self.step(frame, state)
             if entry is not None:
                 return entry.run(frame, state)
             try:

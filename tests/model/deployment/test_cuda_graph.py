@@ -24,7 +24,7 @@ class RecordingBackend:
         self.events: list[str] = []
         self.graphs = 0
 
-    def capturing(self):
+    def side_stream(self):
         backend = self
 
         class Block:
@@ -166,6 +166,7 @@ def test_a_graphed_step_warms_up_captures_replays_and_recaptures_per_structure(d
         _, state = method.step(example_batch(8, 8, seed=index), state)
     assert graphed.captures == 1
     assert calls == [8, 8, 8]  # the replay did not call the step
+    assert backend.events.count("stream") == 3  # the two warm-up calls and the capture ran on the side stream
     _, wide = method.step(example_batch(8, 16, seed=9), None)
     _, wide = method.step(example_batch(8, 16, seed=10), wide)
     _, wide = method.step(example_batch(8, 16, seed=11), wide)
