@@ -193,7 +193,9 @@ class CudaBackend:
         graph.replay()
 
     def synchronize(self) -> None:
-        """Before OIDN reads what a replay wrote: OIDN runs on its own queue, not torch's stream."""
+        """Before an OIDN call reads what a replay wrote. pyoidn runs OIDN on torch's current stream and executes
+        synchronously, so the host waits here no longer than it would in OIDN's call; an OIDN on a queue of its own
+        would need it."""
         torch.cuda.current_stream(self.device).synchronize()
 
 
