@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import subprocess
 import sys
@@ -271,6 +272,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda: torch sees no CUDA device here (torch.cuda.is_available() is False)")
     groups = groups_of(args)  # checked before the ceiling is measured
+    load_before = os.getloadavg()[0]
+    if load_before > os.cpu_count():
+        print(f"warning: the load average ({load_before:.1f}) exceeds the {os.cpu_count()} cores: other processes "
+              f"will slow the torch threads' parallel regions far more than OIDN's; time on a quiet machine\n")
     ceiling = sgemm_ceiling(args.threads, args.device)
     name = device_name(args.device)
     ceiling_text = f"fp32 matrix-product ceiling{' (TF32 off)' if args.device == 'cuda' else ''} {ceiling:.0f} GFLOP/s"
@@ -290,7 +295,9 @@ def main(argv: list[str] | None = None) -> None:
         rows += result
         for row in result:
             print(table_row(row, ceiling), flush=True)
-    report = {"format": "step-speed/1", "device": {"type": args.device, "name": name, "threads": args.threads},
+    report = {"format": "step-speed/1", "device": {"type": args.device, "name": name, "threads": args.threads,
+                                                   "cores": os.cpu_count()},
+              "load_average": [load_before, os.getloadavg()[0]],
               "torch": torch.__version__, "sgemm_gflops": ceiling, "warmup": args.warmup,
               "command": shlex.join([".venv/bin/python", "scripts/bench_resolution_scaling.py",
                                      *(argv if argv is not None else sys.argv[1:])]), "rows": rows}

@@ -28,6 +28,7 @@ def test_a_tiny_fused_run_writes_the_report_named_by_device(tmp_path, capsys):
     (report_path,) = tmp_path.glob("speed_*_2-threads.json")
     report = json.loads(report_path.read_text())
     assert report["device"]["type"] == "cpu" and report["device"]["threads"] == 2
+    assert len(report["load_average"]) == 2 and report["device"]["cores"] >= 1
     assert [row["model"] for row in report["rows"]] == ["fused-fast-x1", "oidn:fast", "oidn-taa:fast"]
     fused = report["rows"][0]
     assert fused["output"] == [24, 16] and fused["frames"] == 2

@@ -245,7 +245,11 @@ def _cell(value: float | None, fmt: str) -> str:
 def markdown_table(report: dict[str, Any]) -> str:
     """The report's rows as a Markdown table under one line naming the device, threads and frames."""
     device = report["device"]
+    load = report.get("load_average")
+    load_text = f"load average {load[0]:.1f} at the start, {load[1]:.1f} at the end, {device.get('cores')} cores; " \
+        if load else ""
     lines = [f"{device['name']} ({device['type']}, {device['threads']} torch threads); torch {report['torch']}; "
+             f"{load_text}"
              f"per frame after {report['warmup']} warm-up frames; ratios are p50 / p50 of the same-quality OIDN "
              f"(and OIDN + TAA) on the same frames in the same process; learned = the step less its OIDN call; "
              f"check = the inference form against the plain fp32 model.", "",
