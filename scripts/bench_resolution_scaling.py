@@ -167,8 +167,10 @@ def child(size: str, models: list[str], args: argparse.Namespace) -> list[dict]:
     for row in rows:
         row["gflops"] = row["flops_per_pixel"] * width * height / (row["p50_ms"] / 1000) / 1e9 \
             if row["flops_per_pixel"] else None
-        row["oidn_device"] = oidn_device_for(device) if records[row["model"]].oidn_seconds \
-            and any(records[row["model"]].oidn_seconds) else None
+        row["oidn_device"] = oidn_device_for(device) if any(records[row["model"]].oidn_seconds) else None
+        graphs = getattr(methods[row["model"]], "_cuda_graphs", None)
+        if graphs is not None:  # how many structures were captured: 0 means every step ran eagerly
+            row["cuda_graph_captures"] = graphs.captures
     return rows
 
 

@@ -45,3 +45,14 @@ def test_a_tiny_fused_run_writes_the_report_named_by_device(tmp_path, capsys):
 def test_cuda_without_a_cuda_device_is_refused_with_a_message():
     with pytest.raises(SystemExit, match="no CUDA device"):
         bench.main(["--suite", "fused", "--device", "cuda", "--size", "32"])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_on_cuda_the_fused_step_replays_graphs_that_match_the_eager_model(tmp_path):
+    bench.main(["--suite", "fused", "--model", "fused-balanced-x2", "--size", "128x96", "--frames", "4",
+                "--device", "cuda", "--results", str(tmp_path)])
+    (report_path,) = tmp_path.glob("speed_*.json")
+    fused = json.loads(report_path.read_text())["rows"][0]
+    assert fused["form"] == "cuda-graph" and fused["cuda_graph_captures"] >= 1
+    assert fused["oidn_device"] in ("cuda", "cpu") and fused["check"]["frames"] == 6  # 3 warm-up, 3 replays
+    assert fused["check"]["min_psnr_db"] > 80  # the replays compute what the eager model computes
