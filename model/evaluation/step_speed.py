@@ -258,9 +258,12 @@ def markdown_table(report: dict[str, Any]) -> str:
              "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in report["rows"]:
         check = row.get("check") or {}
+        form = row.get("form") or "-"
+        if "cuda_graph_captures" in row:  # 0: no structure could be captured, every step ran eagerly
+            form += f" ({row['cuda_graph_captures']} captured)"
         lines.append(
             f"| {row['model']} | {row['output'][0]}x{row['output'][1]} | {row['render'][0]}x{row['render'][1]} | "
-            f"{row.get('form') or '-'} | {row['frames']} | {row['p50_ms']:.1f} | {row['p95_ms']:.1f} | "
+            f"{form} | {row['frames']} | {row['p50_ms']:.1f} | {row['p95_ms']:.1f} | "
             f"{row['peak_mb']:.0f} | {row['step_mb']:.0f} | {_cell(row.get('learned_p50_ms'), '.1f')} | "
             f"{_cell(row.get('learned_share'), '.0%')} | {_cell(row.get('ratio_to_oidn'), '.2f')} | "
             f"{_cell(row.get('ratio_to_oidn_taa'), '.2f')} | {_cell(row.get('eager_p50_ms'), '.1f')} | "

@@ -112,6 +112,8 @@ def test_a_group_is_timed_interleaved_with_ratios_learned_part_and_check(clock):
     table = markdown_table(report)
     assert "| fused-x | 8x8 | 8x8 | eager | 3 | 100.0 | 100.0 |" in table
     assert "| 3.33 | 2.50 | 530.0 | 1.25e-01 |" in table
+    rows[0].update(form="cuda-graph", cuda_graph_captures=2)
+    assert "| fused-x | 8x8 | 8x8 | cuda-graph (2 captured) | 3 |" in markdown_table(report)
 
 
 def test_a_quick_run_replaces_only_the_rows_it_measured_again():
