@@ -1,16 +1,19 @@
 """Fast inference forms: how a method's networks run on this CPU, chosen per method and resolution by measurement.
 
 A method's ``step`` is its networks (the children that hold parameters) plus float32 work around them: warps,
-filtering with predicted kernels, history blends. A form changes how the networks run, never the rest, so
-histories, kernels and outputs stay float32 whatever the form: ``eager`` (fp32, as ``for_inference()`` leaves
-them), ``channels_last``, ``bf16`` (CPU autocast, outputs cast back), ``channels_last+bf16``, and ``compile`` /
-``compile+bf16`` (``torch.compile``, one graph per input shape, chosen only where asked since the first frame at a
-new resolution compiles). The form is read from a table that ``scripts/bench_inference_forms.py`` measures per
+filtering with predicted kernels, history blends. A form changes how the networks run, so histories, kernels and
+outputs stay float32 whatever the form: ``eager`` (fp32, as ``for_inference()`` leaves them), ``channels_last``,
+``bf16`` (CPU autocast, outputs cast back), ``channels_last+bf16``, ``compile`` / ``compile+bf16``
+(``torch.compile`` of the networks, chosen only where the table allows it). ``compile-step`` / ``compile-step+bf16``
+also compile the float32 work around the networks, the whole step, into few fused loops
+(``model.deployment.compiled_step``, eager again if compiling fails); the networks run eagerly in fp32 or bf16. The
+first frames at a new resolution compile there: the table chooses them where a method's step is mostly that work
+(the fused family). The form is read from a table that ``scripts/bench_inference_forms.py`` measures per
 method key (``wskpn:s:x1``: registry name, preset and scale) and render resolution: the fastest form whose output
 stays within ``MIN_PSNR_DB`` of eager fp32 on every frame. A frame takes the row of the nearest measured resolution
 in pixel count. Forms apply on the CPU (on CUDA the step runs from ``model.deployment.cuda_graph``); an entry
 that needs bf16 on a CPU without it falls back to the fastest measured form without bf16. More: docs/methods.md,
-"Inference forms".
+"Inference forms" and "Fast forms of the fused step".
 """
 
 from __future__ import annotations
@@ -27,6 +30,9 @@ from typing import Any
 import torch
 from torch import nn
 
+from model.deployment.compiled_step import CompiledStep
+from model.ops.graph_breaks import outside_compiled_graph
+
 __all__ = ["FORMS", "InferenceForm", "FormTable", "MIN_PSNR_DB", "SHIPPED_TABLE", "form_psnr", "load_form_table",
            "method_key", "networks_of", "run_networks_as", "with_inference_forms", "bf16_available"]
 
@@ -40,6 +46,7 @@ class InferenceForm:
     channels_last: bool = False
     bf16: bool = False
     compiled: bool = False
+    compiled_step: bool = False  # the method's whole step compiled around its networks (model.deployment.compiled_step)
 
 
 FORMS = {form.name: form for form in (
@@ -49,6 +56,8 @@ FORMS = {form.name: form for form in (
     InferenceForm("channels_last+bf16", channels_last=True, bf16=True),
     InferenceForm("compile", compiled=True),
     InferenceForm("compile+bf16", compiled=True, bf16=True),
+    InferenceForm("compile-step", compiled_step=True),
+    InferenceForm("compile-step+bf16", bf16=True, compiled_step=True),
 )}
 
 
@@ -161,6 +170,7 @@ class _NetworkForms:
         self.selected = selected
         self.compiled: Callable[..., Any] | None = None
 
+    @outside_compiled_graph  # inside a compiled step the network runs in its own form
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         form = getattr(self.selected, "form", None) or FORMS["eager"]
         if form.name == "eager":
@@ -179,14 +189,29 @@ class _NetworkForms:
 
 
 def _install(method: nn.Module) -> threading.local:
-    """Route the method's networks through ``_NetworkForms`` (once); the thread-local form selector."""
+    """Route the method's networks through ``_NetworkForms`` and its step through ``_route_step`` (once); the
+    thread-local form selector."""
     selected = getattr(method, "_form_selector", None)
     if selected is None:
         selected = threading.local()
         for network in networks_of(method):
             network.forward = _NetworkForms(network.forward, selected)
         object.__setattr__(method, "_form_selector", selected)
+        compiled = CompiledStep(method.step)
+        object.__setattr__(method, "_compiled_step", compiled)  # benchmarks and tests read its failure
+        object.__setattr__(method, "step", _route_step(method.step, compiled, selected))
     return selected
+
+
+def _route_step(step: Callable[[Any, Any], Any], compiled: CompiledStep,
+                selected: threading.local) -> Callable[[Any, Any], Any]:
+    """The step, compiled whole while the calling thread's form says so, else as it was."""
+
+    def routed_step(frame: Any, state: Any) -> Any:
+        form = getattr(selected, "form", None)
+        return compiled(frame, state) if form is not None and form.compiled_step else step(frame, state)
+
+    return routed_step
 
 
 class run_networks_as:  # noqa: N801 (a context manager, used like a function)

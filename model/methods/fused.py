@@ -28,6 +28,7 @@ from model.methods.oidn import QUALITIES, oidn_albedo, oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import MethodSpec, register
 from model.ops.box_filter import replicated_box_extremes
+from model.ops.graph_breaks import outside_compiled_graph
 from model.ops.jittered_albedo import gather_samples, sample_weights, texture_detail
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.pyramid import block_mean
@@ -473,7 +474,7 @@ class Fused(Method):
     def spatial_estimate(self, frame: FrameBatch) -> torch.Tensor:
         estimate = frame.spatial_estimate
         if estimate is None:
-            estimate = oidn_denoise(frame, self.preset)
+            estimate = _spatial_denoise(frame, self.preset)
         return reinhard(estimate.to(frame.color.dtype))
 
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
@@ -484,7 +485,7 @@ class Fused(Method):
         samples = samples_count = None
         if self._sample_mean_frames:
             samples, samples_count = self._sample_mean(frame, state, None if reprojected is None else reprojected[3])
-            s = reinhard(oidn_denoise(frame_of_sample_mean(frame, samples), self.preset).to(frame.color.dtype))
+            s = reinhard(_spatial_denoise(frame_of_sample_mean(frame, samples), self.preset).to(frame.color.dtype))
         else:
             s = self.spatial_estimate(frame)
         # The network reads ``s`` as OIDN made it (at 1x its weights were trained so); the candidates, their clip
@@ -644,13 +645,20 @@ class Fused(Method):
         return history, render[:, :HIDDEN], render[:, HIDDEN:], valid, mean, count
 
 
+@outside_compiled_graph
+def _spatial_denoise(frame: FrameBatch, quality: str) -> torch.Tensor:
+    """OIDN's estimate (``oidn_denoise``, read from this module at each call); a native call, so a compiled step
+    runs it between its graphs."""
+    return oidn_denoise(frame, quality)
+
+
 def _features(parts: list[torch.Tensor], channels_last: bool) -> torch.Tensor:
     """The network's input: ``parts`` concatenated along the channels, in channels_last for a network in it.
     Without gradients the parts are written straight into a channels_last tensor (cheaper than the concatenation
     and its copy); ``out=`` takes no gradient, so training concatenates."""
     if not channels_last:
         return torch.cat(parts, dim=1)
-    if torch.is_grad_enabled():
+    if torch.is_grad_enabled() or torch.compiler.is_compiling():  # a compiled step fuses the two into one write
         return torch.cat(parts, dim=1).contiguous(memory_format=torch.channels_last)
     dtype = functools.reduce(torch.promote_types, [part.dtype for part in parts])
     n, _, height, width = parts[0].shape

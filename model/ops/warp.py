@@ -25,6 +25,8 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from model.ops.graph_breaks import outside_compiled_graph
+
 __all__ = ["Jitter", "backward_warp", "bilinear_spread", "sample_positions", "upscale_motion", "dilate_motion_by_depth"]
 
 _MODES = ("bilinear", "bicubic", "nearest")
@@ -115,6 +117,13 @@ def backward_warp(
 
 
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
+    if mode == "bicubic":
+        # inductor's decomposition of the bicubic read is slower on the CPU than torch's kernel: kept out of a graph
+        return _eager_grid_sample(image, grid, mode, padding)
+    return _split_grid_sample(image, grid, mode, padding)
+
+
+def _split_grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
     """``F.grid_sample(..., align_corners=False)``, with one image's output rows split over torch's threads. On the
     CPU grid_sample runs its batch items in parallel and each on one thread, so a single frame (every session's
     step) used one core of two; split into items of part of the rows each, reading the same image, it uses them
@@ -122,8 +131,11 @@ def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str, padding: st
     exports (a graph with the machine's thread count in it) read as one call."""
     n, channels = image.shape[:2]
     rows, columns = grid.shape[1:3]
+    # compiling first: under torch.compile the thread count is no tensor, and reading it would break the graph
+    if torch.compiler.is_compiling() or n != 1 or image.device.type != "cpu" or torch.jit.is_tracing():
+        return F.grid_sample(image, grid, mode=mode, padding_mode=padding, align_corners=False)
     parts = min(torch.get_num_threads(), rows)
-    if n != 1 or parts < 2 or image.device.type != "cpu" or torch.jit.is_tracing() or torch.compiler.is_compiling():
+    if parts < 2:
         return F.grid_sample(image, grid, mode=mode, padding_mode=padding, align_corners=False)
     extra = -rows % parts  # rows repeated so every part is as tall, then cropped
     if extra:
@@ -207,3 +219,6 @@ def dilate_motion_by_depth(motion: torch.Tensor, depth: torch.Tensor, k: int = 3
             best = torch.where(better, cand, best)
             out = torch.where(better, mot_pad[..., dy : dy + h, dx : dx + w], out)
     return out
+
+
+_eager_grid_sample = outside_compiled_graph(_split_grid_sample)
