@@ -1028,9 +1028,9 @@ class SessionStore:
             pipeline.hget(key, "meta")
         now = self.clock()
         live = set()
-        for key, raw in zip(keys, pipeline.execute()):
-            if raw is None:
-                continue  # deleted or expired since the scan
+        for key, raw in zip(keys, pipeline.execute(raise_on_error=False)):
+            if raw is None or isinstance(raw, redis.RedisError):
+                continue  # deleted or expired since the scan, or not a hash (a delete marker of a longer prefix)
             try:
                 meta = json.loads(raw)
                 expired = meta["last_used_at"] + self.ttl_seconds <= now

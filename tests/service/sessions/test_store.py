@@ -875,3 +875,17 @@ def test_a_session_deleted_by_another_api_process_is_not_written_back(make_store
     assert not redis_db.exists(f"{a.prefix}{session.id}")
     with pytest.raises(SessionNotFound):
         a.get(session.id)
+
+
+def test_delete_markers_under_a_longer_prefix_are_not_counted_as_sessions(make_store, registry_settings, redis_db):
+    outer = make_store()
+    kept = outer.create(MODEL_NAME)
+    inner = SessionStore(registry_settings, prefix=f"{outer.prefix}inner:")
+    try:
+        deleted = inner.create(MODEL_NAME)
+        inner.delete(deleted.id)
+        assert redis_db.exists(f"{outer.prefix}inner-deleted:{deleted.id}")  # a string key the outer scan meets
+    finally:
+        inner.close()
+    restarted = make_store()  # nothing in memory: it counts what Redis holds
+    assert restarted.count() == 1 and [s.id for s in restarted.list()] == [kept.id]
