@@ -249,7 +249,11 @@ def write_results(report: dict, folder: Path, merge: bool) -> Path:
     stem = folder / file_stem(report["device"]["name"], report["device"]["type"], report["device"]["threads"])
     json_path = stem.with_suffix(".json")
     if merge and json_path.is_file():
-        report["rows"] = merge_rows(json.loads(json_path.read_text())["rows"], report["rows"])
+        old = json.loads(json_path.read_text())
+        report["rows"] = merge_rows(old["rows"], report["rows"])
+        # the runs whose rows the report holds, in order
+        report["commands"] = list(dict.fromkeys(old.get("commands", []) + report["commands"]))
+        report["load_average"] = old.get("load_average", []) + report["load_average"]
     folder.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(rounded(report), indent=1) + "\n")
     figure = ratio_figure(report)
@@ -258,7 +262,8 @@ def write_results(report: dict, folder: Path, merge: bool) -> Path:
         save_figure(figure, stem.with_suffix(".png"))
     stem.with_suffix(".md").write_text(
         f"# Step speed on {report['device']['name']}\n\n{markdown_table(report)}{chart}\n"
-        f"Regenerate: `{report['command']}`\n")
+        "Regenerate" + (" (in order)" if len(report["commands"]) > 1 else "") + ": "
+        + "<br>".join(f"`{command}`" for command in report["commands"]) + "\n")
     return json_path
 
 
@@ -301,8 +306,8 @@ def main(argv: list[str] | None = None) -> None:
                                                    "cores": os.cpu_count()},
               "load_average": [load_before, os.getloadavg()[0]],
               "torch": torch.__version__, "sgemm_gflops": ceiling, "warmup": args.warmup,
-              "command": shlex.join([".venv/bin/python", "scripts/bench_resolution_scaling.py",
-                                     *(argv if argv is not None else sys.argv[1:])]), "rows": rows}
+              "commands": [shlex.join([".venv/bin/python", "scripts/bench_resolution_scaling.py",
+                                       *(argv if argv is not None else sys.argv[1:])])], "rows": rows}
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(report, indent=1))

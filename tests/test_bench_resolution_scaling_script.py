@@ -56,3 +56,25 @@ def test_on_cuda_the_fused_step_replays_graphs_that_match_the_eager_model(tmp_pa
     assert fused["form"] == "cuda-graph" and fused["cuda_graph_captures"] >= 1
     assert fused["oidn_device"] in ("cuda", "cpu") and fused["check"]["frames"] == 6  # 3 warm-up, 3 replays
     assert fused["check"]["min_psnr_db"] > 80  # the replays compute what the eager model computes
+
+
+def _report(size: int, command: str, load: list[float]) -> dict:
+    rows = [{"model": "fused-fast-x1", "method": "fused", "learned": True, "scale": 1, "output": [size, size],
+             "render": [size, size], "form": "eager", "frames": 2, "p50_ms": 3.0, "p95_ms": 4.0, "peak_mb": 1.0,
+             "step_mb": 0.0, "ratio_to_oidn": 3.0, "learned_p50_ms": 2.0, "learned_share": 0.66},
+            {"model": "oidn:fast", "method": "oidn", "learned": False, "scale": 1, "output": [size, size],
+             "render": [size, size], "frames": 2, "p50_ms": 1.0, "p95_ms": 1.5, "peak_mb": 1.0, "step_mb": 0.0}]
+    return {"device": {"type": "cpu", "name": "Test CPU 9000", "threads": 2, "cores": 2}, "torch": "x", "warmup": 2,
+            "load_average": load, "commands": [command], "rows": rows}
+
+
+def test_a_merged_report_keeps_the_other_rows_and_every_run_s_command(tmp_path):
+    bench.write_results(_report(128, "run a", [0.5, 0.7]), tmp_path, merge=True)
+    path = bench.write_results(_report(512, "run b", [0.2, 0.3]), tmp_path, merge=True)
+    assert path.name == "speed_test-9000_2-threads.json"
+    report = json.loads(path.read_text())
+    assert [row["output"][0] for row in report["rows"]] == [128, 128, 512, 512]
+    assert report["commands"] == ["run a", "run b"] and report["load_average"] == [0.5, 0.7, 0.2, 0.3]
+    page = path.with_suffix(".md").read_text()
+    assert "load average 0.5 -> 0.7, 0.2 -> 0.3" in page and "Regenerate (in order): `run a`<br>`run b`" in page
+    assert "![ratio to OIDN](speed_test-9000_2-threads.png)" in page

@@ -246,8 +246,9 @@ def markdown_table(report: dict[str, Any]) -> str:
     """The report's rows as a Markdown table under one line naming the device, threads and frames."""
     device = report["device"]
     load = report.get("load_average")
-    load_text = f"load average {load[0]:.1f} at the start, {load[1]:.1f} at the end, {device.get('cores')} cores; " \
-        if load else ""
+    # a merged report holds one (start, end) pair per run
+    load_text = f"load average {', '.join(f'{a:.1f} -> {b:.1f}' for a, b in zip(load[::2], load[1::2]))} " \
+        f"(start -> end of each run), {device.get('cores')} cores; " if load else ""
     lines = [f"{device['name']} ({device['type']}, {device['threads']} torch threads); torch {report['torch']}; "
              f"{load_text}"
              f"per frame after {report['warmup']} warm-up frames; ratios are p50 / p50 of the same-quality OIDN "
