@@ -18,7 +18,7 @@ from kombu import Queue
 from core.names import QUEUES
 from core.settings import Settings, get_settings
 
-TASK_MODULES = ("workers.tasks.jobs",)
+TASK_MODULES = ("workers.tasks.jobs", "workers.tasks.nodes")
 
 
 def celery_config(settings: Settings) -> dict[str, Any]:

@@ -111,6 +111,18 @@ class Settings(BaseSettings):
     redis_retry_seconds: float = Field(
         20.0, ge=0, description="how long a running job retries Redis (with backoff) before its attempt fails")
     job_time_limit_seconds: int = Field(24 * 3600, gt=0, description="longest job; the visibility timeout exceeds it")
+    max_train_nodes: int = Field(8, ge=1, le=64, description="most nodes (workers of its queue) one train job may "
+                                 "ask for")
+    node_host: str | None = Field(None, description="address other nodes reach this worker's training rendezvous "
+                                  "at (a multi-node job's first node publishes it); none: this machine's hostname's "
+                                  "IP address")
+    rendezvous_timeout_seconds: int = Field(600, gt=0, description="how long a multi-node job's nodes wait for each "
+                                            "other (at the start and after a node is lost) before the job fails")
+    collective_timeout_seconds: int = Field(1800, gt=0, description="how long a DDP rank waits in one collective "
+                                            "(init_process_group timeout) before it fails: longer than rank 0's "
+                                            "validation, which the other ranks wait out")
+    node_max_restarts: int = Field(3, ge=0, le=100, description="times a multi-node job's ranks are restarted "
+                                   "(torchrun --max-restarts) and a lost node replaced before the job fails")
 
     @field_validator("data_dir", "pretrained_dir")
     @classmethod

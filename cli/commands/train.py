@@ -32,8 +32,9 @@ def add_commands(commands) -> None:
                                  "register_as": {"type": registered_name, "metavar": "NAME"},
                                  "init_from": {"metavar": "CHECKPOINT|PRETRAINED|models:/REF"},
                                  "tracking_uri": {"metavar": "URI"}})
-    # The train job's one field beyond the settings (its dataset is --data here).
-    add_model_options(parser, TrainParams, exclude=("dataset", *TrainingSettings.model_fields),
+    # The train job's one field beyond the settings (its dataset is --data here; its nodes are workers of a queue,
+    # while a local training runs on this machine).
+    add_model_options(parser, TrainParams, exclude=("dataset", "nodes", *TrainingSettings.model_fields),
                       aliases={"track": ("--no-tracking",)})
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(run=_run_train)

@@ -83,7 +83,23 @@ class TrainParams(TrainingSettings):
 
     dataset: str = Field(**_ID, description="id of a stored dataset")
     track: bool = Field(True, description="log to MLflow and register the model")
+    nodes: int = Field(1, ge=1, le=64, description="workers of the job's queue (machines) its ranks run on, "
+                       "world_size / nodes on each (torchrun, c10d rendezvous); world_size defaults to nodes")
     _register_as_not_auto = field_validator("register_as")(_registrable)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_rank_per_node_by_default(cls, data):
+        if isinstance(data, dict) and "world_size" not in data and isinstance(data.get("nodes"), int):
+            return {**data, "world_size": data["nodes"]}
+        return data
+
+    @model_validator(mode="after")
+    def _ranks_split_over_nodes(self) -> TrainParams:
+        if self.world_size % self.nodes:
+            raise ValueError(f"world_size {self.world_size} (all ranks) does not split evenly over {self.nodes} "
+                             f"nodes")
+        return self
 
 
 class EvaluateParams(BaseModel):

@@ -22,7 +22,7 @@ def train_config(params: TrainParams, storage: Storage, settings: Settings, out:
 
     training = params.model_dump(include=set(TrainingSettings.model_fields))
     training.update(data=str(storage.dataset(params.dataset)), out=str(out), resume=True, device=device,
-                    threads=params.threads or rank_threads(settings, params.world_size),
+                    threads=params.threads or rank_threads(settings, params.world_size // params.nodes),
                     tracking_uri=settings.resolved_tracking_uri(), init_from=str(init_from) if init_from else None)
     return TrainConfig(**training)
 
@@ -50,7 +50,8 @@ def initial_weights(params: TrainParams, storage: Storage) -> Path | None:
 
 
 def rank_threads(settings: Settings, world_size: int) -> int | None:
-    """Each rank's share of DENOISER_JOB_THREADS (None: unset, each rank takes its share of the cores)."""
+    """Each rank's share of DENOISER_JOB_THREADS (None: unset, each rank takes its share of the cores); a node's
+    ranks share its worker's budget."""
     if not settings.job_threads:
         return None
     return max(1, settings.job_threads // max(1, world_size))
@@ -60,6 +61,9 @@ def check(params: TrainParams, storage: Storage, settings: Settings) -> dict[str
     """Everything ``model.training.train.prepare`` would refuse, found from manifests alone (no frame is decoded)."""
     from model.data.crops import sample_windows
 
+    if params.nodes > settings.max_train_nodes:
+        raise Invalid("too_many_nodes", f"nodes {params.nodes} is more than this service allows "
+                      f"(DENOISER_MAX_TRAIN_NODES={settings.max_train_nodes})")
     dataset = open_dataset(storage, params.dataset)
     check_registry_method(params.method, params.scale, learned=True)
     init_from = initial_weights(params, storage)

@@ -21,6 +21,7 @@ import math
 import random
 import time
 from collections.abc import Callable
+from datetime import timedelta
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -230,12 +231,13 @@ def resumable_checkpoint(config: TrainConfig, method: Method, total_steps: int) 
 
 
 def train(config: TrainConfig, tracker: Tracker | None = None, rank: int = 0, world_size: int = 1,
-          progress: Progress | None = None) -> dict[str, Any]:
+          progress: Progress | None = None, collective_timeout: float | None = None) -> dict[str, Any]:
     """Train ``config.method`` on ``config.data``; returns a summary (steps, losses, validation, checkpoints, run id).
 
     With ``world_size`` > 1 this is one rank of a DDP job (``workers.ddp`` starts them with MASTER_ADDR/PORT set);
     the process group is created here unless the caller already did. Only rank 0 uses ``tracker`` and
     ``progress``. ``progress`` may raise to stop training; the last checkpoint then stays for a resume.
+    ``collective_timeout``: seconds a rank waits in one collective before it fails (None: torch's default).
     """
     if world_size != config.world_size:
         raise ValueError(f"train() called with world_size={world_size} for a config with {config.world_size}")
@@ -246,7 +248,9 @@ def train(config: TrainConfig, tracker: Tracker | None = None, rank: int = 0, wo
     if own_group:
         if device.type == "cuda":
             torch.cuda.set_device(device)
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo", rank=rank, world_size=world_size)
+        timeout = None if collective_timeout is None else timedelta(seconds=collective_timeout)
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo", rank=rank, world_size=world_size,
+                                timeout=timeout)
     if not own_group:
         return _Training(config, tracker or NullTracker(), rank, world_size, device, progress).run()
     try:
@@ -295,6 +299,7 @@ class _Training:
         self.step = 0
         self.best_metric: dict[str, Any] | None = None
         self.resumed_run_id: str | None = None
+        self.resumed_from_step: int | None = None  # the checkpoint's step when this run continued one
         self.last_validation: dict[str, float] | None = None
         self.last_losses: dict[str, float] = {}
 
@@ -426,7 +431,7 @@ class _Training:
                              f"this version trains; continue from it with --init-from and a new --out")
         self.optimizer.load_state_dict(checkpoint["optimizer"])
         self.scheduler.load_state_dict(checkpoint["scheduler"])
-        self.step = checkpoint["step"]
+        self.step = self.resumed_from_step = checkpoint["step"]
         self.best_metric = checkpoint["best_metric"]
         self.resumed_run_id = checkpoint["extra"].get("tracking_run_id")
         rng = checkpoint["rng"]
@@ -463,6 +468,7 @@ class _Training:
                 "checkpoint": str(self.out / LAST_CHECKPOINT),
                 "best_checkpoint": str(best) if best.is_file() else None,
                 "run_id": self.tracker.run_id, "registered_model": registered,
+                "resumed_from_step": self.resumed_from_step,
                 "parameters": self.inference_params, "trainable_parameters": self.method.parameter_count(),
                 "flops_per_pixel": self.flops_per_pixel, "seconds": seconds,
                 "unused_sequences": [{"name": name, "longest_run": frames} for name, frames in self.crops.unused]}

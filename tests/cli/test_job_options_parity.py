@@ -27,7 +27,7 @@ LOCAL_RUN = "a local run writes its report into files, not to MLflow"
 # kind -> (its command, {a field of its parameters the command fills itself: how}). Nothing else may be missing.
 COMMANDS = {
     "generate": ("generate", {"dataset": "`--out DIR`, a dataset folder"}),
-    "train": ("train", {"dataset": FOLDER}),
+    "train": ("train", {"dataset": FOLDER, "nodes": "a local training runs on this machine"}),
     "fit": ("fit", {"dataset": FOLDER}),
     "evaluate": ("evaluate", {"dataset": FOLDER, "track": LOCAL_RUN}),
     "benchmark": ("benchmark", {"dataset": FOLDER, "track": LOCAL_RUN}),

@@ -22,7 +22,7 @@ from model.training.training_settings import (
 
 # Fields only the REST parameters have: the stored dataset (the CLI takes a folder, --data) and whether to track
 # (the CLI's --track / --no-track, from the job parameters).
-REST_ONLY = {"dataset", "track"}
+REST_ONLY = {"dataset", "track", "nodes"}  # nodes: workers of a job's queue; the local command runs on one machine
 
 
 def command_options(command: str) -> dict[str, argparse.Action]:

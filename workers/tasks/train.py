@@ -1,4 +1,5 @@
-"""The ``train`` job: model.training.train in this process, or in ``world_size`` DDP ranks (workers.ddp), tracked in MLflow.
+"""The ``train`` job: model.training.train in this process, or in ``world_size`` DDP ranks (workers.ddp), or on
+``nodes`` workers (workers.tasks.nodes), tracked in MLflow.
 
 Checkpoints go to ``jobs/<id>/checkpoints`` with ``resume=True``, so an execution that follows a lost worker
 continues from the last checkpoint (and the same MLflow run, whose id the checkpoint carries). When the lost
@@ -40,7 +41,11 @@ def run(context: JobContext) -> dict[str, Any]:
         context.logger.info("resuming from %s at step %d of %s", last, checkpoint["step"], total)
         if total is not None and checkpoint["step"] >= total:
             return _relative(context, _completed(context, params, checkpoint, last))
-    if params.world_size == 1:
+    if params.nodes > 1:
+        from workers.tasks.nodes import train_on_nodes
+
+        result = train_on_nodes(context, config, params)
+    elif params.world_size == 1:
         result = _train_here(context, config, params.track)
     else:
         result = _train_ranks(context, config, params.track)
@@ -79,7 +84,7 @@ class _JobTracker:
         self.inner.finish("KILLED" if self.context.cancelled.is_set() and status == "FAILED" else status)
 
 
-def _tracker(context: JobContext, config, track: bool):
+def job_tracker(context: JobContext, config, track: bool):
     if not track:
         return None
     from core.tracking import MLflowTracker
@@ -91,7 +96,7 @@ def _tracker(context: JobContext, config, track: bool):
 def _train_here(context: JobContext, config, track: bool) -> dict[str, Any]:
     from model.training.train import train
 
-    return train(config, tracker=_tracker(context, config, track), progress=context.progress)
+    return train(config, tracker=job_tracker(context, config, track), progress=context.progress)
 
 
 def plugin_modules() -> list[str]:

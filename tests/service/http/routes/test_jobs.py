@@ -84,6 +84,9 @@ def test_submit_stores_the_job_queues_it_and_answers_202_with_location(client, s
     assert store.get(job["id"])["params"] == job["params"]
     response = client.post("/jobs", json={**train_body(), "device": "gpu"})
     assert response.status_code == 202 and dispatcher.sent[-1] == (response.json()["id"], "gpu")
+    response = client.post("/jobs", json=train_body(nodes=2))  # one rank on each of 2 workers
+    assert response.status_code == 202 and response.json()["params"]["world_size"] == 2
+    assert dispatcher.sent[-1] == (response.json()["id"], "cpu")  # one message: node 0 sends the others' tasks
 
 
 @pytest.mark.parametrize("body, status, code, words", [
@@ -103,6 +106,9 @@ def test_submit_stores_the_job_queues_it_and_answers_202_with_location(client, s
     (train_body(lr=-1), 422, "invalid_request", "lr"),
     (train_body(lr="nan"), 422, "invalid_request", "lr"),
     (train_body(batch=3, world_size=2), 422, "invalid_request", "does not split evenly over 2 ranks"),
+    (train_body(nodes=0), 422, "invalid_request", "params.nodes: Input should be greater than or equal to 1"),
+    (train_body(nodes=2, world_size=3, batch=6), 422, "invalid_request", "does not split evenly over 2 nodes"),
+    (train_body(nodes=9, batch=9), 422, "too_many_nodes", "DENOISER_MAX_TRAIN_NODES=8"),
     (train_body(crop=64), 422, "crop_too_large", "smaller than the 64x64 crop"),
     (train_body(epochs=0), 422, "invalid_request", "params.epochs: Input should be greater than or equal to 1"),
     (train_body(steps=10, epochs=2), 422, "invalid_request", "exactly one of steps and epochs"),
