@@ -14,7 +14,7 @@ import torch
 import model.methods.oidn as oidn
 from model.deployment.cuda_graph import (CapturedStep, GraphCache, HostCall, allocate_like, capture_safe_constants,
                                          clone_tensors, copy_into, device_constant, structure_key, with_cuda_graphs)
-from model.methods.registry import example_batch
+from model.methods.registry import all_methods, build_method, example_batch
 
 
 class RecordingBackend:
@@ -231,3 +231,37 @@ def test_graph_replays_equal_the_eager_step_on_cuda_across_a_resolution_change(n
                 for key in expected.keys() if isinstance(expected, dict) else []:
                     torch.testing.assert_close(graphed_state[key], eager_state[key])
     assert graphed._cuda_graphs.captures >= 2
+
+
+@requires_cuda
+@pytest.mark.parametrize("name, scale", [(f"{spec.name}:{spec.default_preset}", scale)
+                                         for spec in all_methods() for scale in spec.scales])
+def test_every_method_graphed_on_cuda_steps_as_it_does_eagerly(name, scale):
+    # Untrained weights do: a replay must compute what the eager step computes whatever the weights. A method whose
+    # capture fails runs eagerly (and says so in a warning), which equals the eager step trivially.
+    torch.manual_seed(0)
+    eager = build_method(name, scale=scale).eval().for_inference().to("cuda")
+    graphed = with_cuda_graphs(copy.deepcopy(eager), "cuda")
+    eager_state = graphed_state = None
+    with torch.inference_mode():
+        for seed in range(5):
+            frame = example_batch(16, 16, seed=seed, device="cuda")
+            expected, eager_state = eager.step(frame, eager_state)
+            output, graphed_state = graphed.step(frame, graphed_state)
+            torch.testing.assert_close(output, expected, atol=1e-5, rtol=1e-5)
+
+
+@requires_cuda
+def test_a_camera_cut_runs_eagerly_and_the_graph_resumes_after_it():
+    from model.deployment.pretrained import load_pretrained
+
+    eager = load_pretrained("fused-fast-x1", device="cuda").for_inference()
+    graphed = with_cuda_graphs(copy.deepcopy(eager), "cuda")
+    eager_state = graphed_state = None
+    with torch.inference_mode():
+        for index, frame in enumerate(_cuda_frames(8, (48, 32), 4)):
+            frame.camera_cut[:] = index == 4
+            expected, eager_state = eager.step(frame, eager_state)
+            output, graphed_state = graphed.step(frame, graphed_state)
+            torch.testing.assert_close(output, expected, atol=1e-5, rtol=1e-5)
+    assert graphed._cuda_graphs.captures >= 1
