@@ -119,7 +119,10 @@ def clone_tensors(value: Any) -> Any:
 def device_constant(data: Any, dtype: torch.dtype | None, device: torch.device | str) -> torch.Tensor:
     """``torch.tensor(data, dtype=dtype, device=device)`` made by one fill per value on the device: no host-to-device
     copy, which a capture refuses (a copy from pageable memory synchronizes)."""
-    host = _REAL_TENSOR(data, dtype=dtype)
+    return _filled(_REAL_TENSOR(data, dtype=dtype), device)
+
+
+def _filled(host: torch.Tensor, device: torch.device | str) -> torch.Tensor:
     out = torch.empty(host.shape, dtype=host.dtype, device=device)
     flat = out.view(-1)
     for index, value in enumerate(host.reshape(-1).tolist()):
@@ -137,9 +140,13 @@ MAX_CONSTANT_VALUES = 64  # larger data keeps torch's copy (and a capture that m
 def _capture_safe_tensor(data: Any, *args: Any, dtype: torch.dtype | None = None, device: Any = None,
                          **kwargs: Any) -> torch.Tensor:
     if (getattr(_CONSTANTS, "capturing", False) and device is not None and not args and not kwargs
-            and torch.device(device).type == "cuda" and not isinstance(data, torch.Tensor)
-            and _REAL_TENSOR(data).numel() <= MAX_CONSTANT_VALUES):
-        return device_constant(data, dtype, device)
+            and torch.device(device).type == "cuda" and not isinstance(data, torch.Tensor)):
+        try:
+            host = _REAL_TENSOR(data, dtype=dtype)
+        except (TypeError, ValueError, RuntimeError):  # not plain numbers: torch's own call decides
+            host = None
+        if host is not None and host.numel() <= MAX_CONSTANT_VALUES:
+            return _filled(host, device)
     return _REAL_TENSOR(data, *args, dtype=dtype, device=device, **kwargs)
 
 
