@@ -41,7 +41,7 @@ def test_a_tiny_fused_run_writes_the_report_named_by_device(tmp_path, capsys):
     assert "report:" in capsys.readouterr().out
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the refusal shows only where the device is missing")
 def test_cuda_without_a_cuda_device_is_refused_with_a_message():
     with pytest.raises(SystemExit, match="no CUDA device"):
         bench.main(["--suite", "fused", "--device", "cuda", "--size", "32"])
