@@ -190,6 +190,8 @@ class CudaBackend:
         return torch.cuda.CUDAGraph()
 
     def begin(self, graph: torch.cuda.CUDAGraph, pool: Any) -> Any:
+        if pool is None:  # a capture's first part: no earlier work still running, as torch.cuda.graph does
+            torch.cuda.synchronize(self.device)
         graph.capture_begin(pool=pool, capture_error_mode="thread_local")
         return graph.pool()
 
