@@ -27,14 +27,23 @@ from workers.ddp import TrainingJob, parent_death_signal
 
 
 def advertised_host(settings: Settings) -> str:
-    """The address other nodes reach this one at: DENOISER_NODE_HOST, else this machine's hostname's address."""
+    """The address other nodes reach this one at: DENOISER_NODE_HOST, else this machine's hostname's address, or
+    when that is a loopback one (Debian maps the hostname to 127.0.1.1) the address of its default route."""
     if settings.node_host:
         return settings.node_host
     hostname = socket.gethostname()
     try:
-        return socket.gethostbyname(hostname)
+        address = socket.gethostbyname(hostname)
     except OSError:
         return hostname
+    if not address.startswith("127."):
+        return address
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.connect(("192.0.2.1", 9))  # a UDP connect only picks the route: nothing is sent
+            return probe.getsockname()[0]
+    except OSError:  # no route at all: one machine, where loopback is right
+        return address
 
 
 class ElasticNode(TrainingJob):

@@ -76,7 +76,7 @@ def train_on_nodes(context: JobContext, config, params: TrainParams, send: SendN
     attempt = int(context.record["attempts"])
     board = NodeBoard(context.store, context.job_id, settings.job_time_limit_seconds)
     host = advertised_host(settings)
-    endpoint = f"{host}:{free_port(host)}"
+    endpoint = f"{host}:{free_port('')}"  # a port free on every interface: the rendezvous store listens on all
     tracker = job_tracker(context, config, params.track)
     if tracker is not None:
         tracker.start({}, resume_run_id=context.record.get("mlflow_run_id"))
