@@ -115,7 +115,7 @@ class Settings(BaseSettings):
                                  "ask for")
     node_host: str | None = Field(None, description="address other nodes reach this worker's training rendezvous "
                                   "at (a multi-node job's first node publishes it); none: this machine's hostname's "
-                                  "IP address")
+                                  "IP address, or its default route's when that is a loopback one")
     rendezvous_timeout_seconds: int = Field(600, gt=0, description="how long a multi-node job's nodes wait for each "
                                             "other (at the start and after a node is lost) before the job fails")
     collective_timeout_seconds: int = Field(1800, gt=0, description="how long a DDP rank waits in one collective "
