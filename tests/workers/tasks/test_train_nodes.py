@@ -151,3 +151,38 @@ def test_a_node_no_worker_takes_fails_the_job_after_the_rendezvous_timeout(store
     record = store.require(job_id)
     assert record["state"] == "failed" and record["error"]["code"] == "nodes_missing", record["error"]
     assert "node(s) 1 of 2 never started" in record["error"]["message"]
+
+
+def test_a_node_task_of_another_attempt_or_of_an_ended_job_returns_at_once(store, storage, node_settings):
+    store_dataset(storage)
+    job_id = store.create("train", check("train", JOB_PARAMS["train"].model_validate(train_params(nodes=2)),
+                                         storage, node_settings), "cpu", "cpu")["id"]
+    board = NodeBoard(store, job_id, 60)
+    assert nodes_module.run_node(job_id, 1, 1, store, storage, node_settings)["skipped"] == "another attempt"
+    board.publish(2, "127.0.0.1:1", 2)  # node 0 of attempt 2 runs the job now
+    assert nodes_module.run_node(job_id, 1, 1, store, storage, node_settings)["skipped"] == "another attempt"
+    store.finish(job_id, "cancelled")
+    assert nodes_module.run_node(job_id, 1, 2, store, storage, node_settings)["skipped"] == "finished"
+    assert board.node(1) is None  # none of them started a torchrun
+
+
+def test_node_zero_replaces_a_lost_node_at_most_node_max_restarts_times(store, storage, node_settings):
+    from workers.tasks.context import JobContext
+
+    record = store.create("train", train_params(nodes=2), "cpu", "cpu")
+    settings = node_settings.model_copy(update={"node_max_restarts": 1})
+    context = JobContext(record, store, storage, settings, "owner")
+    board, sent = NodeBoard(store, record["id"], 60), []
+    supervisor = nodes_module._Supervisor(board, context, 2, 1, lambda *task: sent.append(task))
+    supervisor.tick()
+    assert supervisor.never_started() == [1] and sent == []  # not started yet: the rendezvous timeout waits
+    for _ in range(2):
+        board.mark(1, 1, "running", "worker-b")
+        supervisor.tick()
+        assert supervisor.never_started() == []
+        store.redis.delete(f"{store.key(record['id'])}:node:1")  # its key lapsed: the node died
+        supervisor.tick()
+    assert sent == [(record["id"], 1, 1)]  # one replacement, then no more
+    board.mark(1, 1, "done", "worker-c")
+    supervisor.tick()
+    assert sent == [(record["id"], 1, 1)]  # a node that ended is not lost
