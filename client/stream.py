@@ -5,7 +5,8 @@
             image, info = stream.send(frame)      # (H*s, W*s, 3) float32, FrameInfo as send_frame gives it
         image, info = stream.send_arrays(color=..., albedo=..., normal=..., depth=..., motion=..., jitter=...)
 
-One frame in flight at a time: ``send`` returns once the frame's output has arrived. A frame the session refuses
+``send`` returns once the frame's output has arrived; ``send_many(frames, in_flight=2)`` keeps the next frame
+travelling while the server steps the one before (outputs still in order). A frame the session refuses
 raises ApiClientError (with the status the REST API gives the same error, its code and message) and the stream
 stays usable; an error that ends the stream (the session is gone, the API key or owner token is wrong) raises
 ApiClientError too and closes it. Built on ``websockets.sync.client``; messages are packed and unpacked by
@@ -16,7 +17,9 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import suppress
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -34,6 +37,8 @@ STREAM_PATH = "/sessions/{session_id}/stream"
 # A close code 4000 + status carries the REST API's status for the error that ended the stream.
 APPLICATION_CLOSE_CODES = range(4000, 5000)
 MESSAGE_TOO_BIG = 1009
+# Statuses of the errors that end a stream (its close codes are 4000 + status): nothing more is answered on it.
+_STREAM_ENDING = frozenset({401, 403, 404, 503})
 STREAM_DTYPES = ("float16", "float32")  # client.codec.DTYPES, named here so opening a stream needs no NumPy
 
 
@@ -87,16 +92,65 @@ class SessionStream:
         sends its own index, None leaves it to the session) or a message packed already (client.codec.encode_frame).
         Returns a FrameResult: the (H, W, 3) float32 output and its FrameInfo (round trip: from sending until the
         output was read)."""
+        return self._answer(self._send(self._message(frame, frame_index)))
+
+    def send_many(self, frames: Iterable[Frame | bytes], in_flight: int = 2,
+                  frame_index: int | None | bool = True) -> Iterator[FrameResult]:
+        """Denoise frames in order, keeping up to ``in_flight`` of them sent ahead of their outputs. The server
+        answers a stream's frames in order, one at a time, so frame N+1 travels and is read while frame N steps.
+        Yields each frame's FrameResult in order (its round trip runs from its sending until its output was read,
+        so it includes waiting behind the frames before it). A frame the session refuses raises ApiClientError
+        after the frames before it were yielded; the frames sent after it are answered and dropped first (the
+        session has stepped them), so the stream stays usable."""
+        if in_flight < 1:
+            raise ValueError(f"in_flight must be at least 1, got {in_flight}")
+        frames = iter(frames)
+        sent: deque[float] = deque()
+        more = True
+        while True:
+            while more and len(sent) < in_flight:
+                frame = next(frames, None)
+                more = frame is not None
+                if more:
+                    sent.append(self._send(self._message(frame, frame_index)))
+            if not sent:
+                return
+            try:
+                result = self._answer(sent.popleft())
+            except ApiClientError as error:
+                if error.status not in _STREAM_ENDING:
+                    for started in sent:  # read their answers, so that the next send reads its own
+                        with suppress(ApiClientError):
+                            self._answer(started)
+                raise
+            yield result
+
+    def _message(self, frame: Frame | bytes, frame_index: int | None | bool) -> bytes:
+        from client.codec import encode_bundle
+
+        if isinstance(frame, (bytes, bytearray, memoryview)):
+            return frame
+        return encode_bundle(frame, dtype=self.dtype, output_dtype=self.output_dtype, frame_index=frame_index,
+                             buffers=self.buffers)
+
+    def _send(self, data: bytes) -> float:
+        """Send one frame message; returns when it was sent (perf_counter)."""
         from websockets.exceptions import ConnectionClosed
-
-        from client.codec import decode_output, encode_bundle
-
-        data = frame if isinstance(frame, (bytes, bytearray, memoryview)) else encode_bundle(
-            frame, dtype=self.dtype, output_dtype=self.output_dtype, frame_index=frame_index, buffers=self.buffers)
 
         started = time.perf_counter()
         try:
             self._socket.send(data)
+        except ConnectionClosed as error:
+            raise _closed_error(error) from None
+        return started
+
+    def _answer(self, started: float) -> FrameResult:
+        """The next answer: the output of the frame sent at ``started``, or the error it was refused with."""
+        from websockets.exceptions import ConnectionClosed
+
+        from client.codec import decode_output
+
+        try:
             answer = self._socket.recv(timeout=self._timeout)
         except ConnectionClosed as error:
             raise _closed_error(error) from None

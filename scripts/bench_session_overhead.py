@@ -4,13 +4,16 @@ WebSocket (GET /sessions/{id}/stream) against method.step in process.
     .venv/bin/python scripts/bench_session_overhead.py                          # jnds:xs, 128x128 -> 256x256
     .venv/bin/python scripts/bench_session_overhead.py --method munet:xs --frames 60 --threads 1
     .venv/bin/python scripts/bench_session_overhead.py --checkpoint runs/jnds-s/last.pt --data data/seq_0
+    .venv/bin/python scripts/bench_session_overhead.py --checkpoint pretrained/wskpn-s-x1/model.pt \
+        --size 1920x1080 --stream-dtype float16 --in-flight 1 2 --no-http --threads 1   # 1080p, frames sent ahead
     .venv/bin/python scripts/bench_session_overhead.py --url http://gpu-box:8000 --model jnds-s-x2@champion \\
         --checkpoint jnds-s.pt --api-key "$DENOISER_API_KEY"
 
 Without ``--url`` the API is started here (its own process by default, ``--server thread`` in this one) on a
 temporary data folder, and the method is registered there; with ``--url`` the model must already be registered.
 Timed per frame, median over ``--frames``: the client's encode, the HTTP and WebSocket round trips, the server's
-and the step's own times (from the answers), the step in process, and a bare WebSocket echo (the transport's floor).
+and the step's own times (from the answers), the step in process, and a bare WebSocket echo (the transport's floor);
+for the WebSocket also the time from one output to the next, with ``--in-flight`` frames sent ahead.
 The sides run in alternating blocks (``--rounds``), so the server's Redis write after a frame never runs beside the
 in-process step. The overhead ratio is round trip / in-process step. What each timing covers, and why blocks:
 docs/benchmark.md, "scripts/bench_session_overhead.py".
@@ -79,6 +82,11 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--rounds", type=int, default=3,
                         help="alternating HTTP / in-process blocks of the whole stream (default 3)")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch threads")
+    parser.add_argument("--in-flight", type=int, nargs="+", default=[1],
+                        help="WebSocket frames sent ahead of their outputs (SessionStream.send_many; default 1: "
+                             "each frame waits for the previous output, as SessionStream.send does); several "
+                             "values: one WebSocket stream each, every round")
+    parser.add_argument("--no-http", action="store_true", help="time the WebSocket only (large frames: half the time)")
     return parser.parse_args()
 
 
@@ -330,50 +338,67 @@ def http_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], c
 
 
 def websocket_stream(client: DenoiserClient, model: str, frames: list[FrameBundle], dtype: str,
-                     all_buffers: bool = False) -> dict:
-    """Each frame packed (the buffers the stream sends: the session's method's unless ``all_buffers``) and sent
-    over one WebSocket; outputs are (H, W, 3) float32 arrays."""
-    opened = {}
-
-    @contextlib.contextmanager
-    def sender(session_id: str):
-        with client.open_stream(session_id, dtype=dtype, output_dtype=dtype, all_buffers=all_buffers) as stream:
-            opened["buffers"] = stream.buffers
-            yield stream.send
-
-    result = timed_stream(client, model, frames, lambda frame: encode_bundle(
-        frame, dtype=dtype, output_dtype=dtype, buffers=opened["buffers"]), sender)
-    return {**result, "bytes_out": result["outputs"][-1].size * np.dtype(dtype).itemsize}
+                     all_buffers: bool = False, in_flight: int = 1) -> dict:
+    """Every frame packed first (the buffers the stream sends: the session's method's unless ``all_buffers``),
+    then sent over one WebSocket with ``in_flight`` frames ahead of their outputs (SessionStream.send_many);
+    outputs are (H, W, 3) float32 arrays. Besides the timed_stream times, ``period``: from one output's arrival to
+    the next (what a renderer streaming frames waits per frame)."""
+    times: dict[str, list[float]] = {"encode": [], "round_trip": [], "server": [], "inference": [], "period": []}
+    outputs, arrivals = [], []
+    session = client.create_session(**session_body(model), on_gap="reject")
+    try:
+        with client.open_stream(session["id"], dtype=dtype, output_dtype=dtype, all_buffers=all_buffers) as stream:
+            bodies = []
+            for frame in frames:
+                started = time.perf_counter()
+                bodies.append(encode_bundle(frame, dtype=dtype, output_dtype=dtype, buffers=stream.buffers))
+                times["encode"].append((time.perf_counter() - started) * 1000)
+            for output, info in stream.send_many(bodies, in_flight=in_flight):
+                arrivals.append(time.perf_counter())
+                outputs.append(output)
+                times["round_trip"].append(info.round_trip_ms)
+                times["server"].append(info.server_ms)
+                times["inference"].append(info.inference_ms)
+    finally:
+        client.delete_session(session["id"])
+    # The first frame has no output before it: its period is its round trip.
+    times["period"] = [times["round_trip"][0]] + [(b - a) * 1000 for a, b in zip(arrivals, arrivals[1:])]
+    return {"session": session, "times": times, "outputs": outputs, "bytes_in": len(bodies[-1]),
+            "bytes_out": outputs[-1].size * np.dtype(dtype).itemsize}
 
 
 def run(url: str, model: str, frames: list[FrameBundle], local: InProcess, echo: EchoServer | None, warmup: int,
         rounds: int, api_key: str | None, compression: str | None, stream_dtype: str,
-        all_buffers: bool = False) -> dict:
-    """``rounds`` x (the stream over HTTP, over the WebSocket, as many bare echoes of its messages' sizes, then in
-    process); times of frames after ``warmup`` in each stream."""
-    names = ("encode", "round_trip", "server", "inference")
-    times = {transport: {name: [] for name in names} for transport in ("http", "websocket")}
+        all_buffers: bool = False, in_flights: tuple[int, ...] = (1,), http: bool = True) -> dict:
+    """``rounds`` x (the stream over HTTP, over the WebSocket once per ``in_flights`` value, as many bare echoes of
+    its messages' sizes, then in process); times of frames after ``warmup`` in each stream. The WebSocket streams
+    are keyed ``websocket`` (one frame in flight) and ``websocket xN``."""
+    sockets = [("websocket" if count == 1 else f"websocket x{count}", count) for count in in_flights]
+    transports = (["http"] if http else []) + [key for key, _ in sockets]
+    names = ("encode", "round_trip", "server", "inference", "period")
+    times = {transport: {name: [] for name in names} for transport in transports}
     times["local"], times["echo"] = [], []
-    difference = {"http": 0.0, "websocket": 0.0}
+    difference = dict.fromkeys(transports, 0.0)
+    sizes = {}
     with DenoiserClient(url, api_key=api_key, timeout=120) as client:
         for _ in range(rounds):
-            http = http_stream(client, model, frames, compression)
-            websocket = websocket_stream(client, model, frames, stream_dtype, all_buffers)
+            results = {"http": http_stream(client, model, frames, compression)} if http else {}
+            for key, count in sockets:
+                results[key] = websocket_stream(client, model, frames, stream_dtype, all_buffers, count)
+            streamed = results[sockets[0][0]]
             if echo is not None:
-                times["echo"] += echo.times(websocket["bytes_in"], websocket["bytes_out"], len(frames))[warmup:]
+                times["echo"] += echo.times(streamed["bytes_in"], streamed["bytes_out"], len(frames))[warmup:]
             expected, local_times = local.stream(frames)
-            for transport, result in (("http", http), ("websocket", websocket)):
+            times["local"] += local_times[warmup:]
+            for transport, result in results.items():
                 for name, values in result["times"].items():
                     times[transport][name] += values[warmup:]
-            times["local"] += local_times[warmup:]
-            outputs = {"http": [decode_image_exr(data) for data in http["outputs"]],
-                       "websocket": websocket["outputs"]}
-            for transport, images in outputs.items():
+                images = ([decode_image_exr(data) for data in result["outputs"]] if transport == "http"
+                          else result["outputs"])
                 difference[transport] = max([difference[transport]] + [
                     float(np.abs(image - reference).max()) for image, reference in zip(images, expected)])
-    return {"session": http["session"], "times": times, "difference": difference,
-            "bytes": {"http": (http["bytes_in"], http["bytes_out"]),
-                      "websocket": (websocket["bytes_in"], websocket["bytes_out"])}}
+                sizes[transport] = (result["bytes_in"], result["bytes_out"])
+    return {"session": streamed["session"], "times": times, "difference": difference, "bytes": sizes}
 
 
 def main() -> None:
@@ -407,7 +432,7 @@ def main() -> None:
         echo = None if args.url else EchoServer(get_settings().max_frame_bytes)  # loopback only: beside our API
         try:
             result = run(url, model, frames, local, echo, args.warmup, args.rounds, args.api_key, args.compression,
-                         args.stream_dtype, args.all_buffers)
+                         args.stream_dtype, args.all_buffers, tuple(args.in_flight), not args.no_http)
         finally:
             if echo is not None:
                 echo.stop()
@@ -424,8 +449,10 @@ def main() -> None:
           f"timed frames after {args.warmup}, {args.threads} torch thread(s), {where}")
     print(f"  in-process step          median {local_ms:8.2f} ms/frame")
     sent = "every buffer" if args.all_buffers else "the method's buffers"
-    labels = {"http": f"HTTP POST, frame EXR ({args.compression or 'client default'})",
-              "websocket": f"WebSocket, {args.stream_dtype} arrays, {sent}"}
+    labels = {} if args.no_http else {"http": f"HTTP POST, frame EXR ({args.compression or 'client default'})"}
+    for count in args.in_flight:
+        labels["websocket" if count == 1 else f"websocket x{count}"] = (
+            f"WebSocket, {args.stream_dtype} arrays, {sent}, {count} frame(s) in flight")
     for transport, label_text in labels.items():
         numbers = times[transport]
         round_trip, server_ms, step_ms = (median(numbers[name]) for name in ("round_trip", "server", "inference"))
@@ -438,11 +465,16 @@ def main() -> None:
               f"{round_trip - server_ms:.2f})")
         print(f"    step in the session    median {step_ms:8.2f} ms   (server outside the step: "
               f"{server_ms - step_ms:.2f}; round trip / this step {round_trip / step_ms:.2f}x)")
+        if numbers.get("period"):
+            period = median(numbers["period"])
+            print(f"    output to output       median {period:8.2f} ms/frame   {period / local_ms:.2f}x the "
+                  f"in-process step, {period / step_ms:.2f}x the session's step")
         print(f"    max |session output - in-process output| over the stream: {result['difference'][transport]:.3g}")
     if not times["echo"]:
         return
     echo_ms = median(times["echo"])
-    rest = median(times["websocket"]["round_trip"]) - local_ms - echo_ms
+    first = "websocket" if args.in_flight[0] == 1 else f"websocket x{args.in_flight[0]}"
+    rest = median(times[first]["round_trip"]) - local_ms - echo_ms
     print("  bare WebSocket echo (uvicorn, the stream's message sizes, no session)")
     print(f"    round trip             median {echo_ms:8.2f} ms/frame   the transport alone: the stream's round trip "
           f"is the in-process step + {echo_ms:.2f} + {rest:.2f} ms")

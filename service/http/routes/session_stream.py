@@ -23,10 +23,12 @@ error response to give): X-API-Key and X-Session-Token headers on the upgrade re
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import time
-from typing import Annotated
+from contextlib import ExitStack
+from typing import Annotated, NamedTuple
 
 from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
 from starlette.concurrency import run_in_threadpool
@@ -38,8 +40,8 @@ from service.http.request_limits import frame_budget
 from service.http.routes.sessions import SESSION_TOKEN_HEADER, check_owner
 from service.sessions.store import ReadFrame, SessionStore, get_session_store
 from core.settings import Settings, get_settings
-from service.sessions.stream_batch import stream_frame_batch
-from client.codec import StreamMessageError, decode_frame, encode_output
+from service.sessions.stream_batch import StreamRead, stream_frame_batch
+from client.codec import StreamFrame, StreamMessageError, decode_frame, encode_output
 
 log = logging.getLogger("denoiser.sessions")
 
@@ -53,6 +55,7 @@ CLOSE_INTERNAL_ERROR = 1011
 # The close code of an error that ends the stream: 4000 + the REST API's status for it.
 CLOSE_CODES = {401: 4401, 403: 4403, 404: 4404, 503: 4503}
 _REASON_BYTES = 123  # a close frame's reason is at most 123 bytes
+READ_AHEAD = 1  # frames of a stream read while the frame before them steps: the next one is all a step can use
 
 
 def _reason(error: ApiError) -> str:
@@ -70,32 +73,67 @@ async def stream_session(websocket: WebSocket, session_id: str, store: StoreDep,
         await websocket.close(CLOSE_CODES.get(error.status, CLOSE_INTERNAL_ERROR), _reason(error))
         return
     try:
+        await _serve(websocket, store, settings, session_id)
+    except WebSocketDisconnect:
+        return
+    except Exception:
+        log.exception("session %s: stream failed", session_id)
+        await websocket.close(CLOSE_INTERNAL_ERROR, "internal_error: the server failed on this frame")
+
+
+async def _serve(websocket: WebSocket, store: SessionStore, settings: Settings, session_id: str) -> None:
+    """Answer the stream's frames in order, one step at a time. A receiver takes the next message off the socket
+    and reads it into tensors (on the store's frame-reading threads) while the frame before it steps, so a client
+    that sends ahead (SessionStream.send_many) has the next frame ready when the step ends; at most READ_AHEAD
+    frames wait read."""
+    slots = asyncio.Semaphore(READ_AHEAD + 1)  # frames received and not answered yet
+    reads: asyncio.Queue = asyncio.Queue()
+    receiver = asyncio.create_task(_receive(websocket, store, settings, slots, reads))
+    try:
         while True:
-            message = await websocket.receive()
-            if message["type"] == "websocket.disconnect":
+            item = await reads.get()
+            if item is None:  # the client went away
                 return
-            data = message.get("bytes")
-            if data is None:
-                await _send_error(websocket, ApiError(400, "invalid_message", "frames are binary messages; this "
-                                                                              "one was text"), None)
-                continue
+            if isinstance(item, BaseException):
+                raise item
             try:
-                answer = await _frame(store, settings, session_id, data)
+                answer = await _answer(store, session_id, item)
             except _FrameFailed as failed:
                 if failed.error.status == 404:  # deleted or expired meanwhile: nothing more can be streamed
                     await websocket.close(CLOSE_CODES[404], _reason(failed.error))
                     return
                 await _send_error(websocket, failed.error, failed.frame_index)
                 continue
+            finally:
+                slots.release()
             try:
                 await websocket.send_bytes(answer)
             finally:
                 store.start_mirror(session_id)  # as POST does once the response is out (never blocks)
-    except WebSocketDisconnect:
-        return
-    except Exception:
-        log.exception("session %s: stream failed", session_id)
-        await websocket.close(CLOSE_INTERNAL_ERROR, "internal_error: the server failed on this frame")
+    finally:
+        receiver.cancel()
+        while not reads.empty():  # frames read ahead and never answered: free their share of the frame budget
+            item = reads.get_nowait()
+            if isinstance(item, asyncio.Future):
+                item.add_done_callback(_release_unanswered)
+
+
+async def _receive(websocket: WebSocket, store: SessionStore, settings: Settings, slots: asyncio.Semaphore,
+                   reads: asyncio.Queue) -> None:
+    """Put each message's read (a task giving a _Read, or raising _FrameFailed) on ``reads`` in arrival order;
+    None once the client disconnects, or the exception that stopped the receiving."""
+    try:
+        while True:
+            await slots.acquire()
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                reads.put_nowait(None)
+                return
+            reads.put_nowait(asyncio.ensure_future(_read(store, settings, message.get("bytes"))))
+    except asyncio.CancelledError:
+        raise
+    except Exception as error:  # the handler raises it, in order
+        reads.put_nowait(error)
 
 
 class _FrameFailed(Exception):
@@ -107,6 +145,15 @@ class _FrameFailed(Exception):
         self.frame_index = frame_index
 
 
+class _Read(NamedTuple):
+    """A frame message read into its batch, holding its bytes' share of the frame budget until ``budget`` closes."""
+
+    message: StreamFrame
+    read: StreamRead
+    budget: ExitStack
+    started: float
+
+
 def _admit(store: SessionStore, settings: Settings, session_id: str, key: str | None, token: str | None) -> None:
     """The REST API's checks: the API key, the session's existence, its owner token (ApiError otherwise)."""
     require_api_key(settings, key)
@@ -115,36 +162,55 @@ def _admit(store: SessionStore, settings: Settings, session_id: str, key: str | 
     check_owner(store, session_id, token)
 
 
-async def _frame(store: SessionStore, settings: Settings, session_id: str, data: bytes) -> bytes:
-    """One frame message -> its output message; _FrameFailed otherwise."""
+async def _read(store: SessionStore, settings: Settings, data: bytes | None) -> _Read:
+    """One message read, before its session is touched; _FrameFailed if it cannot be."""
     started = time.perf_counter()
+    if data is None:
+        raise _FrameFailed(ApiError(400, "invalid_message", "frames are binary messages; this one was text"))
     if len(data) > settings.max_frame_bytes:
         raise _FrameFailed(ApiError(413, "payload_too_large", f"the frame message is {len(data)} bytes; the limit "
                                                               f"is {settings.max_frame_bytes} bytes",
                                     {"limit_bytes": settings.max_frame_bytes}))
+    budget = ExitStack()
     try:
         # The message's bytes count against the frame memory budget until its output is packed, as POST bodies do.
-        with frame_budget(settings.max_buffered_frame_bytes).hold() as hold:
-            hold(len(data))
-            return await run_in_threadpool(_run_frame, store, session_id, data, settings.max_frame_pixels, started)
+        budget.enter_context(frame_budget(settings.max_buffered_frame_bytes).hold())(len(data))
+        message, read = await run_in_threadpool(_read_frame, store, data, settings.max_frame_pixels)
     except ApiError as error:  # server_busy
+        budget.close()
         raise _FrameFailed(error) from None
+    except BaseException:
+        budget.close()
+        raise
+    return _Read(message, read, budget, started)
 
 
-def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: int, started: float) -> bytes:
-    """The output message of a frame message, on a worker thread: unpack, read as POST reads a frame (on one of
-    the store's frame-reading threads), step; _FrameFailed otherwise."""
+def _read_frame(store: SessionStore, data: bytes, max_pixels: int) -> tuple[StreamFrame, StreamRead]:
+    """Unpack a frame message and read it as POST reads a frame (on one of the store's frame-reading threads)."""
     try:
         message = decode_frame(data, max_pixels=max_pixels)
     except StreamMessageError as error:
         raise _FrameFailed(api_error(error)) from None
-    index = message.frame_index
     try:
-        read = store.read_frame(lambda device: stream_frame_batch(message, device, STREAM_SOURCE))
+        return message, store.read_frame(lambda device: stream_frame_batch(message, device, STREAM_SOURCE))
     except FrameError as error:
-        raise _FrameFailed(api_error(error, frame_error_details(error)), index) from None
-    frame = ReadFrame(index or 0, message.width, message.height, message.camera_cut, read.batch,
-                      plainly_valid=read.plainly_valid, output_dtype=message.output_dtype)
+        raise _FrameFailed(api_error(error, frame_error_details(error)), message.frame_index) from None
+
+
+async def _answer(store: SessionStore, session_id: str, reading: asyncio.Future) -> bytes:
+    """The output message of a frame once it is read; _FrameFailed otherwise."""
+    read = await reading
+    try:
+        return await run_in_threadpool(_step_frame, store, session_id, read)
+    finally:
+        read.budget.close()
+
+
+def _step_frame(store: SessionStore, session_id: str, read: _Read) -> bytes:
+    """Step a read frame in its session, on a worker thread, and pack its output message."""
+    message, index = read.message, read.message.frame_index
+    frame = ReadFrame(index or 0, message.width, message.height, message.camera_cut, read.read.batch,
+                      plainly_valid=read.read.plainly_valid, output_dtype=message.output_dtype)
     try:
         with domain_errors():
             result = store.process_frame(session_id, frame, start_mirror=False, frame_index_given=index is not None)
@@ -155,13 +221,18 @@ def _run_frame(store: SessionStore, session_id: str, data: bytes, max_pixels: in
                   "inference_ms": round(result.inference_ms, 3), "sanitized_pixels": result.sanitized.total}
         if not result.sanitized.clean:
             header["sanitized"] = result.sanitized.describe()
-        if read.repairs:
-            header["repairs"] = "; ".join(read.repairs)
-        header["server_ms"] = round((time.perf_counter() - started) * 1000, 3)
+        if read.read.repairs:
+            header["repairs"] = "; ".join(read.read.repairs)
+        header["server_ms"] = round((time.perf_counter() - read.started) * 1000, 3)
         return encode_output(result.output, dtype=message.output_dtype, **header)
     except BaseException:
         store.start_mirror(session_id)  # no output will start it
         raise
+
+
+def _release_unanswered(reading: asyncio.Future) -> None:
+    if not reading.cancelled() and reading.exception() is None:
+        reading.result().budget.close()
 
 
 async def _send_error(websocket: WebSocket, error: ApiError, frame_index: int | None) -> None:

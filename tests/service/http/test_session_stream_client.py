@@ -130,6 +130,33 @@ def test_a_refused_frame_raises_and_the_stream_goes_on(serve):
             assert info.frame_index == 1 and info.history == "continued" and output.dtype == np.float32
 
 
+def test_send_many_keeps_frames_in_flight_and_gives_what_send_gives(serve):
+    url = serve()
+    frames = stream_frames(6, seed=4)
+    with DenoiserClient(url) as client:
+        one_by_one = client.create_session(MODEL_NAME, version="2", on_gap="reject")
+        with client.open_stream(one_by_one["id"]) as stream:
+            expected = [stream.send(frame)[0] for frame in frames]
+        session = client.create_session(MODEL_NAME, version="2", on_gap="reject")
+        with client.open_stream(session["id"]) as stream:
+            results = list(stream.send_many(frames[:4], in_flight=3))
+            assert [info.frame_index for _, info in results] == [0, 1, 2, 3]
+            for (output, info), image in zip(results, expected):
+                np.testing.assert_array_equal(output, image)
+                assert 0 < info.inference_ms <= info.server_ms < info.round_trip_ms
+            # A refused frame raises after the frames before it; those sent after it are answered and dropped,
+            # and the stream goes on.
+            gap = dataclasses.replace(frames[5], frame_index=9)
+            given = stream.send_many([frames[4], gap, frames[5]], in_flight=3)
+            np.testing.assert_array_equal(next(given)[0], expected[4])
+            with pytest.raises(ApiClientError) as refused:
+                next(given)
+            assert (refused.value.status, refused.value.code) == (409, "frame_gap")
+            assert client.get_session(session["id"])["frames_processed"] == 6
+            with pytest.raises(ValueError, match="in_flight"):
+                next(stream.send_many(frames, in_flight=0))
+
+
 def test_stream_errors_that_end_the_stream(serve):
     url = serve(api_key=API_KEY, session_owner_tokens=True)
     frame = stream_frames(1)[0]

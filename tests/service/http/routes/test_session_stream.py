@@ -206,3 +206,25 @@ def test_the_api_key_and_the_owner_token_are_required_as_over_http(api):
     with client.websocket_connect(path, headers={**key, "X-Session-Token": session["token"]}) as socket:
         socket.send_bytes(encode_bundle(stream_frames(1)[0]))
         assert decode_output(socket.receive_bytes()).frame_index == 0
+
+
+def test_frames_sent_ahead_are_answered_in_order_as_one_at_a_time(api):
+    """A client may send frames before their outputs arrive (the server reads the next one while the one before
+    steps): the answers are the same, in the same order, a refused frame's error in its place."""
+    client, _ = api()
+    frames = stream_frames(4, seed=3)
+    expected = post_outputs(client, frames, version="2", on_gap="reject")
+    session = create(client, version="2", on_gap="reject")
+    with client.websocket_connect(f"/sessions/{session['id']}/stream") as socket:
+        for message in [*map(encode_bundle, frames[:2]), b"not a frame", *map(encode_bundle, frames[2:])]:
+            socket.send_bytes(message)
+        for index in (0, 1):
+            output = decode_output(socket.receive_bytes())
+            assert output.frame_index == index
+            np.testing.assert_array_equal(output.image, expected[index])
+        assert "shorter than the 12-byte prelude" in stream_error(socket, "invalid_message")
+        for index in (2, 3):
+            output = decode_output(socket.receive_bytes())
+            assert output.frame_index == index and output.header["history"] == "continued"
+            np.testing.assert_array_equal(output.image, expected[index])
+    assert client.get(f"/sessions/{session['id']}").json()["frames_processed"] == 4
