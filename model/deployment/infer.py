@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from model.deployment.inference_forms import FormTable, load_form_table, with_inference_forms
 from model.io.dataset import Sequence, frame_file_name
 from model.io.exr import write_image
 from model.methods.base import FrameBatch, Method
@@ -24,10 +25,13 @@ OnFrame = Callable[[int, int, str], None]  # (frames done, frames in all, messag
 
 
 def infer_sequences(method: Method, sequences: list[Sequence], out: str | os.PathLike,
-                    device: torch.device | str = "cpu", on_frame: OnFrame | None = None) -> dict:
-    """Every frame of ``sequences`` through ``method`` (ready for inference, on ``device``); returns the frame
-    count and the median ms of a step."""
+                    device: torch.device | str = "cpu", on_frame: OnFrame | None = None,
+                    inference_forms: FormTable | str | None = "measured") -> dict:
+    """Every frame of ``sequences`` through ``method`` (ready for inference, on ``device``) in the inference form
+    sessions run (``model.deployment.inference_forms``; "off": fp32 eager); returns the frame count and the median
+    ms of a step."""
     device = torch.device(device)
+    method = with_inference_forms(method, load_form_table(inference_forms), device)
     out = Path(out)
     total = sum(len(s) for s in sequences)
     done = 0

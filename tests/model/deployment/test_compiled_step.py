@@ -150,3 +150,14 @@ def test_an_error_of_the_step_itself_is_raised_and_does_not_disable_compiling():
         compiled(torch.zeros(1, 3), None)
     assert compiled.failure is None
     assert torch.equal(compiled(torch.zeros(1, 4), None)[0], torch.ones(1, 4))
+
+
+def test_the_table_takes_a_compiled_step_without_allowing_compiled_networks_and_drops_bf16_without_it():
+    rows = {"fused:fast:x1": {"512x512": {
+        "chosen": "compile-step+bf16",
+        "ms": {"eager": 4.0, "compile": 1.0, "compile-step": 2.5, "compile-step+bf16": 2.0},
+        "psnr_db": {"eager": 200.0, "compile": 140.0, "compile-step": 140.0, "compile-step+bf16": 85.0}}}}
+    table = FormTable({"methods": rows})
+    assert not table.allow_compile
+    assert table.form_for("fused:fast:x1", 512, 512, bf16=True).name == "compile-step+bf16"
+    assert table.form_for("fused:fast:x1", 512, 512, bf16=False).name == "compile-step"
