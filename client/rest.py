@@ -28,7 +28,7 @@ import tarfile
 import tempfile
 import time
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import TYPE_CHECKING, Any
@@ -507,8 +507,10 @@ class DenoiserClient:
         in its layout; its other files (a renderer's own manifest.json, previews) are named in ``ignored``.
 
         ``transport="websocket"``: the frames are read here (a plain folder's in ``layout``, the session's, default
-        denoiser) and sent over one WebSocket as float32 arrays (``open_stream``); each output is written as a
-        float32 RGB EXR with the same pixels as the server's (references are never sent).
+        denoiser) and sent over one WebSocket as float32 arrays (``open_stream``), the next frame read and sent while
+        the one before steps (``SessionStream.send_many``); each output is written as a float32 RGB EXR with the same
+        pixels as the server's (references are never sent). A refused frame stops the stream after the frames before
+        it were written (the one sent after it is stepped, not written).
 
         ``png``: each output is also written as ``frame_%04d.png``, display-encoded (clip(x, 0, 1) ** (1/2.2), 8 bit).
         """
@@ -533,15 +535,15 @@ class DenoiserClient:
             if transport == "websocket":
                 from client.stream import file_sender
 
-                send = file_sender(stack.enter_context(self.open_stream(session_id)), bundles, layout)
+                send_all = file_sender(stack.enter_context(self.open_stream(session_id)), bundles, layout)
             else:
-                def send(frame_path: Path) -> tuple[bytes, FrameInfo]:
-                    # Read leniently when re-encoded: the session repairs NaN / Inf.
-                    body = frame_bytes(frame_path) if reencode else frame_path.read_bytes()
-                    return self.send_frame_raw(session_id, body)
+                def send_all(frame_paths: list[Path]) -> Iterator[tuple[bytes, FrameInfo]]:
+                    for frame_path in frame_paths:
+                        # Read leniently when re-encoded: the session repairs NaN / Inf.
+                        body = frame_bytes(frame_path) if reencode else frame_path.read_bytes()
+                        yield self.send_frame_raw(session_id, body)
             started = time.perf_counter()
-            for index, frame_path in enumerate(paths):
-                data, info = send(frame_path)
+            for index, (data, info) in enumerate(send_all(paths)):
                 path = _write_atomically(out_dir / frame_file_name(index), data)
                 if png:
                     pngs.append(_write_atomically(path.with_suffix(".png"), encode_png(decode_rgb_exr(data))))

@@ -219,10 +219,11 @@ def _closed_error(error) -> ApiClientError:
 
 
 def file_sender(stream: SessionStream, bundles: bool,
-                layout: str | dict | None) -> Callable[[Path], tuple[bytes, FrameInfo]]:
-    """For DenoiserClient.stream_sequence: frame file -> (the output as a float32 RGB EXR, its FrameInfo). Frame
-    bundle files (``bundles``) are read as they are (the session repairs NaN / Inf; client.frames), a renderer's files
-    in ``layout`` (default denoiser) in live mode, as the session would read them; a file without a frame index
+                layout: str | dict | None) -> Callable[[Iterable[Path]], Iterator[tuple[bytes, FrameInfo]]]:
+    """For DenoiserClient.stream_sequence: frame files -> (each output as a float32 RGB EXR, its FrameInfo), in
+    order, the next file read and sent while the frame before it steps (``send_many``). Frame bundle files
+    (``bundles``) are read as they are (the session repairs NaN / Inf; client.frames), a renderer's files in
+    ``layout`` (default denoiser) in live mode, as the session would read them; a file without a frame index
     leaves it to the session.
 
     A layout other than ``denoiser`` is read by the model library's layout readers (model.layouts: NumPy and
@@ -243,11 +244,19 @@ def file_sender(stream: SessionStream, bundles: bool,
             result = read_layout_frame(path, reader, mode="live")
             return result.frame, result.frame_index_given
 
-    def send(path: Path) -> tuple[bytes, FrameInfo]:
-        frame, given = read(path)
-        image, info = stream.send(frame, frame_index=True if given else None)
-        attributes = {"frame_index": info.frame_index, "sequence": frame.sequence,
-                      "scale": image.shape[0] // frame.height}
-        return encode_image_exr(image, {key: value for key, value in attributes.items() if value is not None}), info
+    def send_all(paths: Iterable[Path]) -> Iterator[tuple[bytes, FrameInfo]]:
+        sent: deque = deque()  # the frames sent and not answered yet, oldest first
 
-    return send
+        def messages() -> Iterator[bytes]:
+            for path in paths:
+                frame, given = read(path)
+                sent.append(frame)
+                yield stream._message(frame, True if given else None)
+
+        for image, info in stream.send_many(messages()):
+            frame = sent.popleft()
+            attributes = {"frame_index": info.frame_index, "sequence": frame.sequence,
+                          "scale": image.shape[0] // frame.height}
+            yield encode_image_exr(image, {key: value for key, value in attributes.items() if value is not None}), info
+
+    return send_all

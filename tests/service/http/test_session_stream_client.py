@@ -208,3 +208,20 @@ def test_denoiser_stream_uses_the_websocket_by_default(serve, tmp_path, capsys):
         np.testing.assert_array_equal(decode_image_exr((tmp_path / "websocket" / name).read_bytes()),
                                       decode_image_exr((tmp_path / "http" / name).read_bytes()))
     assert httpx.get(f"{url}/sessions").json() == []  # both sessions deleted
+
+
+def test_stream_sequence_over_the_websocket_stops_at_a_refused_frame_after_writing_the_ones_before(serve, tmp_path):
+    url = serve()
+    from model.io.exr import encode_frame_exr
+
+    sequence = tmp_path / "renders"  # a renderer's plain folder: its files are sent as they are
+    sequence.mkdir()
+    for frame in [frame for frame in stream_frames(5, seed=8) if frame.frame_index != 2]:  # a gap it refuses
+        (sequence / f"render_{frame.frame_index:04d}.exr").write_bytes(encode_frame_exr(frame))
+    with DenoiserClient(url) as client:
+        session = client.create_session(MODEL_NAME, version="2", on_gap="reject")
+        with pytest.raises(ApiClientError) as refused:
+            client.stream_sequence(session["id"], sequence, tmp_path / "out", transport="websocket")
+        assert (refused.value.status, refused.value.code) == (409, "frame_gap")
+        assert sorted(path.name for path in (tmp_path / "out").iterdir()) == ["frame_0000.exr", "frame_0001.exr"]
+        assert client.get_session(session["id"])["frames_processed"] == 2
