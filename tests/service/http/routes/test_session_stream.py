@@ -228,3 +228,26 @@ def test_frames_sent_ahead_are_answered_in_order_as_one_at_a_time(api):
             assert output.frame_index == index and output.header["history"] == "continued"
             np.testing.assert_array_equal(output.image, expected[index])
     assert client.get(f"/sessions/{session['id']}").json()["frames_processed"] == 4
+
+
+def test_a_client_gone_with_frames_in_flight_leaves_the_frame_budget_free_and_the_session_usable(api):
+    import time
+
+    from service.http.request_limits import frame_budget
+
+    capacity = 3_000_000  # a budget of this test's own (budgets are shared per capacity)
+    client, _ = api(max_buffered_frame_bytes=capacity)
+    budget = frame_budget(capacity)
+    frames = stream_frames(4, seed=12)
+    session = create(client, version="2")
+    with client.websocket_connect(f"/sessions/{session['id']}/stream") as socket:
+        for frame in frames[:3]:
+            socket.send_bytes(encode_bundle(frame))
+    deadline = time.monotonic() + 30
+    while budget.held:  # the frames read ahead are freed once the handler is done with them
+        assert time.monotonic() < deadline, f"{budget.held} bytes still held"
+        time.sleep(0.02)
+    # How many of them stepped depends on when the handler learnt the client was gone; the session goes on.
+    with client.websocket_connect(f"/sessions/{session['id']}/stream") as socket:
+        socket.send_bytes(encode_bundle(frames[3], frame_index=None))
+        assert decode_output(socket.receive_bytes()).frame_index in range(4)
