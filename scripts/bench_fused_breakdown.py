@@ -2,6 +2,7 @@
 
     .venv/bin/python scripts/bench_fused_breakdown.py --model fused-balanced-x1 --size 512 --size 1920x1080
     .venv/bin/python scripts/bench_fused_breakdown.py --model fused-fast-x1 --size 512 --forms off --forms measured
+    .venv/bin/python scripts/bench_fused_breakdown.py --compile-times 256 320 384   # seconds of each frame
 
 The model is loaded as sessions load it (``for_inference`` and the inference-form table named by ``--forms``:
 ``measured``, ``off`` or a table path; several ``--forms`` run interleaved, frame by frame, in one process, so a
@@ -9,7 +10,9 @@ busy machine slows them alike). Every function ``model.methods.fused`` calls by 
 is wrapped with a timer for the run; a step's time less OIDN's is the learned part. A timer would break a compiled
 graph, so with a ``compile-step`` form among the tables only OIDN and the network are timed (both run outside the
 graph). Prints a markdown table per size: the median ms per frame of each sub-step and of the step, and the first
-frame (warm-up; with a compiled form, its compilation) apart.
+frame (warm-up; with a compiled form, its compilation) apart. ``--compile-times SIZE ...`` instead steps three
+frames at each size in turn with the step compiled (``compile-step+bf16``) and prints each frame's seconds: what
+compiling costs at a first and at a later resolution.
 """
 
 from __future__ import annotations
@@ -32,6 +35,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--forms", action="append", default=[], help="inference-form table(s) (default measured)")
     parser.add_argument("--frames", type=int, default=4, help="timed frames after one warm-up (default 4)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    parser.add_argument("--compile-times", nargs="+", type=int, metavar="SIZE",
+                        help="print the seconds of three compiled-step frames at each size in turn")
     return parser.parse_args()
 
 
@@ -72,6 +77,9 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     tune_for_large_frames()
+    if args.compile_times:
+        compile_times(args.model, args.compile_times)
+        return
     names = [name for name, value in vars(fused).items()
              if callable(value) and not isinstance(value, type) and name[0] != "_"
              and getattr(value, "__module__", "").startswith("model.")
@@ -134,6 +142,27 @@ def main() -> None:
                      for spec in forms]
             print(f"| {key} | " + " | ".join(cells) + " |")
         print("| first frame (warm-up) | " + " | ".join(f"{1000 * first[spec]:.0f}" for spec in forms) + " |\n")
+
+
+def compile_times(model: str, sizes: list[int]) -> None:
+    import numpy as np
+    import torch
+
+    from model.deployment.inference_forms import run_networks_as
+    from model.deployment.pretrained import load_pretrained
+    from model.io.synthetic import moving_pattern_frames
+    from model.methods.base import FrameBatch
+
+    method = load_pretrained(model).eval().for_inference()
+    with torch.inference_mode(), run_networks_as(method, "compile-step+bf16"):
+        for size in sizes:
+            state, seconds = None, []
+            for bundle in moving_pattern_frames(3, size, np.random.default_rng(0)):
+                start = time.perf_counter()
+                _, state = method.step(FrameBatch.from_bundles([bundle], scale=None), state)
+                seconds.append(f"{time.perf_counter() - start:.2f}")
+            print(f"{size}x{size}: seconds per frame {', '.join(seconds)}", flush=True)
+    print(f"compilation failed: {method._compiled_step.failure}" if method._compiled_step.failure else "compiled")
 
 
 if __name__ == "__main__":
