@@ -11,7 +11,8 @@ One concern per module:
 - ``pyramid``: 2x down/upsampling and pyramids;
 - ``tonemap``: mu-law, log, display encoding (forward/inverse pairs) and luminance;
 - ``rectify``: history rectification (neighbourhood clamp, variance clip);
-- ``stale_history``: a test of a reprojected history against the 1 spp frame's unbiased samples.
+- ``stale_history``: a test of a reprojected history against the 1 spp frame's unbiased samples;
+- ``graph_breaks``: calls that stay out of a ``torch.compile`` graph compiled around them.
 
 Coordinate and motion conventions are spelled out in ``warp``'s docstring (and docs/frame-format.md).
 """
