@@ -6,7 +6,8 @@ what model.layouts.read_bundle_buffers does, from the message's planes, as torch
 HTTP request and the EXR encode and decode on either side. Messages are packed by
 client.codec (the protocol: docs/service.md, "Streaming over a WebSocket").
 
-One connection drives one session; its binary messages are frames, answered in order, one output message each. A
+One connection drives one session; its binary messages are frames, answered in order, one output message each, one
+step at a time; the next message is read while a frame steps, so a client may send ahead (_serve). A
 frame the session refuses (bad input, frame order, a busy server) is answered with a JSON text message in the API's
 error shape, plus the REST API's status for the same error and the frame's index when it could be read:
 ``{"error": {"code", "message", "details"}, "status": 409, "frame_index": 7}``; the socket stays open and the
