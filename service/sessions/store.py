@@ -11,9 +11,10 @@ live session from its last mirrored frame, and Redis is the record of which sess
 written by a background writer while the next step runs: Redis is at most one frame behind memory. Several API
 processes may serve one session in turn (replicas behind a proxy): each mirror names the process that wrote it, a
 memory copy is used only while Redis holds its own lineage, and a write lands only over the revision its copy
-continues (compare-and-set), so no process steps a session from, or writes back, a copy another one has moved past. Every step,
-weight load and history restore runs on the store's torch threads (``service.sessions.torch_thread``). The frame
-rules, the mirror's timing and what a crash loses: docs/architecture.md, "service.sessions.store".
+continues (compare-and-set), so no process steps a session from, or writes back, a copy another one has moved
+past. Every step, weight load and history restore runs on the store's torch threads
+(``service.sessions.torch_thread``). The frame rules, the mirror's timing and what a crash loses:
+docs/architecture.md, "service.sessions.store"; replicas: docs/operations.md, "API replicas".
 """
 
 from __future__ import annotations
@@ -169,6 +170,9 @@ class Session:
     # The writer tag ("<process>:<revision>") of the revision this copy was loaded from or last wrote to Redis: its
     # next write lands only over that one (None: a new session, whose key must not exist yet).
     mirror_tag: str | None = field(default=None, repr=False)
+    # The tag of the revision this copy was loaded from (None: made in this process), which Redis may still show
+    # to a read that started before this copy's first write landed.
+    origin_tag: str | None = field(default=None, repr=False)
     # Redis refused this copy's write: another process moved the session on (or deleted it); never step it again.
     superseded: bool = field(default=False, repr=False)
     # Used only by the session's mirror writer, one write at a time.
@@ -198,6 +202,7 @@ class Session:
         """The session as Redis holds it (so its mirror is current); ``mirror_tag``: the hash's writer tag."""
         frame = meta["next_frame_index"] - 1 if meta["next_frame_index"] is not None else None
         return cls(mirrored_revision=meta["revision"], mirrored_frame=frame, mirror_tag=mirror_tag,
+                   origin_tag=mirror_tag,
                    id=meta["id"], model=SessionModel(**meta["model"]), on_gap=meta["on_gap"],
                    created_at=meta["created_at"], last_used_at=meta["last_used_at"], ttl_seconds=ttl_seconds,
                    frames_processed=meta["frames_processed"], next_frame_index=meta["next_frame_index"],
@@ -791,9 +796,9 @@ class SessionStore:
 
     def _holds_lineage(self, session: Session, tag: str | None) -> bool:
         """Whether Redis's writer ``tag`` is one this memory copy continues: the revision it was loaded from or last
-        wrote, or any revision this process wrote (a write of this copy may land just before its tag is recorded);
-        None: a mirror written before writer tags."""
-        return tag is None or tag == session.mirror_tag or tag.split(":", 1)[0] == self.instance
+        wrote, or any revision this process wrote (a read may race this copy's writes either way: see the tag before
+        a write lands and compare after, or the reverse); None: a mirror written before writer tags."""
+        return tag is None or tag in (session.mirror_tag, session.origin_tag) or tag.split(":", 1)[0] == self.instance
 
     def _lock_for(self, session_id: str) -> threading.Lock:
         with self._lock:

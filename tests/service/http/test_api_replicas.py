@@ -80,14 +80,15 @@ class Stack:
         return self.work / f"{name}.log"
 
     def start(self, name: str, command: list[str]) -> subprocess.Popen:
-        with self.log(name).open("wb") as log:
+        with self.log(name).open("ab") as log:  # appended: a restarted replica keeps its first run's log
             process = subprocess.Popen(command, cwd=ROOT, env=self.env, stdout=log, stderr=subprocess.STDOUT,
                                        start_new_session=True)
         self.processes[name] = process
         return process
 
     def start_api(self, name: str) -> str:
-        port = self.ports[name] = closed_port()
+        """Start replica ``name``, on the port it had if it ran before (the proxy's server line names that port)."""
+        port = self.ports.setdefault(name, closed_port())
         process = self.start(name, [sys.executable, "-m", "uvicorn", "service.http.app:app", "--host", "127.0.0.1",
                                     "--port", str(port), "--ws-max-size", "268435456"])
         url = f"http://127.0.0.1:{port}"
@@ -110,9 +111,18 @@ class Stack:
         os.killpg(process.pid, signal.SIGKILL)  # dies as a crashed container would: no shutdown, no last flush
         process.wait(30)
 
+    def signal(self, name: str, number: int) -> None:
+        os.killpg(self.processes[name].pid, number)
+
+    def proxy_says(self, text: str) -> int:
+        """How many log lines of the proxy begin with ``text`` (it logs each server going DOWN or UP; its warnings
+        on stderr, which say the same after a prefix, are not counted)."""
+        return len(re.findall(rf"^{re.escape(text)}", self.log("proxy").read_text(), re.MULTILINE))
+
     def stop(self) -> None:
         for process in self.processes.values():
             if process.poll() is None:
+                os.killpg(process.pid, signal.SIGCONT)  # a replica the test froze
                 os.killpg(process.pid, signal.SIGTERM)
         for process in self.processes.values():
             try:
@@ -140,7 +150,7 @@ def replica_of(client: DenoiserClient, session_id: str) -> str:
 
 def test_two_replicas_serve_a_sessions_frames_in_order_and_continue_it_after_one_is_killed(stack):
     running, binary = stack
-    frames = stream_frames(12, seed=21)
+    frames = stream_frames(17, seed=21)
     # Started one after the other: the first creates the shared data folder's registry database.
     direct = running.start_api("api1")
     with DenoiserClient(direct) as client:  # the uninterrupted single-process run
@@ -178,13 +188,19 @@ def test_two_replicas_serve_a_sessions_frames_in_order_and_continue_it_after_one
         # otherwise is the frame being answered: docs/operations.md).
         victim, survivor = "api1", "api2"
         session_id = sessions[victim]
-        wait_until(lambda: client.get_session(session_id).mirror.current, "the mirror of frame 6", seconds=60)
+
+        def mirrored() -> None:  # a switch of replica must not race the last frame's mirror
+            wait_until(lambda: client.get_session(session_id).mirror.current, "the last frame's mirror", seconds=60)
+
+        def send(index: int, replica: str) -> None:
+            image, info = client.send_frame(session_id, frames[index])
+            assert (info.headers[REPLICA_HEADER], info.frame_index, info.history) == (replica, index, "continued")
+            assert_same_image(image, expected[index])
+
+        mirrored()
         running.kill(victim)
         for index in range(7, 9):
-            image, info = client.send_frame(session_id, frames[index])
-            assert info.headers[REPLICA_HEADER] == survivor
-            assert (info.frame_index, info.history) == (index, "continued")
-            assert_same_image(image, expected[index])
+            send(index, survivor)
         with client.open_stream(session_id) as stream:
             for index in range(9, 12):
                 image, info = stream.send(frames[index])
@@ -196,3 +212,26 @@ def test_two_replicas_serve_a_sessions_frames_in_order_and_continue_it_after_one
         image, info = client.send_frame(sessions[survivor], frames[7])
         assert (info.headers[REPLICA_HEADER], info.history) == (survivor, "continued")
         assert_same_image(image, expected[7])
+
+        # The replica comes back (on its address): once its health check passes, its sessions return to it, and it
+        # continues them from Redis.
+        up = f"Server api/{victim} is UP"
+        mirrored()
+        running.start_api(victim)
+        wait_until(lambda: running.proxy_says(up) == 1, f"the proxy taking {victim} back", seconds=60)
+        for index in range(12, 14):
+            send(index, victim)
+        # Frozen rather than dead (cut off for a while, its memory kept): the proxy's checks take it out and the
+        # other replica continues the session from Redis; thawed, it gets the session back with its memory copy
+        # two frames behind Redis, which it must not step.
+        mirrored()
+        running.signal(victim, signal.SIGSTOP)
+        wait_until(lambda: running.proxy_says(f"Server api/{victim} is DOWN") == 2, f"the proxy dropping {victim}",
+                   seconds=60)
+        for index in range(14, 16):
+            send(index, survivor)
+        mirrored()
+        running.signal(victim, signal.SIGCONT)
+        wait_until(lambda: running.proxy_says(up) == 2, f"the proxy taking {victim} back again", seconds=60)
+        send(16, victim)
+        assert client.get_session(session_id).frames_processed == 17

@@ -889,3 +889,35 @@ def test_delete_markers_under_a_longer_prefix_are_not_counted_as_sessions(make_s
         inner.close()
     restarted = make_store()  # nothing in memory: it counts what Redis holds
     assert restarted.count() == 1 and [s.id for s in restarted.list()] == [kept.id]
+
+
+def test_a_read_of_redis_made_before_this_copys_write_landed_still_finds_the_copy_current(make_store, redis_db,
+                                                                                          monkeypatch):
+    # A continues a session B wrote last; A's mirror of its next frame lands while a request reads Redis: the read
+    # shows B's revision (what A loaded), the copy already records its own. Neither a view nor a frame may take the
+    # copy for stale (a frame would reload B's older revision and restart the history at a gap).
+    frames = stream_frames(4)
+    a = make_store()
+    session = a.create(MODEL_NAME)
+    a.process_frame(session.id, frames[0])
+    assert a.flush(timeout=30)
+    b = make_store()
+    b.process_frame(session.id, frames[1])
+    assert b.flush(timeout=30)
+    before = redis_db.hmget(f"{a.prefix}{session.id}", "meta", "writer")
+    third = a.process_frame(session.id, frames[2])
+    assert a.flush(timeout=30)
+    redis_call, reads = a._redis, []
+
+    def first_read_before_the_write(call):
+        if not reads:
+            reads.append(call)
+            return before
+        return redis_call(call)
+
+    monkeypatch.setattr(a, "_redis", first_read_before_the_write)
+    view = a.get(session.id)
+    assert view is third.session and view.frames_processed == 3
+    reads.clear()
+    fourth = a.process_frame(session.id, frames[3])
+    assert reads and fourth.session is third.session and fourth.history == CONTINUED
