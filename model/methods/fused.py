@@ -481,10 +481,15 @@ class Fused(Method):
         state = drop_history(state, frame)
         n, _, height, width = frame.color.shape
         motion_out = upscale_motion(frame.motion, self.scale) if self.scale > 1 else frame.motion
-        reprojected = None if state is None else self._reproject(frame, state, motion_out)
-        samples = samples_count = None
+        samples = samples_count = previous_samples = None
         if self._sample_mean_frames:
-            samples, samples_count = self._sample_mean(frame, state, None if reprojected is None else reprojected[3])
+            samples = frame_samples(frame)
+            previous_samples = None if state is None else state.get("samples")
+            if previous_samples is not None and previous_samples.shape != samples.shape:
+                previous_samples = None  # a session from before the sample mean averaged the guides
+        reprojected = None if state is None else self._reproject(frame, state, motion_out, previous_samples)
+        if samples is not None:
+            samples, samples_count = self._sample_mean(frame, state, samples, reprojected)
             s = reinhard(_spatial_denoise(frame_of_sample_mean(frame, samples), self.preset).to(frame.color.dtype))
         else:
             s = self.spatial_estimate(frame)
@@ -503,7 +508,7 @@ class Fused(Method):
             history, hidden = s_out, frame.color.new_zeros(n, HIDDEN, height, width)
             length = torch.zeros_like(frame.depth)
         else:
-            history, hidden, length, valid, mean, count = reprojected
+            history, hidden, length, valid, mean, count = reprojected[:6]
             valid_out = _upsample_mask(valid, self.scale)
             history = torch.where(valid_out, history, s_out)
             hidden = hidden * valid
@@ -581,17 +586,15 @@ class Fused(Method):
                                            self._albedo_detail_frames)
         return texture_detail(total, weight, upsampled, self.scale), {"albedo_sum": total, "albedo_weight": weight}
 
-    def _sample_mean(self, frame: FrameBatch, state: State | None,
-                     valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The running mean of the 1 spp frames and their guides that OIDN reads (``frame_samples``), and the frames
-        it holds (``model.ops.sample_mean``); ``valid`` is the history's geometry test from ``_reproject``."""
-        samples = frame_samples(frame)
-        previous = None if state is None else state.get("samples")
-        if previous is None or previous.shape != samples.shape:
+    def _sample_mean(self, frame: FrameBatch, state: State | None, samples: torch.Tensor,
+                     reprojected: tuple[torch.Tensor | None, ...] | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The running mean of the 1 spp frames and their guides that OIDN reads (``samples``, this frame's
+        ``frame_samples``), and the frames it holds (``model.ops.sample_mean``); ``reprojected``: ``_reproject``'s
+        answer, the history's geometry test and the mean's samples and count warped into this frame."""
+        if reprojected is None or reprojected[6] is None:
             # a new stream, or a session from before the sample mean or before it averaged the guides
             return samples, torch.ones_like(frame.depth)
-        warped, _ = backward_warp(previous, frame.motion, mode="bilinear")
-        count, _ = backward_warp(state["samples_count"], frame.motion, mode="nearest")
+        valid, warped, count = reprojected[3], reprojected[6], reprojected[7]
         return update_sample_mean(samples, warped, count, valid, self._sample_mean_frames, SAMPLE_MEAN_STALE_SIGMAS,
                                   spread=sample_mean_spread(frame.motion, frame.jitter, state["jitter"]),
                                   stale_region=self._stale_region_pixels)
@@ -617,12 +620,15 @@ class Fused(Method):
         moved = weights[:, 1:2] + weights[:, 3:4] - history - clipped_mean
         return torch.cat([weights[:, :1] + moved, history, rectified, clipped_mean], dim=1)
 
-    def _reproject(self, frame: FrameBatch, state: State, motion_out: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def _reproject(self, frame: FrameBatch, state: State, motion_out: torch.Tensor,
+                   samples: torch.Tensor | None = None) -> tuple[torch.Tensor | None, ...]:
         """(history at output resolution, hidden features, history length, valid, running mean at output
-        resolution, frames the mean will hold with this one) warped into this frame; the last two are None when
-        the network has no mean or the state none (a session from before it: the mean starts at this frame).
+        resolution, frames the mean will hold with this one, the sample mean ``samples``, its count) warped into
+        this frame; the running mean's two are None when the network has no mean or the state none (a session from
+        before it: the mean starts at this frame), the sample mean's when ``samples`` is None.
         Where the history is invalid the count is 1, so the caller's update replaces the mean with ``s``.
-        ``motion_out``: the motion on the output grid."""
+        ``motion_out``: the motion on the output grid. The buffers read with the same motion and filter are read in
+        one call each: a read's arithmetic is per channel, so the values are those of separate reads."""
         with_mean = self.has_mean and "mean" in state
         # Bicubic: a bilinear read blurs the history a little every frame under camera motion, which adds up over
         # a long history.
@@ -631,18 +637,24 @@ class Fused(Method):
         images, _ = backward_warp(images, motion_out, mode="bicubic")
         images = images.clamp(0.0, 1.0 - 1e-4)
         history = images[:, :3]
-        render, _ = backward_warp(torch.cat([state["hidden"], state["length"]], dim=1), frame.motion,
-                                  mode="bilinear")
+        render_parts = [state["hidden"], state["length"]] + ([] if samples is None else [samples])
+        render, _ = backward_warp(torch.cat(render_parts, dim=1), frame.motion, mode="bilinear")
         valid = disocclusion_mask(frame.depth, frame.normal, state["depth"], state["normal"], frame.motion,
                                   depth_rel_tol=self.depth_rel_tol, normal_cos_tol=self.normal_cos_tol,
                                   jitter=frame.jitter - state["jitter"])
         # A camera cut zeroes the state (drop_history): its normals are 0 then, which fails the test above.
+        counts = ([state["count"]] if with_mean else []) + ([] if samples is None else [state["samples_count"]])
+        counts = backward_warp(torch.cat(counts, dim=1), frame.motion, mode="nearest")[0] if counts else None
         mean = count = None
         if with_mean:
-            count, _ = backward_warp(state["count"], frame.motion, mode="nearest")
             window = float(self._mean_max_frames)
+            count = counts[:, :1]
             mean, count = images[:, 3:], torch.where(valid, (count + 1).clamp_max(window), torch.ones_like(count))
-        return history, render[:, :HIDDEN], render[:, HIDDEN:], valid, mean, count
+        warped_samples = samples_count = None
+        if samples is not None:
+            warped_samples, samples_count = render[:, HIDDEN + 1:], counts[:, -1:]
+        return (history, render[:, :HIDDEN], render[:, HIDDEN:HIDDEN + 1], valid, mean, count, warped_samples,
+                samples_count)
 
 
 @outside_compiled_graph

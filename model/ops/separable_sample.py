@@ -124,10 +124,10 @@ def scaled_nearest(image: torch.Tensor, shift: torch.Tensor, scale: int) -> torc
     _check(image, shift, scale)
     dtype = _positions_dtype(image)
     h, w = image.shape[-2:]
-    # Index selections of whole rows: a nearest read has one tap, so shifted slices gain nothing over them. A
-    # selection along the last dimension gathers single values and is slow on this CPU, so the columns are selected
-    # as the rows of the transposed image.
+    # Index selections of whole rows: a nearest read has one tap, so shifted slices gain nothing over them. The
+    # columns are gathered with the index expanded over the channels and rows: index_select along the last dimension
+    # is slow on this CPU, and so are the two transposed copies that would select them as rows.
     columns = torch.round(_grid_sample_positions(shift[:, 0], w, scale, dtype).clamp(0, w - 1)).long()
     rows = torch.round(_grid_sample_positions(shift[:, 1], h, scale, dtype).clamp(0, h - 1)).long()
-    return torch.stack([item.transpose(1, 2).contiguous().index_select(1, columns[i]).transpose(1, 2).contiguous()
-                        .index_select(1, rows[i]) for i, item in enumerate(image)])
+    return torch.stack([torch.gather(item, 2, columns[i].expand(item.shape[0], h, -1)).index_select(1, rows[i])
+                        for i, item in enumerate(image)])
