@@ -32,7 +32,7 @@ from model.ops.graph_breaks import outside_compiled_graph
 from model.ops.jittered_albedo import gather_samples, sample_weights, texture_detail
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.pyramid import block_mean
-from model.ops.rectify import clip_to_moments, neighbourhood_moments
+from model.ops.rectify import clip_to_bounds, moment_bounds, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
 from model.ops.sample_mean import sample_mean_spread, update_sample_mean
 from model.ops.separable_sample import scaled_bicubic, scaled_nearest
@@ -512,8 +512,8 @@ class Fused(Method):
             valid_out = _upsample_mask(valid, self.scale)
             history = torch.where(valid_out, history, s_out)
             hidden = hidden * valid
-        guide = neighbourhood_moments(s_out)  # both clipped candidates are clipped to s's neighbourhood
-        rectified = clip_to_moments(history, *guide)
+        box = moment_bounds(*neighbourhood_moments(s_out))  # both clipped candidates are clipped to s's neighbourhood
+        rectified = clip_to_bounds(history, *box)
         length = torch.where(valid, (length + 1).clamp_max(MAX_HISTORY), torch.zeros_like(length))
 
         def at_render(image: torch.Tensor) -> torch.Tensor:
@@ -534,7 +534,7 @@ class Fused(Method):
                 mean = mean + (s_out - mean) / count_out
             mean_r = at_render(mean)
             parts += [mean_r, (mean_r - s).abs(), torch.log1p(count) / torch.log1p(torch.tensor(MEAN_FRAMES))]
-            candidates.append(clip_to_moments(mean, *guide))
+            candidates.append(clip_to_bounds(mean, *box))
         features = _features(parts, self.net.head.weight.is_contiguous(memory_format=torch.channels_last))
         weights, kernels, new_hidden = self.net(features)
         # contiguous: from a channels_last network each candidate's weight is a strided slice otherwise
@@ -544,7 +544,10 @@ class Fused(Method):
             samples_count = samples_count * block_mean(share, self.scale)
         if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
             weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
-        blended = sum(weights[:, k:k + 1] * candidate for k, candidate in enumerate(candidates))
+        # from the first product, not from sum()'s 0: one full-frame pass fewer, the same values
+        blended = weights[:, :1] * candidates[0]
+        for k, candidate in enumerate(candidates[1:], start=1):
+            blended = blended + weights[:, k:k + 1] * candidate
         if self._kernel_max_pixels and height * width > self._kernel_max_pixels:
             output = blended
         else:

@@ -23,7 +23,7 @@ import torch
 from model.ops.box_filter import replicated_box_extremes, replicated_box_mean
 
 __all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip",
-           "clip_to_moments", "variance_clip_hdr", "rectify_accumulated", "ACCUMULATION_WINDOW", "ACCUMULATION_GAMMA"]
+           "clip_to_moments", "clip_to_bounds", "moment_bounds", "variance_clip_hdr", "rectify_accumulated", "ACCUMULATION_WINDOW", "ACCUMULATION_GAMMA"]
 
 # The clip of an accumulated history against a 1 spp frame: a window wide enough that the noise does not make the
 # box meaningless, and a box a little wider than TAA's (``accumulation:rectified``, ``svgf:rectified``, and the seed
@@ -80,8 +80,19 @@ def variance_clip(history: torch.Tensor, guide: torch.Tensor, size: int = 3, gam
 def clip_to_moments(history: torch.Tensor, mean: torch.Tensor, std: torch.Tensor, gamma: float = 1.0) -> torch.Tensor:
     """``variance_clip`` against moments already taken (``neighbourhood_moments``): several histories clipped to one
     guide take its moments once."""
+    return clip_to_bounds(history, *moment_bounds(mean, std, gamma))
+
+
+def moment_bounds(mean: torch.Tensor, std: torch.Tensor, gamma: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The YCoCg box ``clip_to_moments`` clips to, (mean + gamma * std, mean - gamma * std): several histories
+    clipped to one guide's box (``clip_to_bounds``) take it once."""
     spread = gamma * std
-    return ycocg_to_rgb(torch.maximum(torch.minimum(rgb_to_ycocg(history), mean + spread), mean - spread))
+    return mean + spread, mean - spread
+
+
+def clip_to_bounds(history: torch.Tensor, high: torch.Tensor, low: torch.Tensor) -> torch.Tensor:
+    """Clamp the history, per YCoCg channel, to the box ``moment_bounds`` gives; RGB out."""
+    return ycocg_to_rgb(torch.maximum(torch.minimum(rgb_to_ycocg(history), high), low))
 
 
 def variance_clip_hdr(history: torch.Tensor, guide: torch.Tensor, size: int = 3, gamma: float = 1.0) -> torch.Tensor:
