@@ -23,6 +23,7 @@ import logging
 import threading
 import time
 import uuid
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any
 
@@ -144,7 +145,7 @@ def _result_from_another_node(board: NodeBoard, attempt: int) -> dict[str, Any]:
     raise RankError(f"the ranks ended but no node relayed rank 0's result within {RESULT_WAIT_SECONDS:.0f} s")
 
 
-class _Ticker:
+class _Ticker(ABC):
     """A daemon thread of one node's execution that calls ``tick`` every NODE_BEAT_SECONDS until ``stop`` (or until
     ``tick`` returns True); a Redis blip only skips a tick."""
 
@@ -160,8 +161,9 @@ class _Ticker:
         self._stop.set()
         self._thread.join(timeout=10)
 
+    @abstractmethod
     def tick(self) -> bool:
-        raise NotImplementedError
+        """One look; True ends the thread."""
 
     def _run(self) -> None:
         while not self._stop.wait(NODE_BEAT_SECONDS):
