@@ -27,10 +27,12 @@ from model.methods.base import FrameBatch, Method, State, drop_history
 from model.methods.oidn import QUALITIES, oidn_albedo, oidn_denoise
 from model.methods.oidn_taa import reinhard, reinhard_inverse
 from model.methods.registry import MethodSpec, register
+from model.ops import native
 from model.ops.box_filter import replicated_box_extremes
 from model.ops.graph_breaks import outside_compiled_graph
 from model.ops.jittered_albedo import gather_samples, sample_weights, texture_detail
 from model.ops.kernels import apply_pixel_kernels
+from model.ops.native.warps import reproject_x1
 from model.ops.pyramid import block_mean
 from model.ops.rectify import clip_to_bounds, moment_bounds, neighbourhood_moments
 from model.ops.reproject import disocclusion_mask
@@ -101,11 +103,9 @@ SHIPPED_SETTINGS: dict[int, dict[str, bool | int | float]] = {
         "albedo_detail_frames": 8, "unjitter_estimate": True},
 }
 
-
 def frame_samples(frame: FrameBatch) -> torch.Tensor:
     """The 1 spp colour with the guides OIDN reads of the same samples (its albedo, the normals), (N, 9, H, W)."""
     return torch.cat([frame.color, oidn_albedo(frame), frame.normal], dim=1)
-
 
 def frame_of_sample_mean(frame: FrameBatch, samples: torch.Tensor) -> FrameBatch:
     """The frame OIDN denoises from a running mean of ``frame_samples``: the mean colour with the mean guides. OIDN
@@ -114,7 +114,6 @@ def frame_of_sample_mean(frame: FrameBatch, samples: torch.Tensor) -> FrameBatch
     return dataclasses.replace(frame, color=samples[:, :3], albedo=samples[:, 3:6], normal=samples[:, 6:9],
                                specular_albedo=None)
 
-
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
     """Resample a render-resolution image whose pixel (x, y) holds the sample at (x + 0.5 + jitter) onto the
     target grid: target pixel centre P (in render pixels, P = (X + 0.5) / scale) reads the image at P - jitter.
@@ -122,12 +121,10 @@ def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -
     next to a bright emitter, and in x / (1 + x) space an overshoot past 1 would map back to unbounded radiance)."""
     return _read_within_bounds(image, _source_bounds(image), jitter, scale)
 
-
 def _source_bounds(image: torch.Tensor) -> torch.Tensor:
     """Each pixel's 3x3 neighbourhood max and min (N, 2C, H, W), edges replicated: the 2x2 source pixels a bilinear
     read would use lie inside it."""
     return torch.cat(replicated_box_extremes(image, 3), dim=1)
-
 
 def _read_within_bounds(image: torch.Tensor, bounds: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
     # Target pixel centre P = (X + 0.5) / scale render pixels reads the source at P - jitter, i.e. at pixel
@@ -137,7 +134,6 @@ def _read_within_bounds(image: torch.Tensor, bounds: torch.Tensor, jitter: torch
     resampled = scaled_bicubic(image, shift, scale)
     bounds = scaled_nearest(bounds, shift, scale)
     return torch.clamp(resampled, min=bounds[:, channels:], max=bounds[:, :channels])
-
 
 def sample_mean_resample(image: torch.Tensor, jitter: torch.Tensor, count: torch.Tensor, scale: int) -> torch.Tensor:
     """``unjittered_resample`` for an estimate made from a sample mean of ``count`` (N, 1, H, W) frames: this frame's
@@ -149,16 +145,13 @@ def sample_mean_resample(image: torch.Tensor, jitter: torch.Tensor, count: torch
     centred = image if scale == 1 else _read_within_bounds(image, bounds, torch.zeros_like(jitter), scale)
     return centred + current * (_read_within_bounds(image, bounds, jitter, scale) - centred)
 
-
 def head_candidates(head_rows: int, scale: int) -> int:
     """How many fusion candidates a network's head of ``head_rows`` outputs predicts weights for at ``scale``
     (the head: scale^2 sub-pixels x (candidates + 3 x 3 kernel taps), then the hidden features)."""
     return (head_rows - HIDDEN) // scale ** 2 - KERNEL * KERNEL
 
-
 def _conv(inputs: int, outputs: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(inputs, outputs, 3, padding=1), nn.ReLU(inplace=True))
-
 
 class FusionNet(nn.Module):
     """Two-level U-Net at render resolution; the head predicts scale^2 sub-pixels' weights and kernels each."""
@@ -198,7 +191,6 @@ class FusionNet(nn.Module):
         # contiguous first: in channels_last the hidden rows are a strided slice, and tanh over it is much slower
         # (the same values)
         return fine[:, :self.candidates], fine[:, self.candidates:], torch.tanh(out[:, per_pixel:].contiguous())
-
 
 class Fused(Method):
     """OIDN + learned temporal reuse (see the module docstring)."""
@@ -633,6 +625,8 @@ class Fused(Method):
         ``motion_out``: the motion on the output grid. The buffers read with the same motion and filter are read in
         one call each: a read's arithmetic is per channel, so the values are those of separate reads."""
         with_mean = self.has_mean and "mean" in state
+        if self.scale == 1 and frame.motion.shape[0] == 1 and native.usable("reproject", frame.motion, state["history"]):
+            return self._reproject_native(frame, state, samples, with_mean)
         # Bicubic: a bilinear read blurs the history a little every frame under camera motion, which adds up over
         # a long history.
         # Its overshoot is clamped: the values are x / (1 + x) in [0, 1). The running mean is read with it.
@@ -659,13 +653,32 @@ class Fused(Method):
         return (history, render[:, :HIDDEN], render[:, HIDDEN:HIDDEN + 1], valid, mean, count, warped_samples,
                 samples_count)
 
+    def _reproject_native(self, frame: FrameBatch, state: State, samples: torch.Tensor | None,
+                          with_mean: bool) -> tuple[torch.Tensor | None, ...]:
+        """``_reproject`` at 1x for one image as one native pass (``model.ops.native.warps``): the same reads and
+        test, so the same values to float rounding."""
+        cubic = [state["history"]] + ([state["mean"]] if with_mean else [])
+        linear = [state["hidden"], state["length"]] + ([] if samples is None else [samples])
+        nearest = ([state["count"]] if with_mean else []) + ([] if samples is None else [state["samples_count"]])
+        images, render, counts, valid = reproject_x1(
+            frame.motion, cubic, (0.0, 1.0 - 1e-4), linear, nearest, frame.depth, frame.normal, state["depth"],
+            state["normal"], frame.jitter - state["jitter"], self.depth_rel_tol, self.normal_cos_tol)
+        mean = count = None
+        if with_mean:
+            count = counts[:, :1]
+            count = torch.where(valid, (count + 1).clamp_max(float(self._mean_max_frames)), torch.ones_like(count))
+            mean = images[:, 3:]
+        warped_samples = samples_count = None
+        if samples is not None:
+            warped_samples, samples_count = render[:, HIDDEN + 1:], counts[:, -1:]
+        return (images[:, :3], render[:, :HIDDEN], render[:, HIDDEN:HIDDEN + 1], valid, mean, count, warped_samples,
+                samples_count)
 
 @outside_compiled_graph
 def _spatial_denoise(frame: FrameBatch, quality: str) -> torch.Tensor:
     """OIDN's estimate (``oidn_denoise``, read from this module at each call); a native call, so a compiled step
     runs it between its graphs."""
     return oidn_denoise(frame, quality)
-
 
 def _features(parts: list[torch.Tensor], channels_last: bool) -> torch.Tensor:
     """The network's input: ``parts`` concatenated along the channels, in channels_last for a network in it.
@@ -681,18 +694,15 @@ def _features(parts: list[torch.Tensor], channels_last: bool) -> torch.Tensor:
                       memory_format=torch.channels_last)
     return torch.cat(parts, dim=1, out=out)
 
-
 def _upsample_values(values: torch.Tensor, scale: int) -> torch.Tensor:
     if scale == 1:
         return values
     return F.interpolate(values, scale_factor=scale, mode="nearest")
 
-
 def _upsample_mask(mask: torch.Tensor, scale: int) -> torch.Tensor:
     if scale == 1:
         return mask
     return _upsample_values(mask.to(torch.float32), scale) > 0.5
-
 
 register(MethodSpec(
     name=Fused.name,

@@ -1,0 +1,135 @@
+"""Hand-written CPU kernels for inference passes that torch runs as many small full-frame ones.
+
+The fused step's learned part is some thirty float32 passes around a small network; each reads and writes whole
+frames, and torch cannot fuse them on the CPU (docs/methods.md, "Native kernels"). The C sources beside this module
+do several of them per pixel in one pass. Each source is compiled on first use with the machine's C compiler
+(``-O3 -march=native``, OpenMP on torch's own runtime, so one thread pool) into a cache folder keyed by the source,
+the flags and the CPU, and loaded with ctypes. ``usable`` says whether a call may take a source's kernels: float32
+CPU tensors, no gradient, no compiler tracing, the kernels enabled (``set_enabled``) and built. Otherwise the
+callers run their torch ops, which give the same values to float rounding; a failed build warns once and falls back
+for good.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+__all__ = ["CACHE_ENV", "build", "call", "enabled", "library", "set_enabled", "usable"]
+
+CACHE_ENV = "DENOISER_NATIVE_CACHE"  # where compiled kernels are kept (default: the user's cache folder)
+SOURCES = Path(__file__).parent  # <name>.c, one library each
+FLAGS = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=c11", "-fno-math-errno"]
+_state = {"enabled": True}
+_lock = threading.Lock()
+
+
+def set_enabled(value: bool) -> None:
+    """Turn the kernels on or off for this process (off: every caller runs its torch ops)."""
+    _state["enabled"] = bool(value)
+
+
+def enabled() -> bool:
+    return _state["enabled"]
+
+
+def _cpu_signature() -> str:
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        flags = next((line for line in text.splitlines() if line.startswith("flags")), "")
+    except OSError:
+        flags = ""
+    return f"{platform.machine()} {flags}"
+
+
+def _cache_dir() -> Path:
+    configured = os.environ.get(CACHE_ENV)
+    if configured:
+        return Path(configured)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "denoiser-service" / "native"
+
+
+def build(source: str, cache: Path | None = None) -> Path:
+    """Compile ``<source>.c`` into a shared library in ``cache`` (default ``_cache_dir``) unless one built from the
+    same text, flags and CPU is there; its path. Raises RuntimeError when there is no compiler or it fails."""
+    path = SOURCES / f"{source}.c"
+    digest = hashlib.sha256(path.read_bytes())
+    digest.update(" ".join(FLAGS).encode())
+    digest.update(_cpu_signature().encode())
+    cache = cache or _cache_dir()
+    target = cache / f"{source}_{digest.hexdigest()[:16]}.so"
+    if target.exists():
+        return target
+    compiler = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+    if compiler is None:
+        raise RuntimeError("no C compiler (gcc or cc) on PATH")
+    cache.mkdir(parents=True, exist_ok=True)
+    # compiled under a temporary name, then renamed: processes building at once never load a half-written file
+    handle, partial = tempfile.mkstemp(suffix=".so", dir=cache)
+    os.close(handle)
+    try:
+        result = subprocess.run([compiler, *FLAGS, str(path), "-o", partial, "-lm"], capture_output=True, text=True)
+        if result.returncode != 0:
+            raise RuntimeError(f"{compiler} failed on {path.name}: {result.stderr.strip()[-2000:]}")
+        os.replace(partial, target)
+    finally:
+        if os.path.exists(partial):
+            os.unlink(partial)
+    return target
+
+
+@functools.cache
+def library(source: str) -> ctypes.CDLL | None:
+    """``<source>.c``'s kernels, built on first use; None (with one warning) where they cannot be built or loaded."""
+    with _lock:
+        try:
+            return ctypes.CDLL(str(build(source)))
+        except (RuntimeError, OSError) as error:
+            warnings.warn(f"native kernels unavailable, running torch ops instead: {error}", RuntimeWarning,
+                          stacklevel=2)
+            return None
+
+
+def usable(source: str, *tensors: torch.Tensor) -> bool:
+    """Whether a call on ``tensors`` may run ``<source>.c``'s kernels (see the module docstring)."""
+    if not _state["enabled"] or torch.is_grad_enabled():
+        return False
+    if torch.compiler.is_compiling() or torch.jit.is_tracing() or torch.jit.is_scripting():
+        return False
+    if not all(t.device.type == "cpu" and t.dtype == torch.float32 and not t.requires_grad for t in tensors):
+        return False
+    return library(source) is not None
+
+
+def _argument(value):
+    if isinstance(value, torch.Tensor):
+        return ctypes.c_void_p(value.data_ptr())
+    if isinstance(value, (list, tuple)):  # planes: an array of pointers
+        return (ctypes.c_void_p * max(len(value), 1))(*(t.data_ptr() for t in value))
+    if value is None:
+        return None
+    if isinstance(value, bool):
+        return ctypes.c_int64(int(value))
+    if isinstance(value, int):
+        return ctypes.c_int64(value)
+    if isinstance(value, float):
+        return ctypes.c_double(value)
+    raise TypeError(f"a native kernel takes tensors, ints and floats, got {type(value).__name__}")
+
+
+def call(source: str, name: str, *arguments) -> None:
+    """Run ``<source>.c``'s kernel ``name`` with tensors passed by pointer (the caller makes them contiguous; a list of tensors as an
+    array of pointers, None as NULL), ints as int64 and floats as double, on torch's thread count."""
+    getattr(library(source), name)(*map(_argument, arguments), ctypes.c_int64(torch.get_num_threads()))

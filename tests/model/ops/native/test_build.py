@@ -1,0 +1,39 @@
+"""The native kernels' build: compiled once per source into the cache, refused clearly, and never half-loaded."""
+
+import pytest
+import torch
+
+from model.ops import native
+
+
+def test_builds_once_into_the_cache(tmp_path):
+    first = native.build("reproject", tmp_path)
+    stamp = first.stat().st_mtime_ns
+    assert native.build("reproject", tmp_path) == first and first.stat().st_mtime_ns == stamp
+    assert [p.name for p in tmp_path.iterdir()] == [first.name]  # no partial files left behind
+
+
+def test_a_missing_compiler_is_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    with pytest.raises((RuntimeError, OSError)):
+        native.build("reproject", tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_usable_only_without_gradients_on_float32_cpu_tensors():
+    x = torch.zeros(1, 1, 4, 4)
+    assert native.usable("reproject", x)
+    assert not native.usable("reproject", x.double())
+    with torch.enable_grad():
+        assert not native.usable("reproject", x)
+    native.set_enabled(False)
+    try:
+        assert not native.usable("reproject", x)
+    finally:
+        native.set_enabled(True)
+
+
+@pytest.fixture(autouse=True)
+def _no_grad():
+    with torch.no_grad():
+        yield
