@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import torch
 
+from model.ops import native
+from model.ops.native.stale import sample_mean_update
 from model.ops.stale_history import stale_history_trust
 from model.ops.warp import bilinear_spread
 
@@ -53,6 +55,14 @@ def update_sample_mean(noisy: torch.Tensor, mean: torch.Tensor, count: torch.Ten
     if noisy.dim() != 4 or noisy.shape[1] < 3 or noisy.shape != mean.shape:
         raise ValueError(f"noisy and mean must both be (N, C >= 3, H, W) of one shape, got {tuple(noisy.shape)} and "
                          f"{tuple(mean.shape)}")
+    one = (1, 1) + tuple(noisy.shape[-2:])  # one image: the count arithmetic and the update in one native pass
+    if (noisy.shape[0] == 1 and count.shape == one and valid.shape == one and valid.dtype == torch.bool
+            and (spread is None or spread.shape == one) and native.usable("stale", noisy, mean, count)
+            and (spread is None or native.usable("stale", spread))):
+        trust = None
+        if stale_sigmas > 0:
+            trust = stale_history_trust(noisy[:, :3], mean[:, :3], stale_sigmas, stale_region)
+        return sample_mean_update(noisy, mean, count, valid, max_frames, trust, spread)
     if stale_sigmas > 0:
         count = count * stale_history_trust(noisy[:, :3], mean[:, :3], stale_sigmas, stale_region)
     if spread is not None:

@@ -17,7 +17,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from model.ops import native
 from model.ops.box_filter import box_mean
+from model.ops.native.stale import stale_trust
 
 __all__ = ["stale_history_z", "history_trust", "regional_z", "stale_history_trust", "RELATIVE_FLOOR",
            "REGION_SIGMAS", "REGION_Z_CAP"]
@@ -72,6 +74,12 @@ def stale_history_trust(noisy: torch.Tensor, history: torch.Tensor, sigmas: floa
     """How far to trust ``history`` against the 1 spp frame ``noisy``, (N, 1, H, W) in [0, 1]: ``history_trust`` of
     ``stale_history_z`` at ``sigmas``, and with a ``region`` (odd window side, 0: none) the lesser of that and the
     region's trust, ``history_trust(regional_z(z, region), REGION_SIGMAS)``."""
+    if (noisy.dim() == 4 and noisy.shape[0] == 1 and noisy.shape[1] == 3 and noisy.shape == history.shape
+            and native.usable("stale", noisy, history)):  # one image: the whole test in one native call
+        _check_odd("block", block)
+        if region:
+            _check_odd("window", region)
+        return stale_trust(noisy, history, sigmas, region, block, RELATIVE_FLOOR, REGION_Z_CAP, REGION_SIGMAS)
     z = stale_history_z(noisy, history, block)
     trust = history_trust(z, sigmas)
     if region:
