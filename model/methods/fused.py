@@ -32,6 +32,8 @@ from model.ops.box_filter import replicated_box_extremes
 from model.ops.graph_breaks import outside_compiled_graph
 from model.ops.jittered_albedo import gather_samples, sample_weights, texture_detail
 from model.ops.kernels import apply_pixel_kernels
+from model.ops.native.features import fused_features_x1
+from model.ops.native.resample import sample_mean_resample_x1, unjittered_resample_x1
 from model.ops.native.warps import reproject_x1
 from model.ops.pyramid import block_mean
 from model.ops.rectify import clip_to_bounds, moment_bounds, neighbourhood_moments
@@ -487,12 +489,56 @@ class Fused(Method):
             s = self.spatial_estimate(frame)
         # The network reads ``s`` as OIDN made it (at 1x its weights were trained so); the candidates, their clip
         # and the running mean take the estimate read at the pixel centres.
+        native_x1 = self.scale == 1 and n == 1 and native.usable("resample", s)
         if not self._unjitter_estimate:
             s_out = s
         elif samples_count is not None:
-            s_out = sample_mean_resample(s, frame.jitter, samples_count, self.scale)
+            s_out = sample_mean_resample_x1(s, frame.jitter, samples_count) if native_x1 else \
+                sample_mean_resample(s, frame.jitter, samples_count, self.scale)
         else:
-            s_out = unjittered_resample(s, frame.jitter, self.scale)
+            s_out = unjittered_resample_x1(s, frame.jitter) if native_x1 else \
+                unjittered_resample(s, frame.jitter, self.scale)
+        if self.scale == 1 and n == 1 and self.has_mean and native.usable("features", s, s_out, frame.color):
+            inputs = self._network_inputs_native(frame, state, s, s_out, reprojected)
+        else:
+            inputs = self._network_inputs(frame, state, s, s_out, reprojected)
+        features, candidates, valid, valid_out, length, mean, count, mean_r = inputs
+        weights, kernels, new_hidden = self.net(features)
+        # contiguous: from a channels_last network each candidate's weight is a strided slice otherwise
+        weights = torch.softmax(weights, dim=1).contiguous()
+        if samples is not None:
+            share = self._history_share(weights, self._sample_mean_trust_power).detach()
+            samples_count = samples_count * block_mean(share, self.scale)
+        if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
+            weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
+        # from the first product, not from sum()'s 0: one full-frame pass fewer, the same values
+        blended = weights[:, :1] * candidates[0]
+        for k, candidate in enumerate(candidates[1:], start=1):
+            blended = blended + weights[:, k:k + 1] * candidate
+        if self._kernel_max_pixels and height * width > self._kernel_max_pixels:
+            output = blended
+        else:
+            output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
+        history = blended if self.history_before_kernel else output
+        new_state = {"history": history, "hidden": new_hidden, "length": length, "depth": frame.depth,
+                     "normal": frame.normal, "jitter": frame.jitter}
+        if self.has_mean:
+            new_state.update(mean=mean, count=count)
+        if samples is not None:
+            new_state.update(samples=samples, samples_count=samples_count)
+        output = reinhard_inverse(output)
+        if self._albedo_detail_frames and self.scale > 1:
+            detail, gathered = self._texture_detail(frame, state, motion_out, valid_out)
+            output = output * detail
+            new_state.update(gathered)
+        return output, new_state
+
+    def _network_inputs(self, frame: FrameBatch, state: State | None, s: torch.Tensor, s_out: torch.Tensor,
+                        reprojected: tuple[torch.Tensor | None, ...] | None) -> tuple:
+        """(the network's input, the fusion candidates, valid, valid at the output, the new history length, the
+        running mean and its count, the mean at render resolution) for OIDN's estimate ``s`` and its resample
+        ``s_out``."""
+        n, _, height, width = frame.color.shape
         mean = count = None  # the running mean and its frame count, when the network has one
         valid_out = None
         if state is None:
@@ -528,35 +574,25 @@ class Fused(Method):
             parts += [mean_r, (mean_r - s).abs(), torch.log1p(count) / torch.log1p(torch.tensor(MEAN_FRAMES))]
             candidates.append(clip_to_bounds(mean, *box))
         features = _features(parts, self.net.head.weight.is_contiguous(memory_format=torch.channels_last))
-        weights, kernels, new_hidden = self.net(features)
-        # contiguous: from a channels_last network each candidate's weight is a strided slice otherwise
-        weights = torch.softmax(weights, dim=1).contiguous()
-        if samples is not None:
-            share = self._history_share(weights, self._sample_mean_trust_power).detach()
-            samples_count = samples_count * block_mean(share, self.scale)
-        if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
-            weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
-        # from the first product, not from sum()'s 0: one full-frame pass fewer, the same values
-        blended = weights[:, :1] * candidates[0]
-        for k, candidate in enumerate(candidates[1:], start=1):
-            blended = blended + weights[:, k:k + 1] * candidate
-        if self._kernel_max_pixels and height * width > self._kernel_max_pixels:
-            output = blended
-        else:
-            output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
-        history = blended if self.history_before_kernel else output
-        new_state = {"history": history, "hidden": new_hidden, "length": length, "depth": frame.depth,
-                     "normal": frame.normal, "jitter": frame.jitter}
-        if self.has_mean:
-            new_state.update(mean=mean, count=count)
-        if samples is not None:
-            new_state.update(samples=samples, samples_count=samples_count)
-        output = reinhard_inverse(output)
-        if self._albedo_detail_frames and self.scale > 1:
-            detail, gathered = self._texture_detail(frame, state, motion_out, valid_out)
-            output = output * detail
-            new_state.update(gathered)
-        return output, new_state
+        return features, candidates, valid, valid_out, length, mean, count, (mean_r if self.has_mean else None)
+
+    def _network_inputs_native(self, frame: FrameBatch, state: State | None, s: torch.Tensor, s_out: torch.Tensor,
+                               reprojected: tuple[torch.Tensor | None, ...] | None) -> tuple:
+        """``_network_inputs`` at 1x for one image with a running mean, as one native pass
+        (``model.ops.native.features``): the same values to float rounding."""
+        history = valid = length = hidden = mean = count = None
+        if state is not None:
+            history, hidden, length, valid, mean, count = reprojected[:6]
+        depth_max = frame.depth.flatten(1).amax(dim=1).clamp_min(1e-6)
+        count_norm = torch.log1p(torch.tensor(MEAN_FRAMES))
+        history, rectified, mean, clipped_mean, length, features = fused_features_x1(
+            s, s_out, frame.color, frame.albedo, frame.normal, history, valid, length, hidden, mean, count,
+            frame.depth, depth_max, MAX_HISTORY, count_norm)
+        if valid is None:
+            valid = torch.zeros_like(frame.depth, dtype=torch.bool)
+        if count is None:
+            count = torch.ones_like(frame.depth)
+        return features, [s_out, history, rectified, clipped_mean], valid, valid, length, mean, count, mean
 
     def _texture_detail(self, frame: FrameBatch, state: State | None, motion_out: torch.Tensor,
                         valid_out: torch.Tensor | None) -> tuple[torch.Tensor, State]:

@@ -30,7 +30,7 @@ __all__ = ["CACHE_ENV", "build", "call", "enabled", "library", "set_enabled", "u
 
 CACHE_ENV = "DENOISER_NATIVE_CACHE"  # where compiled kernels are kept (default: the user's cache folder)
 SOURCES = Path(__file__).parent  # <name>.c, one library each
-FLAGS = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=c11", "-fno-math-errno"]
+FLAGS = ["-O3", "-march=native", "-mtune-ctrl=use_gather", "-fopenmp", "-fPIC", "-shared", "-std=c11", "-fno-math-errno", "-fno-trapping-math"]
 _state = {"enabled": True}
 _lock = threading.Lock()
 

@@ -1,10 +1,14 @@
-/* The fused step's reprojection at 1x in one pass per pixel: the bicubic, bilinear and nearest backward warps of
+/* The fused step's reprojection at 1x in one pass per row: the bicubic, bilinear and nearest backward warps of
  * model.ops.warp (border padding) and the geometry test of model.ops.reproject, with grid_sample's arithmetic
- * (align_corners=False, cubic convolution A = -0.75). Planes are single-image (H, W) float32 arrays. */
+ * (align_corners=False, cubic convolution A = -0.75). Planes are single-image (H, W) float32 arrays. Each row first
+ * computes every pixel's taps and weights into row buffers, then reads each channel through them: simple loops over
+ * x in functions of their own (restrict arguments), which the compiler vectorizes with gathers. */
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 
 #define CUBIC_A (-0.75f)
+#define NOINLINE __attribute__((noinline))
 
 static inline float clampf(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
@@ -15,12 +19,105 @@ static inline float source_coordinate(float p, float size) {
     return (g + 1.0f) * (size * 0.5f) - 0.5f;
 }
 
-static inline void cubic_coefficients(float t, float c[4]) {
-    float x1 = t + 1.0f, x2 = 1.0f - t, x3 = 2.0f - t;
-    c[0] = ((CUBIC_A * x1 - 5.0f * CUBIC_A) * x1 + 8.0f * CUBIC_A) * x1 - 4.0f * CUBIC_A;
-    c[1] = ((CUBIC_A + 2.0f) * t - (CUBIC_A + 3.0f)) * t * t + 1.0f;
-    c[2] = ((CUBIC_A + 2.0f) * x2 - (CUBIC_A + 3.0f)) * x2 * x2 + 1.0f;
-    c[3] = ((CUBIC_A * x3 - 5.0f * CUBIC_A) * x3 + 8.0f * CUBIC_A) * x3 - 4.0f * CUBIC_A;
+static inline float cubic_near(float d) { return ((CUBIC_A + 2.0f) * d - (CUBIC_A + 3.0f)) * d * d + 1.0f; }
+static inline float cubic_far(float d) { return ((CUBIC_A * d - 5.0f * CUBIC_A) * d + 8.0f * CUBIC_A) * d - 4.0f * CUBIC_A; }
+
+/* positions centre + motion of one row */
+static NOINLINE void positions(int64_t w, float y, const float *restrict mx, const float *restrict my,
+                               float *restrict px, float *restrict py) {
+    for (int64_t x = 0; x < w; x++) {
+        px[x] = ((float)x + 0.5f) + mx[x];
+        py[x] = (y + 0.5f) + my[x];
+    }
+}
+
+/* along one axis: the 4 cubic weights and the 4 clamped tap indices (times stride) of each position */
+static NOINLINE void cubic_axis(int64_t w, const float *restrict p, float size, int32_t stride,
+                                float *restrict k0, float *restrict k1, float *restrict k2, float *restrict k3,
+                                int32_t *restrict i0, int32_t *restrict i1, int32_t *restrict i2,
+                                int32_t *restrict i3) {
+    for (int64_t x = 0; x < w; x++) {
+        const float ix = source_coordinate(p[x], size), f = floorf(ix), t = ix - f;
+        k0[x] = cubic_far(t + 1.0f);
+        k1[x] = cubic_near(t);
+        k2[x] = cubic_near(1.0f - t);
+        k3[x] = cubic_far(2.0f - t);
+        i0[x] = (int32_t)clampf(f - 1.0f, 0.0f, size - 1.0f) * stride;
+        i1[x] = (int32_t)clampf(f, 0.0f, size - 1.0f) * stride;
+        i2[x] = (int32_t)clampf(f + 1.0f, 0.0f, size - 1.0f) * stride;
+        i3[x] = (int32_t)clampf(f + 2.0f, 0.0f, size - 1.0f) * stride;
+    }
+}
+
+/* one tap row of the cubic read: acc (+)= (sum over the 4 columns) * the row's weight */
+static NOINLINE void cubic_row(int64_t w, int first, const float *restrict src, const int32_t *restrict row,
+                               const int32_t *restrict c0, const int32_t *restrict c1, const int32_t *restrict c2,
+                               const int32_t *restrict c3, const float *restrict k0, const float *restrict k1,
+                               const float *restrict k2, const float *restrict k3, const float *restrict ky,
+                               float *restrict acc) {
+    if (first) {
+        for (int64_t x = 0; x < w; x++)
+            acc[x] = (src[row[x] + c0[x]] * k0[x] + src[row[x] + c1[x]] * k1[x] + src[row[x] + c2[x]] * k2[x]
+                      + src[row[x] + c3[x]] * k3[x]) * ky[x];
+    } else {
+        for (int64_t x = 0; x < w; x++)
+            acc[x] += (src[row[x] + c0[x]] * k0[x] + src[row[x] + c1[x]] * k1[x] + src[row[x] + c2[x]] * k2[x]
+                       + src[row[x] + c3[x]] * k3[x]) * ky[x];
+    }
+}
+
+static NOINLINE void clamp_row(int64_t w, const float *restrict acc, float low, float high, float *restrict dst) {
+    for (int64_t x = 0; x < w; x++) dst[x] = clampf(acc[x], low, high);
+}
+
+/* along one axis: the bilinear position clamped to the border, its fraction and its two taps (times stride); a far
+ * tap past the edge has weight 0 and reads the near one */
+static NOINLINE void linear_axis(int64_t w, const float *restrict p, float size, int32_t stride,
+                                 float *restrict frac, int32_t *restrict i0, int32_t *restrict i1) {
+    for (int64_t x = 0; x < w; x++) {
+        const float l = clampf(source_coordinate(p[x], size), 0.0f, size - 1.0f), f = floorf(l);
+        frac[x] = l - f;
+        i0[x] = (int32_t)f * stride;
+        i1[x] = (int32_t)(f + 1.0f < size ? f + 1.0f : f) * stride;
+    }
+}
+
+static NOINLINE void linear_row(int64_t w, const float *restrict src, const int32_t *restrict r0,
+                                const int32_t *restrict r1, const int32_t *restrict c0, const int32_t *restrict c1,
+                                const float *restrict ux, const float *restrict uy, float *restrict dst) {
+    for (int64_t x = 0; x < w; x++) {
+        const float tx = ux[x], ty = uy[x], ex = 1.0f - tx, ey = 1.0f - ty;
+        dst[x] = src[r0[x] + c0[x]] * (ey * ex) + src[r0[x] + c1[x]] * (ey * tx) + src[r1[x] + c0[x]] * (ty * ex)
+               + src[r1[x] + c1[x]] * (ty * tx);
+    }
+}
+
+/* the pixel whose footprint holds each position, clamped to the image */
+static NOINLINE void nearest_index(int64_t w, const float *restrict px, const float *restrict py, float jx, float jy,
+                                   float fw, float fh, int32_t iw, int32_t *restrict index) {
+    for (int64_t x = 0; x < w; x++)
+        index[x] = (int32_t)clampf(floorf(py[x] + jy), 0.0f, fh - 1.0f) * iw
+                 + (int32_t)clampf(floorf(px[x] + jx), 0.0f, fw - 1.0f);
+}
+
+static NOINLINE void gather_row(int64_t w, const float *restrict src, const int32_t *restrict index,
+                                float *restrict dst) {
+    for (int64_t x = 0; x < w; x++) dst[x] = src[index[x]];
+}
+
+static NOINLINE void geometry_row(int64_t w, int64_t plane, const float *restrict px, const float *restrict py,
+                                  float jx, float jy, float fw, float fh, const int32_t *restrict j,
+                                  const float *restrict d, const float *restrict n0, const float *restrict n1,
+                                  const float *restrict n2, const float *restrict pd, const float *restrict pn,
+                                  float dtol, float ctol, uint8_t *restrict out) {
+    for (int64_t x = 0; x < w; x++) {
+        const float qx = px[x] + jx, qy = py[x] + jy;
+        const int in_prev = (qx >= 0.0f) & (qx < fw) & (qy >= 0.0f) & (qy < fh);
+        const float p = pd[j[x]], p0 = pn[j[x]], p1 = pn[plane + j[x]], p2 = pn[2 * plane + j[x]];
+        const float lengths = sqrtf((n0[x] * n0[x] + n1[x] * n1[x] + n2[x] * n2[x]) * (p0 * p0 + p1 * p1 + p2 * p2));
+        const float cosine = (n0[x] * p0 + n1[x] * p1 + n2[x] * p2) / (lengths > 1e-12f ? lengths : 1e-12f);
+        out[x] = (uint8_t)(in_prev & (d[x] > 0.0f) & (p > 0.0f) & (fabsf(d[x] - p) <= dtol * d[x]) & (cosine >= ctol));
+    }
 }
 
 void reproject_x1(int64_t h, int64_t w, const float *motion,
@@ -33,65 +130,50 @@ void reproject_x1(int64_t h, int64_t w, const float *motion,
     const int64_t plane = h * w;
     const float fw = (float)w, fh = (float)h, low = (float)cubic_low, high = (float)cubic_high;
     const float jx = (float)jitter_x, jy = (float)jitter_y, dtol = (float)depth_tol, ctol = (float)cos_tol;
-#pragma omp parallel for num_threads(threads) schedule(static)
-    for (int64_t y = 0; y < h; y++) {
-        for (int64_t x = 0; x < w; x++) {
-            const int64_t i = y * w + x;
-            const float px = ((float)x + 0.5f) + motion[i], py = ((float)y + 0.5f) + motion[plane + i];
-            const int inside = px >= 0.0f && px < fw && py >= 0.0f && py < fh;
+    const int32_t iw = (int32_t)w;
+#pragma omp parallel num_threads(threads)
+    {
+        /* row buffers: cubic 4 + 4 weights, 4 columns, 4 row offsets; bilinear 2 fractions, 2 columns, 2 row
+         * offsets; positions 2; nearest 2 indices; a sum */
+        float *fl = malloc((size_t)w * 13 * sizeof(float));
+        int32_t *in = malloc((size_t)w * 14 * sizeof(int32_t));
+        float *kx[4] = {fl, fl + w, fl + 2 * w, fl + 3 * w}, *ky[4] = {fl + 4 * w, fl + 5 * w, fl + 6 * w, fl + 7 * w};
+        float *ux = fl + 8 * w, *uy = fl + 9 * w, *px = fl + 10 * w, *py = fl + 11 * w, *acc = fl + 12 * w;
+        int32_t *cols[4] = {in, in + w, in + 2 * w, in + 3 * w}, *rows[4] = {in + 4 * w, in + 5 * w, in + 6 * w, in + 7 * w};
+        int32_t *lc0 = in + 8 * w, *lc1 = in + 9 * w, *lr0 = in + 10 * w, *lr1 = in + 11 * w;
+        int32_t *near = in + 12 * w, *moved = in + 13 * w;
+#pragma omp for schedule(static)
+        for (int64_t y = 0; y < h; y++) {
+            const int64_t base = y * w;
+            positions(w, (float)y, motion + base, motion + plane + base, px, py);
             if (n_cubic) {
-                const float ix = source_coordinate(px, fw), iy = source_coordinate(py, fh);
-                const float fx = floorf(ix), fy = floorf(iy);
-                float cx[4], cy[4];
-                cubic_coefficients(ix - fx, cx);
-                cubic_coefficients(iy - fy, cy);
-                int64_t cols[4], rows[4];
-                for (int k = 0; k < 4; k++) {
-                    cols[k] = (int64_t)clampf(fx - 1.0f + (float)k, 0.0f, fw - 1.0f);
-                    rows[k] = (int64_t)clampf(fy - 1.0f + (float)k, 0.0f, fh - 1.0f) * w;
-                }
+                cubic_axis(w, px, fw, 1, kx[0], kx[1], kx[2], kx[3], cols[0], cols[1], cols[2], cols[3]);
+                cubic_axis(w, py, fh, iw, ky[0], ky[1], ky[2], ky[3], rows[0], rows[1], rows[2], rows[3]);
                 for (int64_t c = 0; c < n_cubic; c++) {
-                    const float *src = cubic_src[c];
-                    float r[4];
-                    for (int k = 0; k < 4; k++) {
-                        const float *row = src + rows[k];
-                        r[k] = row[cols[0]] * cx[0] + row[cols[1]] * cx[1] + row[cols[2]] * cx[2] + row[cols[3]] * cx[3];
-                    }
-                    float v = r[0] * cy[0] + r[1] * cy[1] + r[2] * cy[2] + r[3] * cy[3];
-                    cubic_dst[c][i] = clampf(v, low, high);
+                    for (int r = 0; r < 4; r++)
+                        cubic_row(w, r == 0, cubic_src[c], rows[r], cols[0], cols[1], cols[2], cols[3], kx[0], kx[1],
+                                  kx[2], kx[3], ky[r], acc);
+                    clamp_row(w, acc, low, high, cubic_dst[c] + base);
                 }
             }
             if (n_linear) {
-                const float ix = clampf(source_coordinate(px, fw), 0.0f, fw - 1.0f);
-                const float iy = clampf(source_coordinate(py, fh), 0.0f, fh - 1.0f);
-                const float x0 = floorf(ix), y0 = floorf(iy);
-                const float tx = ix - x0, ty = iy - y0, ex = 1.0f - tx, ey = 1.0f - ty;
-                const int64_t c0 = (int64_t)x0, r0 = (int64_t)y0 * w;
-                /* the far taps lie outside only where their weight is 0 (a read on the last column or row) */
-                const int64_t c1 = c0 + 1 < w ? c0 + 1 : c0, r1 = (int64_t)y0 + 1 < h ? r0 + w : r0;
-                const float wnw = ey * ex, wne = ey * tx, wsw = ty * ex, wse = ty * tx;
-                for (int64_t c = 0; c < n_linear; c++) {
-                    const float *src = linear_src[c];
-                    linear_dst[c][i] = src[r0 + c0] * wnw + src[r0 + c1] * wne + src[r1 + c0] * wsw + src[r1 + c1] * wse;
-                }
+                linear_axis(w, px, fw, 1, ux, lc0, lc1);
+                linear_axis(w, py, fh, iw, uy, lr0, lr1);
+                for (int64_t c = 0; c < n_linear; c++)
+                    linear_row(w, linear_src[c], lr0, lr1, lc0, lc1, ux, uy, linear_dst[c] + base);
             }
-            {
-                const int64_t nx = (int64_t)clampf(floorf(px), 0.0f, fw - 1.0f);
-                const int64_t ny = (int64_t)clampf(floorf(py), 0.0f, fh - 1.0f);
-                for (int64_t c = 0; c < n_nearest; c++) nearest_dst[c][i] = nearest_src[c][ny * w + nx];
+            if (n_nearest) {
+                nearest_index(w, px, py, 0.0f, 0.0f, fw, fh, iw, near);
+                for (int64_t c = 0; c < n_nearest; c++) gather_row(w, nearest_src[c], near, nearest_dst[c] + base);
             }
             if (valid) {
-                const float qx = px + jx, qy = py + jy;
-                const int in_prev = qx >= 0.0f && qx < fw && qy >= 0.0f && qy < fh;
-                const int64_t j = (int64_t)clampf(floorf(qy), 0.0f, fh - 1.0f) * w
-                                + (int64_t)clampf(floorf(qx), 0.0f, fw - 1.0f);
-                const float d = depth[i], pd = prev_depth[j];
-                const float n0 = normal[i], n1 = normal[plane + i], n2 = normal[2 * plane + i];
-                const float p0 = prev_normal[j], p1 = prev_normal[plane + j], p2 = prev_normal[2 * plane + j];
-                const float lengths = sqrtf((n0 * n0 + n1 * n1 + n2 * n2) * (p0 * p0 + p1 * p1 + p2 * p2));
-                const float cosine = (n0 * p0 + n1 * p1 + n2 * p2) / (lengths > 1e-12f ? lengths : 1e-12f);
-                valid[i] = in_prev && d > 0.0f && pd > 0.0f && fabsf(d - pd) <= dtol * d && cosine >= ctol;
+                nearest_index(w, px, py, jx, jy, fw, fh, iw, moved);
+                geometry_row(w, plane, px, py, jx, jy, fw, fh, moved, depth + base, normal + base,
+                             normal + plane + base, normal + 2 * plane + base, prev_depth, prev_normal, dtol, ctol,
+                             valid + base);
             }
         }
+        free(fl);
+        free(in);
     }
 }

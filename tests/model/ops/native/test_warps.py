@@ -16,11 +16,12 @@ def _case(seed: int, h: int = 37, w: int = 53):
     motion[:, :, :5] = torch.round(motion[:, :, :5])  # whole pixels: taps exactly on pixels
     motion[:, 0, 6:8] = 0.5  # half-way reads
     motion[:, :, -4:] *= 20  # far outside the image: border padding, invalid
-    depth = torch.rand(1, 1, h, w, generator=g) + 0.5
+    # smooth surfaces, so a warped neighbour often passes the geometry test
+    depth = F.interpolate(torch.rand(1, 1, 3, 3, generator=g), size=(h, w), mode="bilinear") + 0.5
     depth[:, :, :, :3] = 0  # no surface
-    normal = F.normalize(torch.randn(1, 3, h, w, generator=g), dim=1)
-    prev_depth = depth * (1 + 0.15 * torch.randn(1, 1, h, w, generator=g))
-    prev_normal = F.normalize(normal + 0.4 * torch.randn(1, 3, h, w, generator=g), dim=1)
+    normal = F.normalize(F.interpolate(torch.randn(1, 3, 3, 3, generator=g), size=(h, w), mode="bilinear"), dim=1)
+    prev_depth = depth * (1 + 0.1 * torch.randn(1, 1, h, w, generator=g))
+    prev_normal = F.normalize(normal + 0.3 * torch.randn(1, 3, h, w, generator=g), dim=1)
     images = [torch.rand(1, c, h, w, generator=g) for c in (3, 3, 4, 1, 2)]
     return motion, depth, normal, prev_depth, prev_normal, images
 
@@ -40,7 +41,7 @@ def test_equals_the_torch_warps_and_test(seed):
     torch.testing.assert_close(linear, expected_linear, atol=1e-5, rtol=0)
     assert torch.equal(nearest, expected_nearest)
     assert torch.equal(valid, expected_valid)
-    assert 0.2 < valid.float().mean() < 0.9  # both answers occur
+    assert 0.1 < valid.float().mean() < 0.9  # both answers occur
 
 
 def test_without_cubic_or_linear_images():
