@@ -197,6 +197,14 @@ def _install(method: nn.Module) -> threading.local:
         for network in networks_of(method):
             network.forward = _NetworkForms(network.forward, selected)
         object.__setattr__(method, "_form_selector", selected)
+
+        def network_input_dtype() -> torch.dtype:
+            form = getattr(selected, "form", None)
+            # compiled networks trace their own casts; an eager bf16 form casts the input first thing
+            bf16 = form is not None and form.bf16 and not form.compiled and not form.compiled_step
+            return torch.bfloat16 if bf16 else torch.float32
+
+        object.__setattr__(method, "network_input_dtype", network_input_dtype)
         compiled = CompiledStep(method.step)
         object.__setattr__(method, "_compiled_step", compiled)  # benchmarks and tests read its failure
         object.__setattr__(method, "step", _route_step(method.step, compiled, selected))

@@ -173,6 +173,11 @@ class Method(nn.Module, abc.ABC):
     def step(self, frame: FrameBatch, state: State | None) -> tuple[torch.Tensor, State]:
         """Denoise (and upscale by `scale`) one frame; returns (N, 3, H*scale, W*scale) radiance and new state."""
 
+    def network_input_dtype(self) -> torch.dtype:
+        """The dtype the method's networks read their input in on this thread: float32, unless an inference form
+        (``model.deployment.inference_forms``) runs them in bfloat16, where an input made in it saves their cast."""
+        return torch.float32
+
     def auxiliary_loss(self, frames: list[FrameBatch], states: list[State]) -> torch.Tensor | None:
         """Method-specific training terms beyond the engine's spatial + temporal loss (e.g. an albedo L1).
 

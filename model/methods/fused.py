@@ -587,7 +587,7 @@ class Fused(Method):
         count_norm = torch.log1p(torch.tensor(MEAN_FRAMES))
         history, rectified, mean, clipped_mean, length, features = fused_features_x1(
             s, s_out, frame.color, frame.albedo, frame.normal, history, valid, length, hidden, mean, count,
-            frame.depth, depth_max, MAX_HISTORY, count_norm)
+            frame.depth, depth_max, MAX_HISTORY, count_norm, self.network_input_dtype())
         if valid is None:
             valid = torch.zeros_like(frame.depth, dtype=torch.bool)
         if count is None:

@@ -29,7 +29,7 @@ import torch
 __all__ = ["CACHE_ENV", "build", "call", "enabled", "library", "set_enabled", "usable"]
 
 CACHE_ENV = "DENOISER_NATIVE_CACHE"  # where compiled kernels are kept (default: the user's cache folder)
-SOURCES = Path(__file__).parent  # <name>.c, one library each
+SOURCES = Path(__file__).parent  # <name>.c, one library each, and the headers they share
 FLAGS = ["-O3", "-march=native", "-mtune-ctrl=use_gather", "-fopenmp", "-fPIC", "-shared", "-std=c11", "-fno-math-errno", "-fno-trapping-math"]
 _state = {"enabled": True}
 _lock = threading.Lock()
@@ -66,6 +66,8 @@ def build(source: str, cache: Path | None = None) -> Path:
     same text, flags and CPU is there; its path. Raises RuntimeError when there is no compiler or it fails."""
     path = SOURCES / f"{source}.c"
     digest = hashlib.sha256(path.read_bytes())
+    for header in sorted(SOURCES.glob("*.h")):  # included by some sources
+        digest.update(header.read_bytes())
     digest.update(" ".join(FLAGS).encode())
     digest.update(_cpu_signature().encode())
     cache = cache or _cache_dir()

@@ -170,3 +170,44 @@ def test_bf16_outputs_come_back_as_contiguous_float32_with_their_values():
         assert torch.equal(value, part.float())
     kept = torch.zeros(2, 3)
     assert _to_float32({"a": [kept]})["a"][0] is kept  # float32 values pass through as they are
+
+
+def test_the_network_input_dtype_follows_the_threads_form():
+    method = seeded("wskpn:xs", 1)
+    assert method.network_input_dtype() == torch.float32  # no form installed
+    with run_networks_as(method, "channels_last+bf16"):
+        assert method.network_input_dtype() == torch.bfloat16
+        seen = []
+        other = threading.Thread(target=lambda: seen.append(method.network_input_dtype()))
+        other.start()
+        other.join()
+        assert seen == [torch.float32]  # another thread runs its own form (none here)
+    for form in ("channels_last", "compile+bf16", "compile-step+bf16"):
+        with run_networks_as(method, form):
+            assert method.network_input_dtype() == torch.float32
+
+
+@needs_bf16
+def test_a_fused_step_in_bf16_gives_what_it_gave_with_float32_network_input():
+    """The native pass writes the fused network's input in bfloat16 under a bf16 form: the same values autocast's
+    cast would make, so the same outputs."""
+    import model.methods.fused as fused
+
+    method = build_method("fused:fast", 1).eval().for_inference()
+    batches = frames(24)
+    original = method.network_input_dtype
+    dtypes = []
+    native_pass = fused.fused_features_x1
+    fused.fused_features_x1 = lambda *a, **k: dtypes.append(a[-1]) or native_pass(*a, **k)
+    with run_networks_as(method, "channels_last+bf16"):
+        assert method.network_input_dtype() == torch.bfloat16
+        given = stream(method, batches)
+        object.__setattr__(method, "network_input_dtype", lambda: torch.float32)
+        try:
+            expected = stream(method, batches)
+        finally:
+            object.__setattr__(method, "network_input_dtype", original)
+            fused.fused_features_x1 = native_pass
+    assert dtypes == [torch.bfloat16] * len(batches) + [torch.float32] * len(batches)
+    for a, b in zip(given, expected):
+        assert torch.equal(a, b)

@@ -63,3 +63,23 @@ def test_the_step_takes_the_native_pass_only_where_it_may():
     with torch.enable_grad():
         method.step(frame, None)  # training: torch ops, gradients
     assert calls == [1]
+
+
+def test_bfloat16_input_is_the_float32_input_rounded_as_torch_rounds():
+    g = torch.Generator().manual_seed(3)
+    h, w = 19, 23
+    frame = _frame(g, h, w)
+    s, s_out = torch.rand(1, 3, h, w, generator=g), torch.rand(1, 3, h, w, generator=g)
+    history, hidden, length, valid, mean, count = _state(g, h, w, True)
+    from model.ops.native.features import fused_features_x1
+    args = (s, s_out, frame.color, frame.albedo, frame.normal, history, valid, length, hidden, mean, count,
+            frame.depth, frame.depth.amax(), 8.0, torch.log1p(torch.tensor(16.0)))
+    with torch.no_grad():
+        full = fused_features_x1(*args)
+        half = fused_features_x1(*args, dtype=torch.bfloat16)
+    assert half[-1].dtype == torch.bfloat16 and half[-1].is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(half[-1], full[-1].to(torch.bfloat16))
+    for a, b in zip(half[:-1], full[:-1]):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="float32 or bfloat16"):
+        fused_features_x1(*args, dtype=torch.float16)
