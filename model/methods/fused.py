@@ -33,6 +33,7 @@ from model.ops.graph_breaks import outside_compiled_graph
 from model.ops.jittered_albedo import gather_samples, sample_weights, texture_detail
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.native.features import fused_features_x1
+from model.ops.native.rectify import clip_pair_x1
 from model.ops.native.resample import sample_mean_resample_x1, unjittered_resample_x1
 from model.ops.native.warps import reproject_x1
 from model.ops.pyramid import block_mean
@@ -550,8 +551,19 @@ class Fused(Method):
             valid_out = _upsample_mask(valid, self.scale)
             history = torch.where(valid_out, history, s_out)
             hidden = hidden * valid
-        box = moment_bounds(*neighbourhood_moments(s_out))  # both clipped candidates are clipped to s's neighbourhood
-        rectified = clip_to_bounds(history, *box)
+        if self.has_mean:
+            if mean is None:
+                mean, count = s_out, torch.ones_like(frame.depth)
+            else:  # 1 / n weights over the frames the history held, the current one included
+                count_out = _upsample_values(count, self.scale)
+                mean = mean + (s_out - mean) / count_out
+        # both clipped candidates are clipped to s's neighbourhood
+        if n == 1 and native.usable("rectify", s_out, history):
+            rectified, clipped_mean = clip_pair_x1(s_out, history, mean if self.has_mean else None)
+        else:
+            box = moment_bounds(*neighbourhood_moments(s_out))
+            rectified = clip_to_bounds(history, *box)
+            clipped_mean = clip_to_bounds(mean, *box) if self.has_mean else None
         length = torch.where(valid, (length + 1).clamp_max(MAX_HISTORY), torch.zeros_like(length))
 
         def at_render(image: torch.Tensor) -> torch.Tensor:
@@ -565,14 +577,9 @@ class Fused(Method):
             parts.append(frame.jitter.view(n, 2, 1, 1).expand(n, 2, height, width).to(s.dtype))
         candidates = [s_out, history, rectified]
         if self.has_mean:
-            if mean is None:
-                mean, count = s_out, torch.ones_like(frame.depth)
-            else:  # 1 / n weights over the frames the history held, the current one included
-                count_out = _upsample_values(count, self.scale)
-                mean = mean + (s_out - mean) / count_out
             mean_r = at_render(mean)
             parts += [mean_r, (mean_r - s).abs(), torch.log1p(count) / torch.log1p(torch.tensor(MEAN_FRAMES))]
-            candidates.append(clip_to_bounds(mean, *box))
+            candidates.append(clipped_mean)
         features = _features(parts, self.net.head.weight.is_contiguous(memory_format=torch.channels_last))
         return features, candidates, valid, valid_out, length, mean, count, (mean_r if self.has_mean else None)
 

@@ -120,11 +120,7 @@ void features_x1(int64_t h, int64_t w, const float *s, const float *s_out, const
     float *const out[5] = {out_history, out_rectified, out_mean, out_clipped_mean, out_length};
 #pragma omp parallel num_threads(threads)
     {
-        const int64_t nt = omp_get_num_threads(), t = omp_get_thread_num();
-        const int64_t y0 = h * t / nt, y1 = h * (t + 1) / nt;
-        float *sums = malloc(sizeof(float) * SLOTS * MOMENTS * w);
-        float *pad = malloc(sizeof(float) * MOMENTS * (w + 2));
-        float *high = malloc(sizeof(float) * 3 * w), *low = malloc(sizeof(float) * 3 * w);
+        BoxRows box = box_rows_begin(h, w, omp_get_thread_num(), omp_get_num_threads());
         float *f = malloc(sizeof(float) * FEATURES * w);
         uint16_t *half = malloc(sizeof(uint16_t) * FEATURES * w);
         float *zeros = calloc(w, sizeof(float)), *ones = malloc(sizeof(float) * w);
@@ -133,13 +129,9 @@ void features_x1(int64_t h, int64_t w, const float *s, const float *s_out, const
         Fallbacks fb = {zeros, ones, invalid, valid_row, {0}};
         for (int64_t x = 0; x < w; x++) ones[x] = 1.0f;
         for (int n = 0; n <= 64; n++) fb.log_count[n] = log1pf((float)n) / in.cnorm;
-        int64_t tag[SLOTS];
-        for (int k = 0; k < SLOTS; k++) tag[k] = -1;
-        for (int64_t y = y0; y < y1; y++) {
-            const float *rows[3];
-            window_rows(s_out, h * w, h, w, y, sums, pad, tag, rows);
-            box_row(rows, w, high, low);
-            features_row(&in, &fb, y, high, low, out, f);
+        for (int64_t y = box.y0; y < box.y1; y++) {
+            box_rows_at(&box, s_out, h, w, y);
+            features_row(&in, &fb, y, box.high, box.low, out, f);
             if (bf16) {
                 for (int64_t i = 0; i < FEATURES * w; i++) half[i] = to_bf16(f[i]);
                 uint16_t *dst = (uint16_t *)features + y * w * FEATURES;
@@ -151,6 +143,7 @@ void features_x1(int64_t h, int64_t w, const float *s, const float *s_out, const
                     for (int c = 0; c < FEATURES; c++) dst[x * FEATURES + c] = f[c * w + x];
             }
         }
-        free(sums), free(pad), free(high), free(low), free(f), free(half), free(zeros), free(ones), free(invalid), free(valid_row);
+        box_rows_end(&box);
+        free(f), free(half), free(zeros), free(ones), free(invalid), free(valid_row);
     }
 }

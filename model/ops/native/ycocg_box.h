@@ -5,6 +5,7 @@
 #define YCOCG_BOX_H
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 
 #define SLOTS 3    /* row sums kept per thread: the 3 a row reads, by source row mod SLOTS */
 #define MOMENTS 6  /* Y, Co, Cg and their squares */
@@ -85,5 +86,29 @@ static void window_rows(const float *guide, int64_t plane, int64_t h, int64_t w,
         rows[j] = sums + s * MOMENTS * w;
     }
 }
+
+/* One thread's block of rows and its scratch for the box: rows y0 .. y1 - 1 in a contiguous block, so each source
+ * row's sums are computed once and kept for the 3 windows that read them. */
+typedef struct {
+    int64_t y0, y1, tag[SLOTS];
+    float *sums, *pad, *high, *low;
+} BoxRows;
+
+static BoxRows box_rows_begin(int64_t h, int64_t w, int64_t thread, int64_t threads) {
+    BoxRows b = {h * thread / threads, h * (thread + 1) / threads, {0}, malloc(sizeof(float) * SLOTS * MOMENTS * w),
+                 malloc(sizeof(float) * MOMENTS * (w + 2)), malloc(sizeof(float) * 3 * w),
+                 malloc(sizeof(float) * 3 * w)};
+    for (int s = 0; s < SLOTS; s++) b.tag[s] = -1;
+    return b;
+}
+
+/* the box of row y of the guide (b->high, b->low) */
+static void box_rows_at(BoxRows *b, const float *guide, int64_t h, int64_t w, int64_t y) {
+    const float *rows[3];
+    window_rows(guide, h * w, h, w, y, b->sums, b->pad, b->tag, rows);
+    box_row(rows, w, b->high, b->low);
+}
+
+static void box_rows_end(BoxRows *b) { free(b->sums), free(b->pad), free(b->high), free(b->low); }
 
 #endif
