@@ -34,6 +34,7 @@ from model.ops.jittered_albedo import gather_samples, sample_weights, texture_de
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.native.features import fused_features_x1
 from model.ops.native.rectify import clip_pair_x1
+from model.ops.native.tail import fused_tail_x1
 from model.ops.native.resample import sample_mean_resample_x1, unjittered_resample_x1
 from model.ops.native.warps import reproject_x1
 from model.ops.pyramid import block_mean
@@ -504,22 +505,31 @@ class Fused(Method):
         else:
             inputs = self._network_inputs(frame, state, s, s_out, reprojected)
         features, candidates, valid, valid_out, length, mean, count, mean_r = inputs
-        weights, kernels, new_hidden = self.net(features)
-        # contiguous: from a channels_last network each candidate's weight is a strided slice otherwise
-        weights = torch.softmax(weights, dim=1).contiguous()
-        if samples is not None:
-            share = self._history_share(weights, self._sample_mean_trust_power).detach()
-            samples_count = samples_count * block_mean(share, self.scale)
-        if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
-            weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
-        # from the first product, not from sum()'s 0: one full-frame pass fewer, the same values
-        blended = weights[:, :1] * candidates[0]
-        for k, candidate in enumerate(candidates[1:], start=1):
-            blended = blended + weights[:, k:k + 1] * candidate
-        if self._kernel_max_pixels and height * width > self._kernel_max_pixels:
+        logits, kernels, new_hidden = self.net(features)
+        unfiltered = bool(self._kernel_max_pixels) and height * width > self._kernel_max_pixels
+        linear = None  # the output in linear radiance, where the native pass made it
+        if unfiltered and self.scale == 1 and n == 1 and self.has_mean and native.usable("tail", logits):
+            trust = None
+            if self._stale_test_sigmas > 0 and state is not None:
+                trust = stale_history_trust(frame.color, reinhard_inverse(mean_r), self._stale_test_sigmas,
+                                            self._stale_region_pixels, STALE_TEST_BLOCK)
+            blended, linear, kept = fused_tail_x1(logits, candidates, trust, valid, samples_count,
+                                                  self._sample_mean_trust_power)
+            samples_count = kept if samples is not None else samples_count
             output = blended
         else:
-            output = apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
+            # contiguous: from a channels_last network each candidate's weight is a strided slice otherwise
+            weights = torch.softmax(logits, dim=1).contiguous()
+            if samples is not None:
+                share = self._history_share(weights, self._sample_mean_trust_power).detach()
+                samples_count = samples_count * block_mean(share, self.scale)
+            if self._stale_test_sigmas > 0 and state is not None and self.has_mean:
+                weights = self._distrust_stale(weights, frame.color, reinhard_inverse(mean_r), valid)
+            # from the first product, not from sum()'s 0: one full-frame pass fewer, the same values
+            blended = weights[:, :1] * candidates[0]
+            for k, candidate in enumerate(candidates[1:], start=1):
+                blended = blended + weights[:, k:k + 1] * candidate
+            output = blended if unfiltered else apply_pixel_kernels(blended, kernels, KERNEL, normalize="softmax")
         history = blended if self.history_before_kernel else output
         new_state = {"history": history, "hidden": new_hidden, "length": length, "depth": frame.depth,
                      "normal": frame.normal, "jitter": frame.jitter}
@@ -527,7 +537,7 @@ class Fused(Method):
             new_state.update(mean=mean, count=count)
         if samples is not None:
             new_state.update(samples=samples, samples_count=samples_count)
-        output = reinhard_inverse(output)
+        output = reinhard_inverse(output) if linear is None else linear
         if self._albedo_detail_frames and self.scale > 1:
             detail, gathered = self._texture_detail(frame, state, motion_out, valid_out)
             output = output * detail
