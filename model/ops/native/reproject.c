@@ -120,17 +120,96 @@ static NOINLINE void geometry_row(int64_t w, int64_t plane, const float *restric
     }
 }
 
+/* Channels read together are first interleaved, CUBIC_STRIDE / LINEAR_STRIDE floats per pixel (the rest 0), so a tap
+ * reads all of a pixel's channels with one vector load instead of one gather per channel. */
+#define CUBIC_STRIDE 8
+#define LINEAR_STRIDE 16
+
+static NOINLINE void interleave_row(int64_t w, const float **src, int64_t n, int64_t offset, int64_t stride,
+                                    float *restrict dst) {
+    for (int64_t c = 0; c < stride; c++) {
+        const float *restrict in = c < n ? src[c] + offset : NULL;
+        for (int64_t x = 0; x < w; x++) dst[x * stride + c] = in ? in[x] : 0.0f;
+    }
+}
+
+/* whole pixels as vectors (GCC's vector extensions; unaligned loads) */
+typedef float v8 __attribute__((vector_size(CUBIC_STRIDE * sizeof(float)), aligned(4)));
+typedef float v16 __attribute__((vector_size(LINEAR_STRIDE * sizeof(float)), aligned(4)));
+
+/* one row of the cubic read from interleaved pixels, each channel summed in grid_sample's order */
+static NOINLINE void cubic_row_interleaved(int64_t w, const float *restrict src, const int32_t *const rows[4],
+                                           const int32_t *const cols[4], const float *const kx[4],
+                                           const float *const ky[4], float low, float high, float *restrict out) {
+    for (int64_t x = 0; x < w; x++) {
+        const float a = kx[0][x], b = kx[1][x], c = kx[2][x], d = kx[3][x];
+        v8 acc;
+        for (int r = 0; r < 4; r++) {
+            const float *row = src + (int64_t)rows[r][x] * CUBIC_STRIDE;
+            const v8 t = ((*(const v8 *)(row + (int64_t)cols[0][x] * CUBIC_STRIDE) * a
+                           + *(const v8 *)(row + (int64_t)cols[1][x] * CUBIC_STRIDE) * b)
+                          + *(const v8 *)(row + (int64_t)cols[2][x] * CUBIC_STRIDE) * c)
+                         + *(const v8 *)(row + (int64_t)cols[3][x] * CUBIC_STRIDE) * d;
+            acc = r == 0 ? t * ky[0][x] : acc + t * ky[r][x];
+        }
+        float *o = out + x * CUBIC_STRIDE;
+        *(v8 *)o = acc;
+        for (int k = 0; k < CUBIC_STRIDE; k++) o[k] = clampf(o[k], low, high);
+    }
+}
+
+/* one row of the bilinear read from interleaved pixels */
+static NOINLINE void linear_row_interleaved(int64_t w, const float *restrict src, const int32_t *restrict r0,
+                                            const int32_t *restrict r1, const int32_t *restrict c0,
+                                            const int32_t *restrict c1, const float *restrict ux,
+                                            const float *restrict uy, float *restrict out) {
+    for (int64_t x = 0; x < w; x++) {
+        const float tx = ux[x], ty = uy[x], ex = 1.0f - tx, ey = 1.0f - ty;
+        const v16 p0 = *(const v16 *)(src + (int64_t)(r0[x] + c0[x]) * LINEAR_STRIDE);
+        const v16 p1 = *(const v16 *)(src + (int64_t)(r0[x] + c1[x]) * LINEAR_STRIDE);
+        const v16 p2 = *(const v16 *)(src + (int64_t)(r1[x] + c0[x]) * LINEAR_STRIDE);
+        const v16 p3 = *(const v16 *)(src + (int64_t)(r1[x] + c1[x]) * LINEAR_STRIDE);
+        *(v16 *)(out + x * LINEAR_STRIDE) = ((p0 * (ey * ex) + p1 * (ey * tx)) + p2 * (ty * ex)) + p3 * (ty * tx);
+    }
+}
+
+/* a row of interleaved pixels back into one plane per channel */
+static NOINLINE void deinterleave_row(int64_t w, const float *restrict src, int64_t n, int64_t stride, float **dst,
+                                      int64_t base) {
+    for (int64_t k = 0; k < n; k++) {
+        float *restrict out = dst[k] + base;
+        const float *restrict in = src + k;
+        if (stride == CUBIC_STRIDE)
+            for (int64_t x = 0; x < w; x++) out[x] = in[x * CUBIC_STRIDE];
+        else
+            for (int64_t x = 0; x < w; x++) out[x] = in[x * LINEAR_STRIDE];
+    }
+}
+
 void reproject_x1(int64_t h, int64_t w, const float *motion,
                   const float **cubic_src, float **cubic_dst, int64_t n_cubic, double cubic_low, double cubic_high,
                   const float **linear_src, float **linear_dst, int64_t n_linear,
                   const float **nearest_src, float **nearest_dst, int64_t n_nearest,
                   const float *depth, const float *normal, const float *prev_depth, const float *prev_normal,
                   double jitter_x, double jitter_y, double depth_tol, double cos_tol, uint8_t *valid,
-                  int64_t threads) {
+                  float *scratch, int64_t threads) {
     const int64_t plane = h * w;
     const float fw = (float)w, fh = (float)h, low = (float)cubic_low, high = (float)cubic_high;
     const float jx = (float)jitter_x, jy = (float)jitter_y, dtol = (float)depth_tol, ctol = (float)cos_tol;
     const int32_t iw = (int32_t)w;
+    /* interleaved copies of the images (scratch: h * w * (CUBIC_STRIDE + LINEAR_STRIDE) floats, or NULL: planar
+     * reads, one gather per channel) */
+    float *cubic_pixels = NULL, *linear_pixels = NULL;
+    if (scratch && n_cubic <= CUBIC_STRIDE && n_linear <= LINEAR_STRIDE) {
+        cubic_pixels = n_cubic ? scratch : NULL;
+        linear_pixels = n_linear ? scratch + plane * CUBIC_STRIDE : NULL;
+#pragma omp parallel for num_threads(threads) schedule(static)
+        for (int64_t y = 0; y < h; y++) {
+            if (cubic_pixels) interleave_row(w, cubic_src, n_cubic, y * w, CUBIC_STRIDE, cubic_pixels + y * w * CUBIC_STRIDE);
+            if (linear_pixels)
+                interleave_row(w, linear_src, n_linear, y * w, LINEAR_STRIDE, linear_pixels + y * w * LINEAR_STRIDE);
+        }
+    }
 #pragma omp parallel num_threads(threads)
     {
         /* row buffers: cubic 4 + 4 weights, 4 columns, 4 row offsets; bilinear 2 fractions, 2 columns, 2 row
@@ -142,6 +221,7 @@ void reproject_x1(int64_t h, int64_t w, const float *motion,
         int32_t *cols[4] = {in, in + w, in + 2 * w, in + 3 * w}, *rows[4] = {in + 4 * w, in + 5 * w, in + 6 * w, in + 7 * w};
         int32_t *lc0 = in + 8 * w, *lc1 = in + 9 * w, *lr0 = in + 10 * w, *lr1 = in + 11 * w;
         int32_t *near = in + 12 * w, *moved = in + 13 * w;
+        float *pixels = malloc(sizeof(float) * w * LINEAR_STRIDE);  /* a row of interleaved results */
 #pragma omp for schedule(static)
         for (int64_t y = 0; y < h; y++) {
             const int64_t base = y * w;
@@ -149,7 +229,13 @@ void reproject_x1(int64_t h, int64_t w, const float *motion,
             if (n_cubic) {
                 cubic_axis(w, px, fw, 1, kx[0], kx[1], kx[2], kx[3], cols[0], cols[1], cols[2], cols[3]);
                 cubic_axis(w, py, fh, iw, ky[0], ky[1], ky[2], ky[3], rows[0], rows[1], rows[2], rows[3]);
-                for (int64_t c = 0; c < n_cubic; c++) {
+                if (cubic_pixels) {
+                    cubic_row_interleaved(w, cubic_pixels, (const int32_t *const *)rows,
+                                          (const int32_t *const *)cols, (const float *const *)kx,
+                                          (const float *const *)ky, low, high, pixels);
+                    deinterleave_row(w, pixels, n_cubic, CUBIC_STRIDE, cubic_dst, base);
+                }
+                for (int64_t c = 0; c < (cubic_pixels ? 0 : n_cubic); c++) {
                     for (int r = 0; r < 4; r++)
                         cubic_row(w, r == 0, cubic_src[c], rows[r], cols[0], cols[1], cols[2], cols[3], kx[0], kx[1],
                                   kx[2], kx[3], ky[r], acc);
@@ -159,7 +245,11 @@ void reproject_x1(int64_t h, int64_t w, const float *motion,
             if (n_linear) {
                 linear_axis(w, px, fw, 1, ux, lc0, lc1);
                 linear_axis(w, py, fh, iw, uy, lr0, lr1);
-                for (int64_t c = 0; c < n_linear; c++)
+                if (linear_pixels) {
+                    linear_row_interleaved(w, linear_pixels, lr0, lr1, lc0, lc1, ux, uy, pixels);
+                    deinterleave_row(w, pixels, n_linear, LINEAR_STRIDE, linear_dst, base);
+                }
+                for (int64_t c = 0; c < (linear_pixels ? 0 : n_linear); c++)
                     linear_row(w, linear_src[c], lr0, lr1, lc0, lc1, ux, uy, linear_dst[c] + base);
             }
             if (n_nearest) {
@@ -175,5 +265,6 @@ void reproject_x1(int64_t h, int64_t w, const float *motion,
         }
         free(fl);
         free(in);
+        free(pixels);
     }
 }

@@ -9,6 +9,9 @@ from model.ops import native
 
 __all__ = ["reproject_x1"]
 
+# reproject.c reads up to this many images of each kind interleaved, one vector load a tap
+CUBIC_STRIDE, LINEAR_STRIDE = 8, 16
+
 
 def _planes(images: list[torch.Tensor]) -> list[torch.Tensor]:
     return [plane for image in images for plane in image.contiguous()[0]]
@@ -35,5 +38,6 @@ def reproject_x1(motion: torch.Tensor, cubic: list[torch.Tensor], cubic_range: t
                 _planes(linear), list(outputs[1][0]), outputs[1].shape[1],
                 _planes(nearest), list(outputs[2][0]), outputs[2].shape[1],
                 depth.contiguous(), normal.contiguous(), prev_depth.contiguous(), prev_normal.contiguous(),
-                jitter_x, jitter_y, float(depth_rel_tol), float(normal_cos_tol), valid)
+                jitter_x, jitter_y, float(depth_rel_tol), float(normal_cos_tol), valid,
+                torch.empty(h * w * (CUBIC_STRIDE + LINEAR_STRIDE)))
     return outputs[0], outputs[1], outputs[2], valid
