@@ -7,8 +7,10 @@ FROM python:3.11-slim-bookworm
 
 # libllvm19: Mitsuba's vectorized CPU backend (llvm_ad_rgb) needs LLVM 19; Dr.Jit would otherwise pick the
 # system's default LLVM, and Debian's LLVM 15 crashes it. model/data/mitsuba_backend.py finds this library.
+# gcc, libc6-dev: the fused models' native CPU kernels are compiled on the machine that runs them, on first use
+# (-march=native; model/ops/native); without a compiler the steps run torch's ops instead.
 RUN apt-get update \
- && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends libllvm19 \
+ && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends libllvm19 gcc libc6-dev \
  && rm -rf /var/lib/apt/lists/*
 
 ENV PYTHONDONTWRITEBYTECODE=1 \

@@ -106,6 +106,13 @@ class Settings(BaseSettings):
         "table shipped in model/deployment/inference_forms.json: channels_last and/or bf16 where they measured faster per method "
         "and resolution), off (fp32 eager everywhere), or the path of a table written by "
         "scripts/bench_inference_forms.py")
+    native_kernels: bool = Field(
+        True, description="the fused models' CPU steps run hand-written C kernels for their passes around the "
+        "network (model/ops/native: compiled with the machine's C compiler on first use; the same outputs to float "
+        "rounding); false: torch's ops everywhere")
+    native_cache_dir: Path | None = Field(
+        None, description="where compiled native kernels are kept, one file per source, compiler flags and CPU "
+        "(default: data_dir/native-kernels)")
     worker_heartbeat_seconds: float = Field(
         10.0, gt=0, description="how often each worker writes its heartbeat; one silent for 3 times this is gone")
     redis_retry_seconds: float = Field(
@@ -146,4 +153,13 @@ class Settings(BaseSettings):
 
 @lru_cache(maxsize=1)
 def get_settings() -> Settings:
-    return Settings()
+    settings = Settings()
+    apply_to_model(settings)
+    return settings
+
+
+def apply_to_model(settings: Settings) -> None:
+    """The model library's process-wide switches from the settings (every process reads its settings first)."""
+    from model.ops import native
+
+    native.configure(settings.native_kernels, settings.native_cache_dir or settings.data_dir / "native-kernels")

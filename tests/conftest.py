@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import random
+import tempfile
 
 import numpy as np
 import pytest
@@ -29,3 +31,8 @@ def seeded_random():
     torch.manual_seed(0)
     np.random.seed(0)
     random.seed(0)
+
+
+# One folder of compiled native kernels for the whole run, whatever data folder a test's settings name: compiled
+# once (about a second per source), not once per test (model/ops/native).
+os.environ.setdefault("DENOISER_NATIVE_CACHE_DIR", os.path.join(tempfile.gettempdir(), "denoiser-test-native-kernels"))

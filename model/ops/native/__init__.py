@@ -26,18 +26,24 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["CACHE_ENV", "build", "call", "enabled", "library", "set_enabled", "usable"]
+__all__ = ["build", "call", "configure", "enabled", "library", "set_enabled", "usable"]
 
-CACHE_ENV = "DENOISER_NATIVE_CACHE"  # where compiled kernels are kept (default: the user's cache folder)
 SOURCES = Path(__file__).parent  # <name>.c, one library each, and the headers they share
 FLAGS = ["-O3", "-march=native", "-mtune-ctrl=use_gather", "-fopenmp", "-fPIC", "-shared", "-std=c11", "-fno-math-errno", "-fno-trapping-math"]
-_state = {"enabled": True}
+_state: dict = {"enabled": True, "cache": None}
 _lock = threading.Lock()
 
 
 def set_enabled(value: bool) -> None:
     """Turn the kernels on or off for this process (off: every caller runs its torch ops)."""
     _state["enabled"] = bool(value)
+
+
+def configure(enabled: bool, cache: Path | None) -> None:
+    """This process' switch and the folder of compiled kernels (None: the user's cache folder); the service's
+    settings (``native_kernels``, ``native_cache_dir``) set both."""
+    set_enabled(enabled)
+    _state["cache"] = None if cache is None else Path(cache)
 
 
 def enabled() -> bool:
@@ -54,9 +60,8 @@ def _cpu_signature() -> str:
 
 
 def _cache_dir() -> Path:
-    configured = os.environ.get(CACHE_ENV)
-    if configured:
-        return Path(configured)
+    if _state["cache"] is not None:
+        return _state["cache"]
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "denoiser-service" / "native"
 

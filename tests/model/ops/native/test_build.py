@@ -37,3 +37,13 @@ def test_usable_only_without_gradients_on_float32_cpu_tensors():
 def _no_grad():
     with torch.no_grad():
         yield
+
+
+def test_configure_sets_the_switch_and_the_cache(tmp_path):
+    try:
+        native.configure(False, tmp_path / "kernels")
+        assert not native.enabled() and not native.usable("reproject", torch.zeros(1))
+        assert native._cache_dir() == tmp_path / "kernels"
+    finally:
+        native.configure(True, None)
+    assert native.enabled() and native._cache_dir().name == "native"
