@@ -35,6 +35,7 @@ from model.ops.kernels import apply_pixel_kernels
 from model.ops.native.features import fused_features_x1
 from model.ops.native.rectify import clip_pair_x1
 from model.ops.native.tail import fused_tail_x1
+from model.ops.native.unet_joints import joints_usable, mean_pool2, upsample_cat
 from model.ops.native.resample import sample_mean_resample_x1, unjittered_resample_x1
 from model.ops.native.warps import reproject_x1
 from model.ops.pyramid import block_mean
@@ -187,9 +188,15 @@ class FusionNet(nn.Module):
         """(fusion logits (N, 3, sH, sW), kernel logits (N, 9, sH, sW), hidden features (N, HIDDEN, H, W))."""
         top = self.encoder(features)
         h, w = top.shape[-2:]
-        bottom = self.bottom(F.avg_pool2d(top, 2, ceil_mode=True))
-        up = F.interpolate(bottom, size=(h, w), mode="bilinear", align_corners=False)
-        out = self.head(self.decoder(torch.cat([top, up], dim=1)))
+        if joints_usable(top):  # bf16 channels_last inference: the joints as native passes, the same values
+            bottom = self.bottom(mean_pool2(top))
+            joined = upsample_cat(top, bottom) if joints_usable(bottom) else None
+        else:
+            bottom, joined = self.bottom(F.avg_pool2d(top, 2, ceil_mode=True)), None
+        if joined is None:
+            up = F.interpolate(bottom, size=(h, w), mode="bilinear", align_corners=False)
+            joined = torch.cat([top, up], dim=1)
+        out = self.head(self.decoder(joined))
         per_pixel = self.scale ** 2 * (self.candidates + KERNEL * KERNEL)
         fine = F.pixel_shuffle(out[:, :per_pixel], self.scale) if self.scale > 1 else out[:, :per_pixel]
         # contiguous first: in channels_last the hidden rows are a strided slice, and tanh over it is much slower

@@ -109,13 +109,13 @@ def library(source: str) -> ctypes.CDLL | None:
             return None
 
 
-def usable(source: str, *tensors: torch.Tensor) -> bool:
-    """Whether a call on ``tensors`` may run ``<source>.c``'s kernels (see the module docstring)."""
+def usable(source: str, *tensors: torch.Tensor, dtype: torch.dtype = torch.float32) -> bool:
+    """Whether a call on ``tensors`` (of ``dtype``) may run ``<source>.c``'s kernels (see the module docstring)."""
     if not _state["enabled"] or torch.is_grad_enabled():
         return False
     if torch.compiler.is_compiling() or torch.jit.is_tracing() or torch.jit.is_scripting():
         return False
-    if not all(t.device.type == "cpu" and t.dtype == torch.float32 and not t.requires_grad for t in tensors):
+    if not all(t.device.type == "cpu" and t.dtype == dtype and not t.requires_grad for t in tensors):
         return False
     return library(source) is not None
 
