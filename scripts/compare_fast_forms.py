@@ -3,11 +3,12 @@
     .venv/bin/python scripts/compare_fast_forms.py --data var/fast_fused/heldout --model fused-balanced-x1 \
         --model fused-fast-x1 --form compile-step+bf16 --form measured --out var/results/fast_forms_quality.json
 
-Each model is evaluated (``model.evaluation.evaluate``, no FovVideoVDP, no OIDN timing) once with every network
-and step eager in fp32 (the table "off") and once per ``--form``: a form name runs that form at every resolution,
-``measured`` the shipped table's choice per resolution (what sessions run). Prints per model and form the mean
-display PSNR and SSIM over the split's sequences, the difference to fp32 eager in dB, and the lowest per-sequence
-difference.
+Each model is evaluated (``model.evaluation.evaluate``, no FovVideoVDP, no OIDN timing) once as the plain model
+runs it, every network and step eager in fp32 on torch's ops (the table "off", the native kernels off), and once per
+``--form`` with the native kernels (``model.ops.native``): a form name runs that form at every resolution, ``off``
+fp32 eager, ``measured`` the shipped table's choice per resolution (what sessions run). Prints per model and form the
+mean display PSNR and SSIM over the split's sequences, the difference to the plain model in dB, and the lowest
+per-sequence difference.
 """
 
 from __future__ import annotations
@@ -46,26 +47,31 @@ def main() -> None:
     from model.deployment.inference_forms import method_key
     from model.deployment.pretrained import load_pretrained
     from model.evaluation.evaluate import evaluate
+    from model.ops import native
 
     rows = []
-    print("| model | form | PSNR dB | SSIM | PSNR - fp32 eager | lowest per-sequence difference |")
+    print("| model | form | PSNR dB | SSIM | PSNR - plain model | lowest per-sequence difference |")
     print("|---|---|---:|---:|---:|---:|")
     for name in args.model:
         key = method_key(load_pretrained(name))
         per_form = {}
-        for form in ["off", *(args.form or ["measured"])]:
-            table = form if form in ("off", "measured") else forced_table(key, form)
+        for index, form in enumerate(["plain", *(args.form or ["measured"])]):
+            table = "off" if form == "plain" else form if form in ("off", "measured") else forced_table(key, form)
+            native.set_enabled(index > 0)
             report = evaluate(args.data, [load_pretrained(name)], args.split, args.scale, threads=args.threads,
                               vdp=False, timing_reference=None, inference_forms=table)
+            native.set_enabled(True)
             entry = report["methods"][0]
             per_form[form] = {sequence: values["psnr"] for sequence, values in entry["sequences"].items()}
             psnr, ssim = entry["metrics"]["psnr"], entry["metrics"]["ssim"]
-            difference = 0.0 if form == "off" else psnr - next(
-                r["psnr"] for r in rows if r["model"] == name and r["form"] == "off")
-            lowest = min(per_form[form][s] - per_form["off"][s] for s in per_form[form])
+            difference = 0.0 if form == "plain" else psnr - next(
+                r["psnr"] for r in rows if r["model"] == name and r["form"] == "plain")
+            lowest = min(per_form[form][s] - per_form["plain"][s] for s in per_form[form])
             rows.append({"model": name, "form": form, "psnr": psnr, "ssim": ssim, "psnr_delta_db": difference,
                          "lowest_sequence_delta_db": lowest})
-            print(f"| {name} | {'fp32 eager' if form == 'off' else form} | {psnr:.3f} | {ssim:.4f} | "
+            label = {"plain": "fp32 eager, torch ops", "off": "fp32 eager, native kernels"}.get(
+                form, f"{form}, native kernels")
+            print(f"| {name} | {label} | {psnr:.3f} | {ssim:.4f} | "
                   f"{difference:+.4f} | {lowest:+.4f} |", flush=True)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
