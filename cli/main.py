@@ -109,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     tune_for_large_frames()  # before any frame is read: a 1080p step otherwise faults its tensors in every time
     try:
+        from core.settings import get_settings
+
+        get_settings()  # invalid settings are refused here; valid ones set the model library's switches
         return args.run(args)
     except (UsageError, FrameError, FileNotFoundError, FileExistsError, KeyError, ValueError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error

@@ -134,3 +134,21 @@ def test_preview_of_a_frame_bundle_file_draws_its_buffers_not_an_image(tmp_path,
     assert main(["preview", str(path), "--out", str(png)]) == 0
     assert "output image" not in capsys.readouterr().out
     assert matplotlib.image.imread(png).shape[1] > 16 * 4  # a sheet of panels, not the 16x16 frame
+
+
+def test_the_settings_reach_the_native_kernels_and_bad_ones_are_refused(monkeypatch, tmp_path, capsys):
+    from core.settings import get_settings
+    from model.ops import native
+
+    monkeypatch.setenv("DENOISER_NATIVE_KERNELS", "false")
+    monkeypatch.setenv("DENOISER_NATIVE_CACHE_DIR", str(tmp_path / "kernels"))
+    try:
+        assert main(["scenes"]) == 0
+        assert not native.enabled() and native._cache_dir() == tmp_path / "kernels"
+        monkeypatch.setenv("DENOISER_NATIVE_KERNELS", "sometimes")
+        get_settings.cache_clear()
+        assert main(["scenes"]) == 2
+        assert "native_kernels" in capsys.readouterr().err
+    finally:
+        get_settings.cache_clear()
+        native.configure(True, None)
