@@ -29,7 +29,10 @@ import torch
 __all__ = ["build", "call", "configure", "enabled", "library", "set_enabled", "usable"]
 
 SOURCES = Path(__file__).parent  # <name>.c, one library each, and the headers they share
-FLAGS = ["-O3", "-march=native", "-mtune-ctrl=use_gather", "-fopenmp", "-fPIC", "-shared", "-std=c11", "-fno-math-errno", "-fno-trapping-math"]
+# -fno-trapping-math lets floorf and comparisons vectorize (no kernel enables float traps); on x86, GCC's tuning for
+# some CPUs (AMD's Zen) never emits gathers, which the warps' row loops need to vectorize
+FLAGS = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-std=c11", "-fno-math-errno", "-fno-trapping-math"]
+X86_FLAGS = ["-mtune-ctrl=use_gather"]
 _state: dict = {"enabled": True, "cache": None}
 _lock = threading.Lock()
 
@@ -73,7 +76,8 @@ def build(source: str, cache: Path | None = None) -> Path:
     digest = hashlib.sha256(path.read_bytes())
     for header in sorted(SOURCES.glob("*.h")):  # included by some sources
         digest.update(header.read_bytes())
-    digest.update(" ".join(FLAGS).encode())
+    flags = FLAGS + (X86_FLAGS if platform.machine().lower() in ("x86_64", "amd64") else [])
+    digest.update(" ".join(flags).encode())
     digest.update(_cpu_signature().encode())
     cache = cache or _cache_dir()
     target = cache / f"{source}_{digest.hexdigest()[:16]}.so"
@@ -87,7 +91,10 @@ def build(source: str, cache: Path | None = None) -> Path:
     handle, partial = tempfile.mkstemp(suffix=".so", dir=cache)
     os.close(handle)
     try:
-        result = subprocess.run([compiler, *FLAGS, str(path), "-o", partial, "-lm"], capture_output=True, text=True)
+        result = subprocess.run([compiler, *flags, str(path), "-o", partial, "-lm"], capture_output=True, text=True)
+        if result.returncode != 0 and flags != FLAGS:  # a compiler without GCC's x86 tuning switches (clang)
+            result = subprocess.run([compiler, *FLAGS, str(path), "-o", partial, "-lm"], capture_output=True,
+                                    text=True)
         if result.returncode != 0:
             raise RuntimeError(f"{compiler} failed on {path.name}: {result.stderr.strip()[-2000:]}")
         os.replace(partial, target)
