@@ -160,6 +160,7 @@ def get_settings() -> Settings:
 
 def apply_to_model(settings: Settings) -> None:
     """The model library's process-wide switches from the settings (every process reads its settings first)."""
+    from core.storage import Storage
     from model.ops import native
 
-    native.configure(settings.native_kernels, settings.native_cache_dir or settings.data_dir / "native-kernels")
+    native.configure(settings.native_kernels, settings.native_cache_dir or Storage(settings.data_dir).native_kernels)

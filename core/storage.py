@@ -61,6 +61,11 @@ class Storage:
     def runs(self) -> Path:
         return self.root / "runs"
 
+    @property
+    def native_kernels(self) -> Path:
+        """The compiled native kernels (model/ops/native), unless ``native_cache_dir`` names another folder."""
+        return self.root / "native-kernels"
+
     def ensure(self) -> Storage:
         for folder in (self.datasets, self.jobs, self.results, self.models, self.staging, self.mlflow):
             folder.mkdir(parents=True, exist_ok=True)
