@@ -34,9 +34,9 @@ from model.ops.jittered_albedo import gather_samples, sample_weights, texture_de
 from model.ops.kernels import apply_pixel_kernels
 from model.ops.native.features import fused_features_x1
 from model.ops.native.rectify import clip_pair_x1
+from model.ops.native.resample import sample_mean_resample_x1, unjittered_resample_x1
 from model.ops.native.tail import fused_tail_x1
 from model.ops.native.unet_joints import joints_usable, mean_pool2, upsample_cat
-from model.ops.native.resample import sample_mean_resample_x1, unjittered_resample_x1
 from model.ops.native.warps import reproject_x1
 from model.ops.pyramid import block_mean
 from model.ops.rectify import clip_to_bounds, moment_bounds, neighbourhood_moments
@@ -108,9 +108,11 @@ SHIPPED_SETTINGS: dict[int, dict[str, bool | int | float]] = {
         "albedo_detail_frames": 8, "unjitter_estimate": True},
 }
 
+
 def frame_samples(frame: FrameBatch) -> torch.Tensor:
     """The 1 spp colour with the guides OIDN reads of the same samples (its albedo, the normals), (N, 9, H, W)."""
     return torch.cat([frame.color, oidn_albedo(frame), frame.normal], dim=1)
+
 
 def frame_of_sample_mean(frame: FrameBatch, samples: torch.Tensor) -> FrameBatch:
     """The frame OIDN denoises from a running mean of ``frame_samples``: the mean colour with the mean guides. OIDN
@@ -119,6 +121,7 @@ def frame_of_sample_mean(frame: FrameBatch, samples: torch.Tensor) -> FrameBatch
     return dataclasses.replace(frame, color=samples[:, :3], albedo=samples[:, 3:6], normal=samples[:, 6:9],
                                specular_albedo=None)
 
+
 def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
     """Resample a render-resolution image whose pixel (x, y) holds the sample at (x + 0.5 + jitter) onto the
     target grid: target pixel centre P (in render pixels, P = (X + 0.5) / scale) reads the image at P - jitter.
@@ -126,10 +129,12 @@ def unjittered_resample(image: torch.Tensor, jitter: torch.Tensor, scale: int) -
     next to a bright emitter, and in x / (1 + x) space an overshoot past 1 would map back to unbounded radiance)."""
     return _read_within_bounds(image, _source_bounds(image), jitter, scale)
 
+
 def _source_bounds(image: torch.Tensor) -> torch.Tensor:
     """Each pixel's 3x3 neighbourhood max and min (N, 2C, H, W), edges replicated: the 2x2 source pixels a bilinear
     read would use lie inside it."""
     return torch.cat(replicated_box_extremes(image, 3), dim=1)
+
 
 def _read_within_bounds(image: torch.Tensor, bounds: torch.Tensor, jitter: torch.Tensor, scale: int) -> torch.Tensor:
     # Target pixel centre P = (X + 0.5) / scale render pixels reads the source at P - jitter, i.e. at pixel
@@ -139,6 +144,7 @@ def _read_within_bounds(image: torch.Tensor, bounds: torch.Tensor, jitter: torch
     resampled = scaled_bicubic(image, shift, scale)
     bounds = scaled_nearest(bounds, shift, scale)
     return torch.clamp(resampled, min=bounds[:, channels:], max=bounds[:, :channels])
+
 
 def sample_mean_resample(image: torch.Tensor, jitter: torch.Tensor, count: torch.Tensor, scale: int) -> torch.Tensor:
     """``unjittered_resample`` for an estimate made from a sample mean of ``count`` (N, 1, H, W) frames: this frame's
@@ -150,13 +156,16 @@ def sample_mean_resample(image: torch.Tensor, jitter: torch.Tensor, count: torch
     centred = image if scale == 1 else _read_within_bounds(image, bounds, torch.zeros_like(jitter), scale)
     return centred + current * (_read_within_bounds(image, bounds, jitter, scale) - centred)
 
+
 def head_candidates(head_rows: int, scale: int) -> int:
     """How many fusion candidates a network's head of ``head_rows`` outputs predicts weights for at ``scale``
     (the head: scale^2 sub-pixels x (candidates + 3 x 3 kernel taps), then the hidden features)."""
     return (head_rows - HIDDEN) // scale ** 2 - KERNEL * KERNEL
 
+
 def _conv(inputs: int, outputs: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(inputs, outputs, 3, padding=1), nn.ReLU(inplace=True))
+
 
 class FusionNet(nn.Module):
     """Two-level U-Net at render resolution; the head predicts scale^2 sub-pixels' weights and kernels each."""
@@ -202,6 +211,7 @@ class FusionNet(nn.Module):
         # contiguous first: in channels_last the hidden rows are a strided slice, and tanh over it is much slower
         # (the same values)
         return fine[:, :self.candidates], fine[:, self.candidates:], torch.tanh(out[:, per_pixel:].contiguous())
+
 
 class Fused(Method):
     """OIDN + learned temporal reuse (see the module docstring)."""
@@ -734,11 +744,13 @@ class Fused(Method):
         return (images[:, :3], render[:, :HIDDEN], render[:, HIDDEN:HIDDEN + 1], valid, mean, count, warped_samples,
                 samples_count)
 
+
 @outside_compiled_graph
 def _spatial_denoise(frame: FrameBatch, quality: str) -> torch.Tensor:
     """OIDN's estimate (``oidn_denoise``, read from this module at each call); a native call, so a compiled step
     runs it between its graphs."""
     return oidn_denoise(frame, quality)
+
 
 def _features(parts: list[torch.Tensor], channels_last: bool) -> torch.Tensor:
     """The network's input: ``parts`` concatenated along the channels, in channels_last for a network in it.
@@ -754,15 +766,18 @@ def _features(parts: list[torch.Tensor], channels_last: bool) -> torch.Tensor:
                       memory_format=torch.channels_last)
     return torch.cat(parts, dim=1, out=out)
 
+
 def _upsample_values(values: torch.Tensor, scale: int) -> torch.Tensor:
     if scale == 1:
         return values
     return F.interpolate(values, scale_factor=scale, mode="nearest")
 
+
 def _upsample_mask(mask: torch.Tensor, scale: int) -> torch.Tensor:
     if scale == 1:
         return mask
     return _upsample_values(mask.to(torch.float32), scale) > 0.5
+
 
 register(MethodSpec(
     name=Fused.name,
