@@ -144,6 +144,9 @@ def _argument(value):
 
 
 def call(source: str, name: str, *arguments) -> None:
-    """Run ``<source>.c``'s kernel ``name`` with tensors passed by pointer (the caller makes them contiguous; a list of tensors as an
-    array of pointers, None as NULL), ints as int64 and floats as double, on torch's thread count."""
-    getattr(library(source), name)(*map(_argument, arguments), ctypes.c_int64(torch.get_num_threads()))
+    """Run ``<source>.c``'s kernel ``name`` with tensors passed by pointer (the caller makes them contiguous; a list of
+    tensors as an array of pointers, None as NULL), ints as int64 and floats as double, on torch's thread count.
+    Raises MemoryError where the kernel could not allocate its scratch memory (it then wrote nothing)."""
+    status = getattr(library(source), name)(*map(_argument, arguments), ctypes.c_int64(torch.get_num_threads()))
+    if status != 0:
+        raise MemoryError(f"native kernel {name}: out of memory for its scratch buffers")

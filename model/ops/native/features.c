@@ -110,7 +110,7 @@ static void features_row(const Inputs *in, const Fallbacks *fb, int64_t y, const
     }
 }
 
-void features_x1(int64_t h, int64_t w, const float *s, const float *s_out, const float *color, const float *albedo,
+int features_x1(int64_t h, int64_t w, const float *s, const float *s_out, const float *color, const float *albedo,
                  const float *normal, const float *history, const uint8_t *valid, const float *length,
                  const float *hidden, const float *mean, const float *count, const float *depth, double depth_max,
                  double max_history, double count_norm, float *out_history, float *out_rectified, float *out_mean,
@@ -118,18 +118,20 @@ void features_x1(int64_t h, int64_t w, const float *s, const float *s_out, const
     const Inputs in = {s, s_out, color, albedo, normal, history, length, hidden, mean, count, depth, valid,
                        (float)depth_max, (float)max_history, (float)count_norm, h * w, w};
     float *const out[5] = {out_history, out_rectified, out_mean, out_clipped_mean, out_length};
+    int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
-        BoxRows box = box_rows_begin(h, w, omp_get_thread_num(), omp_get_num_threads());
-        float *f = malloc(sizeof(float) * FEATURES * w);
-        uint16_t *half = malloc(sizeof(uint16_t) * FEATURES * w);
-        float *zeros = calloc(w, sizeof(float)), *ones = malloc(sizeof(float) * w);
-        uint8_t *invalid = calloc(w, 1);
-        float *valid_row = malloc(sizeof(float) * w);
+        BoxRows box = box_rows_begin(h, w, omp_get_thread_num(), omp_get_num_threads(), &failed);
+        float *f = scratch_alloc(sizeof(float) * FEATURES * w, &failed);
+        uint16_t *half = scratch_alloc(sizeof(uint16_t) * FEATURES * w, &failed);
+        float *zeros = scratch_zeroed(w, sizeof(float), &failed), *ones = scratch_alloc(sizeof(float) * w, &failed);
+        uint8_t *invalid = scratch_zeroed(w, 1, &failed);
+        float *valid_row = scratch_alloc(sizeof(float) * w, &failed);
+#pragma omp barrier
         Fallbacks fb = {zeros, ones, invalid, valid_row, {0}};
-        for (int64_t x = 0; x < w; x++) ones[x] = 1.0f;
+        for (int64_t x = 0; x < (failed ? 0 : w); x++) ones[x] = 1.0f;
         for (int n = 0; n <= 64; n++) fb.log_count[n] = log1pf((float)n) / in.cnorm;
-        for (int64_t y = box.y0; y < box.y1; y++) {
+        for (int64_t y = box.y0; y < (failed ? box.y0 : box.y1); y++) {
             box_rows_at(&box, s_out, h, w, y);
             features_row(&in, &fb, y, box.high, box.low, out, f);
             if (bf16) {
@@ -146,4 +148,5 @@ void features_x1(int64_t h, int64_t w, const float *s, const float *s_out, const
         box_rows_end(&box);
         free(f), free(half), free(zeros), free(ones), free(invalid), free(valid_row);
     }
+    return failed;
 }

@@ -7,6 +7,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "scratch.h"
+
 #define CUBIC_A (-0.75f)
 #define NOINLINE __attribute__((noinline))
 
@@ -186,7 +188,7 @@ static NOINLINE void deinterleave_row(int64_t w, const float *restrict src, int6
     }
 }
 
-void reproject_x1(int64_t h, int64_t w, const float *motion,
+int reproject_x1(int64_t h, int64_t w, const float *motion,
                   const float **cubic_src, float **cubic_dst, int64_t n_cubic, double cubic_low, double cubic_high,
                   const float **linear_src, float **linear_dst, int64_t n_linear,
                   const float **nearest_src, float **nearest_dst, int64_t n_nearest,
@@ -210,20 +212,23 @@ void reproject_x1(int64_t h, int64_t w, const float *motion,
                 interleave_row(w, linear_src, n_linear, y * w, LINEAR_STRIDE, linear_pixels + y * w * LINEAR_STRIDE);
         }
     }
+    int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
         /* row buffers: cubic 4 + 4 weights, 4 columns, 4 row offsets; bilinear 2 fractions, 2 columns, 2 row
          * offsets; positions 2; nearest 2 indices; a sum */
-        float *fl = malloc((size_t)w * 13 * sizeof(float));
-        int32_t *in = malloc((size_t)w * 14 * sizeof(int32_t));
+        float *fl = scratch_alloc((size_t)w * 13 * sizeof(float), &failed);
+        int32_t *in = scratch_alloc((size_t)w * 14 * sizeof(int32_t), &failed);
         float *kx[4] = {fl, fl + w, fl + 2 * w, fl + 3 * w}, *ky[4] = {fl + 4 * w, fl + 5 * w, fl + 6 * w, fl + 7 * w};
         float *ux = fl + 8 * w, *uy = fl + 9 * w, *px = fl + 10 * w, *py = fl + 11 * w, *acc = fl + 12 * w;
         int32_t *cols[4] = {in, in + w, in + 2 * w, in + 3 * w}, *rows[4] = {in + 4 * w, in + 5 * w, in + 6 * w, in + 7 * w};
         int32_t *lc0 = in + 8 * w, *lc1 = in + 9 * w, *lr0 = in + 10 * w, *lr1 = in + 11 * w;
         int32_t *near = in + 12 * w, *moved = in + 13 * w;
-        float *pixels = malloc(sizeof(float) * w * LINEAR_STRIDE);  /* a row of interleaved results */
+        float *pixels = scratch_alloc(sizeof(float) * w * LINEAR_STRIDE, &failed);  /* a row of interleaved results */
+#pragma omp barrier
+        const int64_t rows_to_do = failed ? 0 : h;
 #pragma omp for schedule(static)
-        for (int64_t y = 0; y < h; y++) {
+        for (int64_t y = 0; y < rows_to_do; y++) {
             const int64_t base = y * w;
             positions(w, (float)y, motion + base, motion + plane + base, px, py);
             if (n_cubic) {
@@ -267,4 +272,5 @@ void reproject_x1(int64_t h, int64_t w, const float *motion,
         free(in);
         free(pixels);
     }
+    return failed;
 }

@@ -8,6 +8,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "scratch.h"
+
 #define SLOTS 5  /* x-filtered rows kept per thread: the 4 a row reads, by source row mod SLOTS */
 #define CHANNELS 3
 
@@ -69,12 +71,14 @@ static void blend_run(int64_t x0, int64_t x1, int64_t offset, const float *const
 
 /* count NULL: unjittered_resample (the clamped read itself); otherwise image + (read - image) / max(count, 1).
  * wx, wy: the 5 tap weights per axis; columns, rows: the pixel each output column and row reads nearest. */
-void resample_x1(int64_t h, int64_t w, const float *image, const float *count, const float *wx, const float *wy,
+int resample_x1(int64_t h, int64_t w, const float *image, const float *count, const float *wx, const float *wy,
                  const int32_t *columns, const int32_t *rows, float *out, int64_t threads) {
     const int64_t plane = h * w;
     const int ky = first_tap(wy);
     /* the columns in runs of one offset to their nearest read (a few: the shift is uniform), so no gathers */
-    int64_t *runs = malloc(sizeof(int64_t) * (w + 1)), n_runs = 0;
+    int failed = 0;
+    int64_t *runs = scratch_alloc(sizeof(int64_t) * (w + 1), &failed), n_runs = 0;
+    if (failed) return failed;
     for (int64_t x = 0; x < w; x++)
         if (x == 0 || columns[x] - x != columns[x - 1] - (x - 1)) runs[n_runs++] = x;
     runs[n_runs] = w;
@@ -83,13 +87,14 @@ void resample_x1(int64_t h, int64_t w, const float *image, const float *count, c
     {
         const int64_t nt = omp_get_num_threads(), t = omp_get_thread_num();
         const int64_t y0 = h * t / nt, y1 = h * (t + 1) / nt;
-        float *filtered = malloc(sizeof(float) * SLOTS * CHANNELS * w);
-        float *pad = malloc(sizeof(float) * (w + 4));
-        float *vmax = malloc(sizeof(float) * (w + 2)), *vmin = malloc(sizeof(float) * (w + 2));
-        float *hmax = malloc(sizeof(float) * w), *hmin = malloc(sizeof(float) * w);
+        float *filtered = scratch_alloc(sizeof(float) * SLOTS * CHANNELS * w, &failed);
+        float *pad = scratch_alloc(sizeof(float) * (w + 4), &failed);
+        float *vmax = scratch_alloc(sizeof(float) * (w + 2), &failed), *vmin = scratch_alloc(sizeof(float) * (w + 2), &failed);
+        float *hmax = scratch_alloc(sizeof(float) * w, &failed), *hmin = scratch_alloc(sizeof(float) * w, &failed);
         int64_t tag[SLOTS];
         for (int s = 0; s < SLOTS; s++) tag[s] = -1;
-        for (int64_t y = y0; y < y1; y++) {
+#pragma omp barrier
+        for (int64_t y = y0; y < (failed ? y0 : y1); y++) {
             const float *taps[CHANNELS][4];
             for (int j = 0; j < 4; j++) {
                 const int64_t r = clampi(y - 2 + ky + j, 0, h - 1), s = r % SLOTS;
@@ -112,4 +117,5 @@ void resample_x1(int64_t h, int64_t w, const float *image, const float *count, c
         free(filtered), free(pad), free(vmax), free(vmin), free(hmax), free(hmin);
     }
     free(runs);
+    return failed;
 }

@@ -11,6 +11,7 @@
 #include <string.h>
 
 #include "exp_negative.h"
+#include "scratch.h"
 
 static inline int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
 static inline int64_t max64(int64_t a, int64_t b) { return a > b ? a : b; }
@@ -127,28 +128,34 @@ static void regional_row(const double *restrict acc, int64_t w, float ch, const 
 }
 
 /* stale_history_trust: noisy and history are 3 planes each; trust (H x W) is written. region 0: no regional test. */
-void stale_trust(int64_t h, int64_t w, const float **noisy, const float **history, double sigmas, int64_t block,
+int stale_trust(int64_t h, int64_t w, const float **noisy, const float **history, double sigmas, int64_t block,
                  int64_t region, double relative_floor, double region_cap, double region_sigmas, float *trust,
                  int64_t threads) {
     const int64_t plane = h * w, rb = block / 2, rr = region / 2;
     const float s = (float)sigmas, floor_ = (float)relative_floor, cap = (float)region_cap;
     const float rs = (float)region_sigmas, block_area = (float)(block * block);
-    float *sums = malloc(sizeof(float) * 3 * plane); /* row sums of value, past, value^2 */
-    float *capped = region ? malloc(sizeof(float) * 2 * plane) : NULL; /* min(z, cap)^2, then its row sums */
+    int failed = 0;
+    float *sums = scratch_alloc(sizeof(float) * 3 * plane, &failed); /* row sums of value, past, value^2 */
+    /* min(z, cap)^2, then its row sums */
+    float *capped = region ? scratch_alloc(sizeof(float) * 2 * plane, &failed) : NULL;
     const float *planes[3] = {sums, sums + plane, sums + 2 * plane};
 
 #pragma omp parallel num_threads(threads)
     {
         const int64_t pad_length = w + 2 * (rb > rr ? rb : rr);
-        float *pad = calloc((size_t)(5 * pad_length), sizeof(float)), *scratch = pad + 3 * pad_length;
-        double *acc = malloc(sizeof(double) * 3 * w);
-        float *z = malloc(sizeof(float) * w);
-        float *columns = malloc(sizeof(float) * w); /* each column's count of window positions inside the image */
+        float *pad = scratch_zeroed((size_t)(5 * pad_length), sizeof(float), &failed), *scratch = pad + 3 * pad_length;
+        double *acc = scratch_alloc(sizeof(double) * 3 * w, &failed);
+        float *z = scratch_alloc(sizeof(float) * w, &failed);
+        /* each column's count of window positions inside the image */
+        float *columns = scratch_alloc(sizeof(float) * w, &failed);
+#pragma omp barrier
         const int t = omp_get_thread_num(), nt = omp_get_num_threads();
-        const int64_t y0 = h * t / nt, y1 = h * (t + 1) / nt;
+        /* after a failed allocation every thread skips every row */
+        const int64_t y0 = failed ? 0 : h * t / nt, y1 = failed ? 0 : h * (t + 1) / nt, rows = failed ? 0 : h;
+        const int64_t width = failed ? 0 : w;
 
 #pragma omp for schedule(static)
-        for (int64_t y = 0; y < h; y++) {
+        for (int64_t y = 0; y < rows; y++) {
             float *v = pad + rb, *p = pad + pad_length + rb, *q = pad + 2 * pad_length + rb;
             const int64_t i = y * w;
             for (int64_t x = 0; x < w; x++) {
@@ -160,8 +167,8 @@ void stale_trust(int64_t h, int64_t w, const float **noisy, const float **histor
             for (int c = 0; c < 3; c++) row_sums(pad + c * pad_length, w, rb, scratch, sums + c * plane + i);
         }
         /* the implicit barrier above: every row's sums are written */
-        for (int64_t x = 0; x < w; x++) columns[x] = inside_count(x, rb, w);
-        column_start(planes, 3, y0, h, w, rb, acc);
+        for (int64_t x = 0; x < width; x++) columns[x] = inside_count(x, rb, w);
+        if (!failed) column_start(planes, 3, y0, h, w, rb, acc);
         for (int64_t y = y0; y < y1; y++) {
             const int64_t i = y * w;
             z_row(acc, w, inside_count(y, rb, h), columns, floor_, block_area, z);
@@ -172,15 +179,15 @@ void stale_trust(int64_t h, int64_t w, const float **noisy, const float **histor
         if (region) {
 #pragma omp barrier
             const int64_t region_pad = w + 2 * rr;
-            for (int64_t x = 0; x < region_pad; x++) pad[x] = 0.0f;
+            for (int64_t x = 0; x < (failed ? 0 : region_pad); x++) pad[x] = 0.0f;
 #pragma omp for schedule(static)
-            for (int64_t y = 0; y < h; y++) {
+            for (int64_t y = 0; y < rows; y++) {
                 memcpy(pad + rr, capped + y * w, sizeof(float) * w);
                 row_sums(pad, w, rr, scratch, capped + plane + y * w);
             }
             const float *row_planes[1] = {capped + plane};
-            for (int64_t x = 0; x < w; x++) columns[x] = inside_count(x, rr, w);
-            column_start(row_planes, 1, y0, h, w, rr, acc);
+            for (int64_t x = 0; x < width; x++) columns[x] = inside_count(x, rr, w);
+            if (!failed) column_start(row_planes, 1, y0, h, w, rr, acc);
             for (int64_t y = y0; y < y1; y++) {
                 regional_row(acc, w, inside_count(y, rr, h), columns, rs, trust + y * w);
                 column_step(row_planes, 1, y, h, w, rr, acc);
@@ -193,18 +200,22 @@ void stale_trust(int64_t h, int64_t w, const float **noisy, const float **histor
     }
     free(sums);
     free(capped);
+    return failed;
 }
 
 /* update_sample_mean's count arithmetic and mean update for n_channels planes; trust and spread may be NULL. */
-void sample_mean_update(int64_t h, int64_t w, int64_t n_channels, const float **noisy, const float **mean,
+int sample_mean_update(int64_t h, int64_t w, int64_t n_channels, const float **noisy, const float **mean,
                         const float *count, const float *trust, const float *spread, const uint8_t *valid,
                         double max_frames, float **out_mean, float *out_count, int64_t threads) {
     const float most = (float)max_frames;
+    int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
-        float *keep = malloc(sizeof(float) * w); /* 1 - 1 / n, shared by the channels */
+        float *keep = scratch_alloc(sizeof(float) * w, &failed); /* 1 - 1 / n, shared by the channels */
+#pragma omp barrier
+        const int64_t rows = failed ? 0 : h;
 #pragma omp for schedule(static)
-        for (int64_t y = 0; y < h; y++) {
+        for (int64_t y = 0; y < rows; y++) {
             const int64_t i = y * w;
             float *n = out_count + i;
             for (int64_t x = 0; x < w; x++) n[x] = count[i + x];
@@ -228,4 +239,5 @@ void sample_mean_update(int64_t h, int64_t w, int64_t n_channels, const float **
         }
         free(keep);
     }
+    return failed;
 }

@@ -8,6 +8,7 @@
 #include <stdlib.h>
 
 #include "exp_negative.h"
+#include "scratch.h"
 
 #define NOINLINE __attribute__((noinline))
 
@@ -47,20 +48,23 @@ static NOINLINE void blend_row(int64_t w, const float *restrict w0, const float 
     }
 }
 
-void tail_x1(int64_t h, int64_t w, const float *logits, const float *s_out, const float *history,
+int tail_x1(int64_t h, int64_t w, const float *logits, const float *s_out, const float *history,
              const float *rectified, const float *clipped_mean, const float *trust, const uint8_t *valid,
              const float *samples_count, double power, float *blended, float *output, float *new_samples_count,
              int64_t threads) {
     const int64_t plane = h * w;
     const float pw = (float)power;
+    int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
-        float *rows = malloc(sizeof(float) * 8 * w);
+        float *rows = scratch_alloc(sizeof(float) * 8 * w, &failed);
+#pragma omp barrier
+        const int64_t rows_to_do = failed ? 0 : h, width = failed ? 0 : w;
         float *w0 = rows, *w1 = rows + w, *w2 = rows + 2 * w, *w3 = rows + 3 * w, *share = rows + 4 * w;
         float *ones = rows + 5 * w, *valid_row = rows + 6 * w, *zeros = rows + 7 * w;
-        for (int64_t x = 0; x < w; x++) ones[x] = 1.0f, zeros[x] = 0.0f;
+        for (int64_t x = 0; x < width; x++) ones[x] = 1.0f, zeros[x] = 0.0f;
 #pragma omp for schedule(static)
-        for (int64_t y = 0; y < h; y++) {
+        for (int64_t y = 0; y < rows_to_do; y++) {
             const int64_t base = y * w;
             for (int64_t x = 0; x < w; x++) valid_row[x] = valid ? (float)valid[base + x] : 0.0f;
             weights_row(w, logits + base, logits + plane + base, logits + 2 * plane + base, logits + 3 * plane + base,
@@ -81,4 +85,5 @@ void tail_x1(int64_t h, int64_t w, const float *logits, const float *s_out, cons
         }
         free(rows);
     }
+    return failed;
 }

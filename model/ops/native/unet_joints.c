@@ -8,6 +8,8 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "scratch.h"
+
 #define NOINLINE __attribute__((noinline))
 
 static inline float from_bf16(uint16_t v) {
@@ -24,25 +26,33 @@ static inline uint16_t to_bf16(float f) {
     return (uint16_t)((u + 0x7FFFu + ((u >> 16) & 1u)) >> 16);
 }
 
-void mean_pool2_bf16(int64_t h, int64_t w, int64_t c, const uint16_t *src, uint16_t *dst, int64_t threads) {
+int mean_pool2_bf16(int64_t h, int64_t w, int64_t c, const uint16_t *src, uint16_t *dst, int64_t threads) {
     const int64_t ho = (h + 1) / 2, wo = (w + 1) / 2;
-#pragma omp parallel for num_threads(threads) schedule(static)
-    for (int64_t oy = 0; oy < ho; oy++) {
-        const int64_t y0 = 2 * oy, y1 = y0 + 2 < h ? y0 + 2 : h;
-        float sum[c];
-        for (int64_t ox = 0; ox < wo; ox++) {
-            const int64_t x0 = 2 * ox, x1 = x0 + 2 < w ? x0 + 2 : w;
-            const float count = (float)((y1 - y0) * (x1 - x0));
-            for (int64_t k = 0; k < c; k++) sum[k] = 0.0f;
-            for (int64_t y = y0; y < y1; y++)
-                for (int64_t x = x0; x < x1; x++) {
-                    const uint16_t *p = src + (y * w + x) * c;
-                    for (int64_t k = 0; k < c; k++) sum[k] += from_bf16(p[k]);
-                }
-            uint16_t *o = dst + (oy * wo + ox) * c;
-            for (int64_t k = 0; k < c; k++) o[k] = to_bf16(sum[k] / count);
+    int failed = 0;
+#pragma omp parallel num_threads(threads)
+    {
+        float *sum = scratch_alloc(sizeof(float) * c, &failed);
+#pragma omp barrier
+        const int64_t rows = failed ? 0 : ho;
+#pragma omp for schedule(static)
+        for (int64_t oy = 0; oy < rows; oy++) {
+            const int64_t y0 = 2 * oy, y1 = y0 + 2 < h ? y0 + 2 : h;
+            for (int64_t ox = 0; ox < wo; ox++) {
+                const int64_t x0 = 2 * ox, x1 = x0 + 2 < w ? x0 + 2 : w;
+                const float count = (float)((y1 - y0) * (x1 - x0));
+                for (int64_t k = 0; k < c; k++) sum[k] = 0.0f;
+                for (int64_t y = y0; y < y1; y++)
+                    for (int64_t x = x0; x < x1; x++) {
+                        const uint16_t *p = src + (y * w + x) * c;
+                        for (int64_t k = 0; k < c; k++) sum[k] += from_bf16(p[k]);
+                    }
+                uint16_t *o = dst + (oy * wo + ox) * c;
+                for (int64_t k = 0; k < c; k++) o[k] = to_bf16(sum[k] / count);
+            }
         }
+        free(sum);
     }
+    return failed;
 }
 
 /* interpolate's source index along one axis (area_pixel_compute_source_index, align_corners=False) */
@@ -67,10 +77,17 @@ static NOINLINE void up_row(int64_t c, const uint16_t *restrict p00, const uint1
                        + from_bf16(p11[k]) * w11);
 }
 
-void upsample_cat_bf16(int64_t h, int64_t w, int64_t c_fine, const uint16_t *fine, int64_t hc, int64_t wc,
+int upsample_cat_bf16(int64_t h, int64_t w, int64_t c_fine, const uint16_t *fine, int64_t hc, int64_t wc,
                        int64_t c_coarse, const uint16_t *coarse, uint16_t *dst, int64_t threads) {
-    int64_t ys0[h], ys1[h], xs0[w], xs1[w];
-    float ly0[h], ly1[h], lx0[w], lx1[w];
+    int failed = 0;
+    int64_t *taps = scratch_alloc(sizeof(int64_t) * 2 * (h + w), &failed);
+    float *weights = scratch_alloc(sizeof(float) * 2 * (h + w), &failed);
+    if (failed) {
+        free(taps), free(weights);
+        return failed;
+    }
+    int64_t *ys0 = taps, *ys1 = taps + h, *xs0 = taps + 2 * h, *xs1 = taps + 2 * h + w;
+    float *ly0 = weights, *ly1 = weights + h, *lx0 = weights + 2 * h, *lx1 = weights + 2 * h + w;
     axis_taps(h, hc, ys0, ys1, ly0, ly1);
     axis_taps(w, wc, xs0, xs1, lx0, lx1);
     const int64_t c = c_fine + c_coarse;
@@ -85,4 +102,6 @@ void upsample_cat_bf16(int64_t h, int64_t w, int64_t c_fine, const uint16_t *fin
                    o + c_fine);
         }
     }
+    free(taps), free(weights);
+    return failed;
 }

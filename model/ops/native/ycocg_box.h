@@ -7,6 +7,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "scratch.h"
+
 #define SLOTS 3    /* row sums kept per thread: the 3 a row reads, by source row mod SLOTS */
 #define MOMENTS 6  /* Y, Co, Cg and their squares */
 
@@ -94,10 +96,11 @@ typedef struct {
     float *sums, *pad, *high, *low;
 } BoxRows;
 
-static BoxRows box_rows_begin(int64_t h, int64_t w, int64_t thread, int64_t threads) {
-    BoxRows b = {h * thread / threads, h * (thread + 1) / threads, {0}, malloc(sizeof(float) * SLOTS * MOMENTS * w),
-                 malloc(sizeof(float) * MOMENTS * (w + 2)), malloc(sizeof(float) * 3 * w),
-                 malloc(sizeof(float) * 3 * w)};
+static BoxRows box_rows_begin(int64_t h, int64_t w, int64_t thread, int64_t threads, int *failed) {
+    BoxRows b = {h * thread / threads, h * (thread + 1) / threads, {0},
+                 scratch_alloc(sizeof(float) * SLOTS * MOMENTS * w, failed),
+                 scratch_alloc(sizeof(float) * MOMENTS * (w + 2), failed), scratch_alloc(sizeof(float) * 3 * w, failed),
+                 scratch_alloc(sizeof(float) * 3 * w, failed)};
     for (int s = 0; s < SLOTS; s++) b.tag[s] = -1;
     return b;
 }

@@ -47,3 +47,14 @@ def test_configure_sets_the_switch_and_the_cache(tmp_path):
     finally:
         native.configure(True, None)
     assert native.enabled() and native._cache_dir().name == "native"
+
+
+def test_a_kernel_that_cannot_allocate_raises_memory_error_and_writes_nothing():
+    """Scratch memory past any address space: the kernel refuses before touching a pixel (no crash, no output)."""
+    huge = 2 ** 50  # a row this wide needs more scratch bytes than a 64-bit process can address
+    out = torch.full((4,), 7.0)
+    plane = torch.zeros(4)
+    with pytest.raises(MemoryError, match="tail_x1"):
+        native.call("tail", "tail_x1", 1, huge, plane, plane, plane, plane, plane, None, None, None, 2.0, out, out,
+                    None)
+    assert torch.equal(out, torch.full((4,), 7.0))
