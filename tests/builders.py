@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from model.training.checkpoint import save_checkpoint
@@ -380,3 +381,20 @@ def error_of(response, status: int, code: str | None = None) -> dict:
 def error_message(response, status: int, code: str) -> str:
     """``error_of``'s message."""
     return error_of(response, status, code)["message"]
+
+
+def blurring_oidn(frame, quality):
+    """A deterministic stand-in for OIDN: a 3 x 3 box blur of the colour (OIDN's own output is not held here)."""
+    return F.avg_pool2d(frame.color, 3, stride=1, padding=1, count_include_pad=False)
+
+
+def coherent_frame(frame: FrameBatch) -> FrameBatch:
+    """The frame with one smooth surface (the synthetic frames draw their normals anew each frame, which fails every
+    geometry test) and a sub-pixel motion, so the history, the means and their warps all take part."""
+    height, width = frame.depth.shape[-2:]
+    normal = torch.zeros_like(frame.normal)
+    normal[:, 2] = 1.0
+    depth = 1.0 + torch.linspace(0.0, 0.2, width).expand(1, 1, height, width).clone()
+    motion = torch.tensor([-0.6, -0.3]).view(1, 2, 1, 1).expand_as(frame.motion).clone()
+    motion[..., :, width // 2:] = 0.25  # half the frame moves another way: reads at other sub-pixel offsets
+    return dataclasses.replace(frame, normal=normal, depth=depth, motion=motion)

@@ -11,18 +11,18 @@ from model.io.synthetic import moving_pattern_frames
 from model.methods.base import FrameBatch
 from model.deployment.pretrained import load_pretrained
 from model.ops import native
-from tests.model.methods.test_fused_step_fixed import _blurring_oidn, _coherent
+from tests.builders import blurring_oidn, coherent_frame
 
 
 def _stream(kernel_max_pixels: int, use_native: bool, frames: int = 5) -> list[dict[str, torch.Tensor]]:
     import model.methods.fused as fused
-    original, fused.oidn_denoise = fused.oidn_denoise, _blurring_oidn
+    original, fused.oidn_denoise = fused.oidn_denoise, blurring_oidn
     native.set_enabled(use_native)
     try:
         method = load_pretrained("fused-balanced-x1")  # trained weights: the history and the means carry weight
         method.set_kernel_max_pixels(kernel_max_pixels)
         method.eval().for_inference()
-        batches = [_coherent(FrameBatch.from_bundles([bundle], scale=None))
+        batches = [coherent_frame(FrameBatch.from_bundles([bundle], scale=None))
                    for bundle in moving_pattern_frames(frames, (40, 28), np.random.default_rng(5))]
         steps, state = [], None
         with torch.no_grad():

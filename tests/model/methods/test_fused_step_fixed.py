@@ -4,49 +4,30 @@ before its passes were restructured for speed: a restructuring must keep every v
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 from model.io.synthetic import moving_pattern_frames
 from model.methods.base import FrameBatch
 from model.methods.fused import Fused
+from tests.builders import blurring_oidn, coherent_frame
 
 FRAMES = 4
 SIZE = (24, 16)
 
 
-def _blurring_oidn(frame, quality):
-    """A deterministic stand-in for OIDN: a 3 x 3 box blur of the colour (OIDN's own output is not held here)."""
-    return F.avg_pool2d(frame.color, 3, stride=1, padding=1, count_include_pad=False)
-
-
-def _coherent(frame: FrameBatch) -> FrameBatch:
-    """The frame with one smooth surface (the synthetic frames draw their normals anew each frame, which fails every
-    geometry test) and a sub-pixel motion, so the history, the means and their warps all take part."""
-    height, width = frame.depth.shape[-2:]
-    normal = torch.zeros_like(frame.normal)
-    normal[:, 2] = 1.0
-    depth = 1.0 + torch.linspace(0.0, 0.2, width).expand(1, 1, height, width).clone()
-    motion = torch.tensor([-0.6, -0.3]).view(1, 2, 1, 1).expand_as(frame.motion).clone()
-    motion[..., :, width // 2:] = 0.25  # half the frame moves another way: reads at other sub-pixel offsets
-    return dataclasses.replace(frame, normal=normal, depth=depth, motion=motion)
-
-
 def stream_digest(scale: int, grad: bool) -> list[float]:
     """Per frame, the output's and every state tensor's float64 sum and a seeded random projection of it."""
     import model.methods.fused as fused
-    original, fused.oidn_denoise = fused.oidn_denoise, _blurring_oidn
+    original, fused.oidn_denoise = fused.oidn_denoise, blurring_oidn
     try:
         torch.manual_seed(3)
         method = Fused("balanced", scale)
         method.use_shipped_settings()
         if not grad:
             method.eval().for_inference()
-        frames = [_coherent(FrameBatch.from_bundles([bundle], scale=None))
+        frames = [coherent_frame(FrameBatch.from_bundles([bundle], scale=None))
                   for bundle in moving_pattern_frames(FRAMES, SIZE, np.random.default_rng(5))]
         digest, state = [], None
         with torch.set_grad_enabled(grad):
