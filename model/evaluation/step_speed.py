@@ -4,7 +4,8 @@
 so a busy machine slows them alike), after warm-up frames, and records each step's wall time with the device
 synchronized, its peak memory, and the time of every OIDN call inside it (through ``intercepted_oidn``): the
 learned part of a step is its time less its OIDN calls'. A method given a reference (the same weights as the
-plain fp32 eager model) is also compared with it on the first frames: max abs difference and PSNR.
+plain fp32 eager model, run on torch's ops without the native kernels) is also compared with it on the first frames:
+max abs difference and PSNR.
 ``speed_rows`` turns the records into report rows with each learned model's time ratio to the OIDN rows of its
 group; ``markdown_table`` and ``ratio_figure`` present them. The protocol: docs/benchmark.md.
 """
@@ -25,6 +26,7 @@ import torch
 from model.deployment.inference_forms import form_psnr
 from model.evaluation.timing import synchronize, timed
 from model.methods.oidn import intercepted_oidn
+from model.ops import native
 
 __all__ = ["GroupTiming", "MemoryProbe", "compare_outputs", "device_name", "file_stem", "learned_part",
            "markdown_table", "merge_rows", "percentile", "ratio_figure", "rounded", "speed_rows", "summary_ms",
@@ -160,8 +162,9 @@ def time_group(methods: dict[str, Any], frames: Sequence[Any], device: torch.dev
                     record.seconds.append(elapsed)
                     record.oidn_seconds.append(sum(oidn_calls))
                 if label in references and index < warmup + check_frames:
-                    (reference, reference_states[label]), reference_elapsed = clock(
-                        lambda: references[label].step(frame, reference_states[label]), device)
+                    with native.disabled():  # the plain model: fp32 eager on torch's own ops
+                        (reference, reference_states[label]), reference_elapsed = clock(
+                            lambda: references[label].step(frame, reference_states[label]), device)
                     if index >= warmup:
                         record.reference_seconds.append(reference_elapsed)
                     checked[label][0].append(output.detach().clone())
@@ -253,7 +256,7 @@ def markdown_table(report: dict[str, Any]) -> str:
              f"{load_text}"
              f"per frame after {report['warmup']} warm-up frames; ratios are p50 / p50 of the same-quality OIDN "
              f"(and OIDN + TAA) on the same frames in the same process; learned = the step less its OIDN call; "
-             f"check = the inference form against the plain fp32 model.", "",
+             f"check = the inference form against the plain fp32 model (eager, torch's ops, no native kernels).", "",
              "| model | output | render | form | frames | p50 ms | p95 ms | peak MB | step MB | learned ms | "
              "learned share | / OIDN | / OIDN + TAA | fp32 eager ms | check max abs | check PSNR dB |",
              "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]

@@ -12,6 +12,7 @@ for good.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import hashlib
@@ -26,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["build", "call", "configure", "enabled", "library", "set_enabled", "usable"]
+__all__ = ["build", "call", "configure", "disabled", "enabled", "library", "set_enabled", "usable"]
 
 SOURCES = Path(__file__).parent  # <name>.c, one library each, and the headers they share
 # -fno-trapping-math lets floorf and comparisons vectorize (no kernel enables float traps); on x86, GCC's tuning for
@@ -51,6 +52,18 @@ def configure(enabled: bool, cache: Path | None) -> None:
 
 def enabled() -> bool:
     return _state["enabled"]
+
+
+@contextlib.contextmanager
+def disabled():
+    """Torch's ops for every call in the block (process-wide: for one-threaded comparisons such as a benchmark's
+    reference step), the previous switch after it."""
+    previous = _state["enabled"]
+    _state["enabled"] = False
+    try:
+        yield
+    finally:
+        _state["enabled"] = previous
 
 
 def _cpu_signature() -> str:

@@ -131,3 +131,19 @@ def test_result_files_are_named_by_the_device():
 def test_report_floats_are_rounded_to_significant_digits():
     assert rounded({"rows": [{"ms": 123.456789, "frames": 6, "check": {"psnr": 0.000123456}}]}) == \
         {"rows": [{"ms": 123.5, "frames": 6, "check": {"psnr": 0.0001235}}]}
+
+
+def test_the_reference_step_runs_on_torch_ops_and_the_timed_one_on_the_native_kernels():
+    from model.ops import native
+
+    seen = []
+
+    class Recorder:
+        def step(self, frame, state):
+            seen.append(native.enabled())
+            return torch.zeros(1, 3, 2, 2), state
+
+    frames = [object(), object()]
+    time_group({"model": Recorder()}, frames, "cpu", warmup=0, references={"model": Recorder()},
+               check_frames=2)
+    assert seen == [True, False, True, False] and native.enabled()
