@@ -26,17 +26,10 @@ def test_usable_only_without_gradients_on_float32_cpu_tensors():
     assert not native.usable("reproject", x.double())
     with torch.enable_grad():
         assert not native.usable("reproject", x)
-    native.set_enabled(False)
-    try:
+    with native.disabled():
         assert not native.usable("reproject", x)
-    finally:
-        native.set_enabled(True)
+    assert native.usable("reproject", x)
 
-
-@pytest.fixture(autouse=True)
-def _no_grad():
-    with torch.no_grad():
-        yield
 
 
 def test_configure_sets_the_switch_and_the_cache(tmp_path):

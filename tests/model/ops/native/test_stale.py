@@ -80,7 +80,7 @@ def test_two_images_take_the_torch_path():
 
 def test_torch_path_where_not_usable():
     noisy, history = _frames(8, 37, 53)
-    with mock.patch.object(stale, "native", wraps=native) as spy:  # gradients on: not usable
+    with mock.patch.object(stale, "native", wraps=native) as spy, torch.enable_grad():  # gradients: not usable
         stale_history_trust(noisy, history, 1.0, 33, 9)
     assert not spy.call.called
 

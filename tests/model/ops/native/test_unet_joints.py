@@ -40,14 +40,5 @@ def test_only_bfloat16_channels_last_single_images_are_taken():
     assert not joints_usable(image.float())
     assert not joints_usable(image.contiguous())
     assert not joints_usable(torch.cat([image, image]))
-    native.set_enabled(False)
-    try:
+    with native.disabled():
         assert not joints_usable(image)
-    finally:
-        native.set_enabled(True)
-
-
-@pytest.fixture(autouse=True)
-def _inference():
-    with torch.no_grad():
-        yield
