@@ -508,7 +508,7 @@ class Fused(Method):
             s = self.spatial_estimate(frame)
         # The network reads ``s`` as OIDN made it (at 1x its weights were trained so); the candidates, their clip
         # and the running mean take the estimate read at the pixel centres.
-        native_x1 = self.scale == 1 and n == 1 and native.usable("resample", s)
+        native_x1 = self._native_x1(n, "resample", s)
         if not self._unjitter_estimate:
             s_out = s
         elif samples_count is not None:
@@ -517,7 +517,7 @@ class Fused(Method):
         else:
             s_out = unjittered_resample_x1(s, frame.jitter) if native_x1 else \
                 unjittered_resample(s, frame.jitter, self.scale)
-        if self.scale == 1 and n == 1 and self.has_mean and native.usable("features", s, s_out, frame.color):
+        if self.has_mean and self._native_x1(n, "features", s, s_out, frame.color):
             inputs = self._network_inputs_native(frame, state, s, s_out, reprojected)
         else:
             inputs = self._network_inputs(frame, state, s, s_out, reprojected)
@@ -525,14 +525,14 @@ class Fused(Method):
         logits, kernels, new_hidden = self.net(features)
         unfiltered = bool(self._kernel_max_pixels) and height * width > self._kernel_max_pixels
         linear = None  # the output in linear radiance, where the native pass made it
-        if unfiltered and self.scale == 1 and n == 1 and self.has_mean and native.usable("tail", logits):
+        if unfiltered and self.has_mean and self._native_x1(n, "tail", logits):
             trust = None
             if self._stale_test_sigmas > 0 and state is not None:
                 trust = stale_history_trust(frame.color, reinhard_inverse(mean_r), self._stale_test_sigmas,
                                             self._stale_region_pixels, STALE_TEST_BLOCK)
             blended, linear, kept = fused_tail_x1(logits, candidates, trust, valid, samples_count,
                                                   self._sample_mean_trust_power)
-            samples_count = kept if samples is not None else samples_count
+            samples_count = kept  # None without a sample mean
             output = blended
         else:
             # contiguous: from a channels_last network each candidate's weight is a strided slice otherwise
@@ -560,6 +560,10 @@ class Fused(Method):
             output = output * detail
             new_state.update(gathered)
         return output, new_state
+
+    def _native_x1(self, n: int, source: str, *tensors: torch.Tensor) -> bool:
+        """Whether this step's 1x work may run ``source``'s native kernels: scale 1, one image, ``native.usable``."""
+        return self.scale == 1 and n == 1 and native.usable(source, *tensors)
 
     def _network_inputs(self, frame: FrameBatch, state: State | None, s: torch.Tensor, s_out: torch.Tensor,
                         reprojected: tuple[torch.Tensor | None, ...] | None) -> tuple:
@@ -695,7 +699,7 @@ class Fused(Method):
         ``motion_out``: the motion on the output grid. The buffers read with the same motion and filter are read in
         one call each: a read's arithmetic is per channel, so the values are those of separate reads."""
         with_mean = self.has_mean and "mean" in state
-        if self.scale == 1 and frame.motion.shape[0] == 1 and native.usable("reproject", frame.motion, state["history"]):
+        if self._native_x1(frame.motion.shape[0], "reproject", frame.motion, state["history"]):
             return self._reproject_native(frame, state, samples, with_mean)
         # Bicubic: a bilinear read blurs the history a little every frame under camera motion, which adds up over
         # a long history.

@@ -23,7 +23,8 @@ import torch
 from model.ops.box_filter import replicated_box_extremes, replicated_box_mean
 
 __all__ = ["rgb_to_ycocg", "ycocg_to_rgb", "neighbourhood_moments", "neighbourhood_clamp", "variance_clip",
-           "clip_to_moments", "clip_to_bounds", "moment_bounds", "variance_clip_hdr", "rectify_accumulated", "ACCUMULATION_WINDOW", "ACCUMULATION_GAMMA"]
+           "clip_to_moments", "clip_to_bounds", "moment_bounds", "variance_clip_hdr", "rectify_accumulated",
+           "ACCUMULATION_WINDOW", "ACCUMULATION_GAMMA"]
 
 # The clip of an accumulated history against a 1 spp frame: a window wide enough that the noise does not make the
 # box meaningless, and a box a little wider than TAA's (``accumulation:rectified``, ``svgf:rectified``, and the seed

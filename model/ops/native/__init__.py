@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["build", "call", "configure", "disabled", "enabled", "library", "set_enabled", "usable"]
+__all__ = ["build", "call", "configure", "disabled", "enabled", "library", "planes", "set_enabled", "usable"]
 
 SOURCES = Path(__file__).parent  # <name>.c, one library each, and the headers they share
 # -fno-trapping-math lets floorf and comparisons vectorize (no kernel enables float traps); on x86, GCC's tuning for
@@ -138,6 +138,12 @@ def usable(source: str, *tensors: torch.Tensor, dtype: torch.dtype = torch.float
     if not all(t.device.type == "cpu" and t.dtype == dtype and not t.requires_grad for t in tensors):
         return False
     return library(source) is not None
+
+
+def planes(*images: torch.Tensor) -> list[torch.Tensor]:
+    """The (H, W) planes of one-image tensors (1, C, H, W), channel by channel, contiguous: a kernel's array of
+    pointers. The list keeps any contiguous copies alive through the call."""
+    return [plane for image in images for plane in image.contiguous()[0]]
 
 
 def _argument(value):

@@ -1,8 +1,8 @@
 /* The fused step's reprojection at 1x in one pass per row: the bicubic, bilinear and nearest backward warps of
  * model.ops.warp (border padding) and the geometry test of model.ops.reproject, with grid_sample's arithmetic
  * (align_corners=False, cubic convolution A = -0.75). Planes are single-image (H, W) float32 arrays. Each row first
- * computes every pixel's taps and weights into row buffers, then reads each channel through them: simple loops over
- * x in functions of their own (restrict arguments), which the compiler vectorizes with gathers. */
+ * computes every pixel's taps and weights into row buffers (simple loops over x in functions of their own, restrict
+ * arguments, which the compiler vectorizes), then reads the images interleaved, one vector load a tap. */
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -22,7 +22,9 @@ static inline float source_coordinate(float p, float size) {
 }
 
 static inline float cubic_near(float d) { return ((CUBIC_A + 2.0f) * d - (CUBIC_A + 3.0f)) * d * d + 1.0f; }
-static inline float cubic_far(float d) { return ((CUBIC_A * d - 5.0f * CUBIC_A) * d + 8.0f * CUBIC_A) * d - 4.0f * CUBIC_A; }
+static inline float cubic_far(float d) {
+    return ((CUBIC_A * d - 5.0f * CUBIC_A) * d + 8.0f * CUBIC_A) * d - 4.0f * CUBIC_A;
+}
 
 /* positions centre + motion of one row */
 static NOINLINE void positions(int64_t w, float y, const float *restrict mx, const float *restrict my,
@@ -51,27 +53,6 @@ static NOINLINE void cubic_axis(int64_t w, const float *restrict p, float size, 
     }
 }
 
-/* one tap row of the cubic read: acc (+)= (sum over the 4 columns) * the row's weight */
-static NOINLINE void cubic_row(int64_t w, int first, const float *restrict src, const int32_t *restrict row,
-                               const int32_t *restrict c0, const int32_t *restrict c1, const int32_t *restrict c2,
-                               const int32_t *restrict c3, const float *restrict k0, const float *restrict k1,
-                               const float *restrict k2, const float *restrict k3, const float *restrict ky,
-                               float *restrict acc) {
-    if (first) {
-        for (int64_t x = 0; x < w; x++)
-            acc[x] = (src[row[x] + c0[x]] * k0[x] + src[row[x] + c1[x]] * k1[x] + src[row[x] + c2[x]] * k2[x]
-                      + src[row[x] + c3[x]] * k3[x]) * ky[x];
-    } else {
-        for (int64_t x = 0; x < w; x++)
-            acc[x] += (src[row[x] + c0[x]] * k0[x] + src[row[x] + c1[x]] * k1[x] + src[row[x] + c2[x]] * k2[x]
-                       + src[row[x] + c3[x]] * k3[x]) * ky[x];
-    }
-}
-
-static NOINLINE void clamp_row(int64_t w, const float *restrict acc, float low, float high, float *restrict dst) {
-    for (int64_t x = 0; x < w; x++) dst[x] = clampf(acc[x], low, high);
-}
-
 /* along one axis: the bilinear position clamped to the border, its fraction and its two taps (times stride); a far
  * tap past the edge has weight 0 and reads the near one */
 static NOINLINE void linear_axis(int64_t w, const float *restrict p, float size, int32_t stride,
@@ -81,16 +62,6 @@ static NOINLINE void linear_axis(int64_t w, const float *restrict p, float size,
         frac[x] = l - f;
         i0[x] = (int32_t)f * stride;
         i1[x] = (int32_t)(f + 1.0f < size ? f + 1.0f : f) * stride;
-    }
-}
-
-static NOINLINE void linear_row(int64_t w, const float *restrict src, const int32_t *restrict r0,
-                                const int32_t *restrict r1, const int32_t *restrict c0, const int32_t *restrict c1,
-                                const float *restrict ux, const float *restrict uy, float *restrict dst) {
-    for (int64_t x = 0; x < w; x++) {
-        const float tx = ux[x], ty = uy[x], ex = 1.0f - tx, ey = 1.0f - ty;
-        dst[x] = src[r0[x] + c0[x]] * (ey * ex) + src[r0[x] + c1[x]] * (ey * tx) + src[r1[x] + c0[x]] * (ty * ex)
-               + src[r1[x] + c1[x]] * (ty * tx);
     }
 }
 
@@ -199,29 +170,26 @@ int reproject_x1(int64_t h, int64_t w, const float *motion,
     const float fw = (float)w, fh = (float)h, low = (float)cubic_low, high = (float)cubic_high;
     const float jx = (float)jitter_x, jy = (float)jitter_y, dtol = (float)depth_tol, ctol = (float)cos_tol;
     const int32_t iw = (int32_t)w;
-    /* interleaved copies of the images (scratch: h * w * (CUBIC_STRIDE + LINEAR_STRIDE) floats, or NULL: planar
-     * reads, one gather per channel) */
-    float *cubic_pixels = NULL, *linear_pixels = NULL;
-    if (scratch && n_cubic <= CUBIC_STRIDE && n_linear <= LINEAR_STRIDE) {
-        cubic_pixels = n_cubic ? scratch : NULL;
-        linear_pixels = n_linear ? scratch + plane * CUBIC_STRIDE : NULL;
+    /* interleaved copies of the images, in scratch (h * w * (CUBIC_STRIDE + LINEAR_STRIDE) floats); the caller
+     * passes at most CUBIC_STRIDE and LINEAR_STRIDE channels */
+    float *cubic_pixels = scratch, *linear_pixels = scratch + plane * CUBIC_STRIDE;
 #pragma omp parallel for num_threads(threads) schedule(static)
-        for (int64_t y = 0; y < h; y++) {
-            if (cubic_pixels) interleave_row(w, cubic_src, n_cubic, y * w, CUBIC_STRIDE, cubic_pixels + y * w * CUBIC_STRIDE);
-            if (linear_pixels)
-                interleave_row(w, linear_src, n_linear, y * w, LINEAR_STRIDE, linear_pixels + y * w * LINEAR_STRIDE);
-        }
+    for (int64_t y = 0; y < h; y++) {
+        if (n_cubic) interleave_row(w, cubic_src, n_cubic, y * w, CUBIC_STRIDE, cubic_pixels + y * w * CUBIC_STRIDE);
+        if (n_linear)
+            interleave_row(w, linear_src, n_linear, y * w, LINEAR_STRIDE, linear_pixels + y * w * LINEAR_STRIDE);
     }
     int failed = 0;
 #pragma omp parallel num_threads(threads)
     {
         /* row buffers: cubic 4 + 4 weights, 4 columns, 4 row offsets; bilinear 2 fractions, 2 columns, 2 row
-         * offsets; positions 2; nearest 2 indices; a sum */
-        float *fl = scratch_alloc((size_t)w * 13 * sizeof(float), &failed);
+         * offsets; positions 2; nearest 2 indices */
+        float *fl = scratch_alloc((size_t)w * 12 * sizeof(float), &failed);
         int32_t *in = scratch_alloc((size_t)w * 14 * sizeof(int32_t), &failed);
         float *kx[4] = {fl, fl + w, fl + 2 * w, fl + 3 * w}, *ky[4] = {fl + 4 * w, fl + 5 * w, fl + 6 * w, fl + 7 * w};
-        float *ux = fl + 8 * w, *uy = fl + 9 * w, *px = fl + 10 * w, *py = fl + 11 * w, *acc = fl + 12 * w;
-        int32_t *cols[4] = {in, in + w, in + 2 * w, in + 3 * w}, *rows[4] = {in + 4 * w, in + 5 * w, in + 6 * w, in + 7 * w};
+        float *ux = fl + 8 * w, *uy = fl + 9 * w, *px = fl + 10 * w, *py = fl + 11 * w;
+        int32_t *cols[4] = {in, in + w, in + 2 * w, in + 3 * w};
+        int32_t *rows[4] = {in + 4 * w, in + 5 * w, in + 6 * w, in + 7 * w};
         int32_t *lc0 = in + 8 * w, *lc1 = in + 9 * w, *lr0 = in + 10 * w, *lr1 = in + 11 * w;
         int32_t *near = in + 12 * w, *moved = in + 13 * w;
         float *pixels = scratch_alloc(sizeof(float) * w * LINEAR_STRIDE, &failed);  /* a row of interleaved results */
@@ -234,28 +202,15 @@ int reproject_x1(int64_t h, int64_t w, const float *motion,
             if (n_cubic) {
                 cubic_axis(w, px, fw, 1, kx[0], kx[1], kx[2], kx[3], cols[0], cols[1], cols[2], cols[3]);
                 cubic_axis(w, py, fh, iw, ky[0], ky[1], ky[2], ky[3], rows[0], rows[1], rows[2], rows[3]);
-                if (cubic_pixels) {
-                    cubic_row_interleaved(w, cubic_pixels, (const int32_t *const *)rows,
-                                          (const int32_t *const *)cols, (const float *const *)kx,
-                                          (const float *const *)ky, low, high, pixels);
-                    deinterleave_row(w, pixels, n_cubic, CUBIC_STRIDE, cubic_dst, base);
-                }
-                for (int64_t c = 0; c < (cubic_pixels ? 0 : n_cubic); c++) {
-                    for (int r = 0; r < 4; r++)
-                        cubic_row(w, r == 0, cubic_src[c], rows[r], cols[0], cols[1], cols[2], cols[3], kx[0], kx[1],
-                                  kx[2], kx[3], ky[r], acc);
-                    clamp_row(w, acc, low, high, cubic_dst[c] + base);
-                }
+                cubic_row_interleaved(w, cubic_pixels, (const int32_t *const *)rows, (const int32_t *const *)cols,
+                                      (const float *const *)kx, (const float *const *)ky, low, high, pixels);
+                deinterleave_row(w, pixels, n_cubic, CUBIC_STRIDE, cubic_dst, base);
             }
             if (n_linear) {
                 linear_axis(w, px, fw, 1, ux, lc0, lc1);
                 linear_axis(w, py, fh, iw, uy, lr0, lr1);
-                if (linear_pixels) {
-                    linear_row_interleaved(w, linear_pixels, lr0, lr1, lc0, lc1, ux, uy, pixels);
-                    deinterleave_row(w, pixels, n_linear, LINEAR_STRIDE, linear_dst, base);
-                }
-                for (int64_t c = 0; c < (linear_pixels ? 0 : n_linear); c++)
-                    linear_row(w, linear_src[c], lr0, lr1, lc0, lc1, ux, uy, linear_dst[c] + base);
+                linear_row_interleaved(w, linear_pixels, lr0, lr1, lc0, lc1, ux, uy, pixels);
+                deinterleave_row(w, pixels, n_linear, LINEAR_STRIDE, linear_dst, base);
             }
             if (n_nearest) {
                 nearest_index(w, px, py, 0.0f, 0.0f, fw, fh, iw, near);

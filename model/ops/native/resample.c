@@ -89,7 +89,8 @@ int resample_x1(int64_t h, int64_t w, const float *image, const float *count, co
         const int64_t y0 = h * t / nt, y1 = h * (t + 1) / nt;
         float *filtered = scratch_alloc(sizeof(float) * SLOTS * CHANNELS * w, &failed);
         float *pad = scratch_alloc(sizeof(float) * (w + 4), &failed);
-        float *vmax = scratch_alloc(sizeof(float) * (w + 2), &failed), *vmin = scratch_alloc(sizeof(float) * (w + 2), &failed);
+        float *vmax = scratch_alloc(sizeof(float) * (w + 2), &failed);
+        float *vmin = scratch_alloc(sizeof(float) * (w + 2), &failed);
         float *hmax = scratch_alloc(sizeof(float) * w, &failed), *hmin = scratch_alloc(sizeof(float) * w, &failed);
         int64_t tag[SLOTS];
         for (int s = 0; s < SLOTS; s++) tag[s] = -1;

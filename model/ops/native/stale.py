@@ -16,7 +16,7 @@ def stale_trust(noisy: torch.Tensor, history: torch.Tensor, sigmas: float, regio
     (1, 1, H, W)."""
     h, w = noisy.shape[-2:]
     trust = noisy.new_empty((1, 1, h, w))
-    native.call("stale", "stale_trust", h, w, list(noisy.contiguous()[0]), list(history.contiguous()[0]),
+    native.call("stale", "stale_trust", h, w, native.planes(noisy), native.planes(history),
                 float(sigmas), int(block), int(region), float(relative_floor), float(region_cap),
                 float(region_sigmas), trust)
     return trust
@@ -29,8 +29,8 @@ def sample_mean_update(noisy: torch.Tensor, mean: torch.Tensor, count: torch.Ten
     ``count``, ``valid`` (bool), ``trust`` and ``spread`` (1, 1, H, W; None: not applied); (new mean, count)."""
     h, w = noisy.shape[-2:]
     out_mean, out_count = torch.empty_like(noisy, memory_format=torch.contiguous_format), count.new_empty((1, 1, h, w))
-    native.call("stale", "sample_mean_update", h, w, noisy.shape[1], list(noisy.contiguous()[0]),
-                list(mean.contiguous()[0]), count.contiguous(), None if trust is None else trust.contiguous(),
+    native.call("stale", "sample_mean_update", h, w, noisy.shape[1], native.planes(noisy), native.planes(mean),
+                count.contiguous(), None if trust is None else trust.contiguous(),
                 None if spread is None else spread.contiguous(), valid.contiguous(), float(max_frames),
                 list(out_mean[0]), out_count)
     return out_mean, out_count

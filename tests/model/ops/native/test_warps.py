@@ -51,3 +51,10 @@ def test_without_cubic_or_linear_images():
                                                      prev_depth, prev_normal, torch.zeros(1, 2), 0.1, 0.9)
     assert cubic.shape[1] == 0 and linear.shape[1] == 0
     assert torch.equal(nearest, backward_warp(images[4], motion, mode="nearest")[0])
+
+
+def test_more_channels_than_one_vector_load_reads_are_refused():
+    motion, depth, normal, prev_depth, prev_normal, images = _case(4)
+    with pytest.raises(ValueError, match="at most 8 bicubic"):
+        reproject_x1(motion, [images[0]] * 3, (0.0, 1.0), [], [], depth, normal, prev_depth, prev_normal,
+                     torch.zeros(1, 2), 0.1, 0.9)
